@@ -1,0 +1,164 @@
+"""Gymnasium environment: the Swimmer-v5 task for a chain of any length.
+
+``num_joints`` is an int (fixed chain) or an inclusive range ``(lo, hi)``
+from which the chain length is drawn at every reset with the env's seeded
+RNG. With 2 joints and ``observation_mode="flat"`` this is Swimmer-v5,
+step for step (see the equivalence test).
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import gymnasium
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from morph_core.swimmer_model import check_num_joints, swimmer_model
+
+OBSERVATION_MODES = ("graph", "flat")
+GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
+
+
+def _check_joint_range(num_joints) -> tuple[int, int]:
+    if isinstance(num_joints, numbers.Integral) and not isinstance(num_joints, bool):
+        n = check_num_joints(num_joints)
+        return n, n
+    try:
+        lo, hi = num_joints
+    except (TypeError, ValueError):
+        raise TypeError(f"num_joints must be an int or a (lo, hi) pair, got {num_joints!r}") from None
+    lo, hi = check_num_joints(lo), check_num_joints(hi)
+    if lo > hi:
+        raise ValueError(f"num_joints range is empty: lo={lo} > hi={hi}")
+    return lo, hi
+
+
+class MorphSwimmerEnv(gymnasium.Env):
+    """Planar swimmer in a viscous medium; reward = forward speed - 1e-4 |a|^2.
+
+    Graph observations are a dict: ``joint_pos`` and ``joint_vel`` (one entry
+    per joint, torso to tail), ``global`` (yaw, yaw rate, vx, vy of the torso
+    frame) and ``edge_index`` (2 x N: joint j links segment j to segment j+1,
+    segment 0 being the torso).
+    """
+
+    metadata = {"render_modes": [], "render_fps": 25}
+
+    def __init__(
+        self,
+        num_joints: int | tuple[int, int] = 2,
+        observation_mode: str = "graph",
+        frame_skip: int = 4,
+        forward_reward_weight: float = 1.0,
+        ctrl_cost_weight: float = 1e-4,
+        reset_noise_scale: float = 0.1,
+    ):
+        if observation_mode not in OBSERVATION_MODES:
+            raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {observation_mode!r}")
+        if frame_skip < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
+        self.joint_range = _check_joint_range(num_joints)
+        self.observation_mode = observation_mode
+        self.frame_skip = int(frame_skip)
+        self.forward_reward_weight = forward_reward_weight
+        self.ctrl_cost_weight = ctrl_cost_weight
+        self.reset_noise_scale = reset_noise_scale
+        self.num_joints = 0
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self._build(self.joint_range[0])
+
+    # -- chain ---------------------------------------------------------------
+    def _build(self, num_joints: int) -> None:
+        """Switch to a chain of ``num_joints`` (the compiled model is cached per length)."""
+        if num_joints == self.num_joints:
+            mujoco.mj_resetData(self.model, self.data)
+            return
+        self.num_joints = num_joints
+        self.model = swimmer_model(num_joints)
+        self.data = mujoco.MjData(self.model)
+        self.dt = self.model.opt.timestep * self.frame_skip
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(num_joints,), dtype=np.float32)
+        self.observation_space = self._observation_space(num_joints)
+        self._edge_index = np.stack([np.arange(num_joints), np.arange(1, num_joints + 1)]).astype(np.int64)
+
+    def _observation_space(self, n: int) -> spaces.Space:
+        if self.observation_mode == "flat":
+            return spaces.Box(-np.inf, np.inf, shape=(2 * n + 4,), dtype=np.float64)
+        return spaces.Dict(
+            {
+                "joint_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
+                "joint_vel": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
+                "global": spaces.Box(-np.inf, np.inf, shape=(len(GLOBAL_FEATURES),), dtype=np.float64),
+                "edge_index": spaces.Box(0, n, shape=(2, n), dtype=np.int64),
+            }
+        )
+
+    # -- gymnasium API -------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset; ``options={"num_joints": n}`` forces the chain length of this episode."""
+        super().reset(seed=seed)
+        if options and "num_joints" in options:
+            n = check_num_joints(options["num_joints"])
+        else:
+            lo, hi = self.joint_range
+            n = lo if lo == hi else int(self.np_random.integers(lo, hi + 1))
+        self._build(n)
+        # Swimmer-v5's reset noise, drawn in the same order from the same RNG.
+        m, d, s = self.model, self.data, self.reset_noise_scale
+        qpos = m.qpos0 + self.np_random.uniform(low=-s, high=s, size=m.nq)
+        qvel = self.np_random.uniform(low=-s, high=s, size=m.nv)
+        d.qpos[:] = qpos
+        d.qvel[:] = qvel
+        mujoco.mj_forward(m, d)
+        return self._observation(), self._reset_info()
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (self.num_joints,):
+            raise ValueError(f"action must have shape ({self.num_joints},) for this chain, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains NaN or inf: {a}")
+        d = self.data
+        xy_before = d.qpos[0:2].copy()
+        d.ctrl[:] = a
+        mujoco.mj_step(self.model, d, nstep=self.frame_skip)
+        xy_after = d.qpos[0:2].copy()
+        x_velocity, y_velocity = (xy_after - xy_before) / self.dt
+
+        forward_reward = self.forward_reward_weight * x_velocity
+        ctrl_cost = self.ctrl_cost_weight * np.sum(np.square(a))
+        reward = forward_reward - ctrl_cost
+        info = {
+            "x_position": xy_after[0],
+            "y_position": xy_after[1],
+            "distance_from_origin": np.linalg.norm(xy_after, ord=2),
+            "x_velocity": x_velocity,
+            "y_velocity": y_velocity,
+            "reward_forward": forward_reward,
+            "reward_ctrl": -ctrl_cost,
+            "num_joints": self.num_joints,
+        }
+        return self._observation(), reward, False, False, info
+
+    # -- observations --------------------------------------------------------
+    def _observation(self):
+        qpos, qvel = self.data.qpos, self.data.qvel
+        if self.observation_mode == "flat":
+            return np.concatenate([qpos[2:], qvel])
+        return {
+            "joint_pos": qpos[3:].copy(),
+            "joint_vel": qvel[3:].copy(),
+            "global": np.array([qpos[2], qvel[2], qvel[0], qvel[1]]),
+            "edge_index": self._edge_index,
+        }
+
+    def _reset_info(self) -> dict:
+        return {
+            "x_position": self.data.qpos[0],
+            "y_position": self.data.qpos[1],
+            "distance_from_origin": np.linalg.norm(self.data.qpos[0:2], ord=2),
+            "num_joints": self.num_joints,
+        }

@@ -1,0 +1,26 @@
+from setuptools import find_packages, setup
+
+package_name = "morph_policy_node"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["morph_core"],
+    zip_safe=True,
+    maintainer="morph-control developers",
+    maintainer_email="dev@example.org",
+    description=(
+        "ROS 2 node: morphology-agnostic GNN policy, joint graph built from each JointState message."
+    ),
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "morph_policy_node = morph_policy_node.policy_node:main",
+        ],
+    },
+)

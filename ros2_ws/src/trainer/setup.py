@@ -1,0 +1,28 @@
+from setuptools import find_packages, setup
+
+package_name = "trainer"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    install_requires=["morph_core", "rosbags", "tensorboard", "tqdm"],
+    zip_safe=True,
+    maintainer="morph-control developers",
+    maintainer_email="dev@example.org",
+    description=(
+        "PPO trainer (fixed or dimension-compensated clipping) from simulation, "
+        "recorded rosbag2 topics and live rollouts."
+    ),
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "morph-train = trainer.train_cli:main",
+            "morph-eval = trainer.eval_cli:main",
+        ],
+    },
+)
