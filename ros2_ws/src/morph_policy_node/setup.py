@@ -14,9 +14,7 @@ setup(
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",
-    description=(
-        "ROS 2 node: morphology-agnostic GNN policy, joint graph built from each JointState message."
-    ),
+    description="ROS 2 node: morphology-agnostic GNN policy, joint graph built from each JointState message.",
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

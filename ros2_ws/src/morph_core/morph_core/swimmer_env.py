@@ -19,6 +19,7 @@ from morph_core.swimmer_model import check_num_joints, swimmer_model
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
+_BADQACC = mujoco.mjtWarning.mjWARN_BADQACC
 
 
 def _check_joint_range(num_joints) -> tuple[int, int]:
@@ -37,6 +38,9 @@ def _check_joint_range(num_joints) -> tuple[int, int]:
 
 class MorphSwimmerEnv(gymnasium.Env):
     """Planar swimmer in a viscous medium; reward = forward speed - 1e-4 |a|^2.
+
+    Episodes never terminate, except when the physics diverges (MuJoCo's bad
+    acceleration warning, ``info["physics_unstable"]``).
 
     Graph observations are a dict: ``joint_pos`` and ``joint_vel`` (one entry
     per joint, torso to tail), ``global`` (yaw, yaw rate, vx, vy of the torso
@@ -124,7 +128,12 @@ class MorphSwimmerEnv(gymnasium.Env):
         d = self.data
         xy_before = d.qpos[0:2].copy()
         d.ctrl[:] = a
+        unstable_before = d.warning[_BADQACC].number
         mujoco.mj_step(self.model, d, nstep=self.frame_skip)
+        # MuJoCo resets the state itself when it diverges (seen on chains of
+        # 50+ joints at Swimmer-v5's timestep): end the episode instead of
+        # carrying on from a silently reset swimmer.
+        unstable = d.warning[_BADQACC].number > unstable_before
         xy_after = d.qpos[0:2].copy()
         x_velocity, y_velocity = (xy_after - xy_before) / self.dt
 
@@ -140,8 +149,9 @@ class MorphSwimmerEnv(gymnasium.Env):
             "reward_forward": forward_reward,
             "reward_ctrl": -ctrl_cost,
             "num_joints": self.num_joints,
+            "physics_unstable": unstable,
         }
-        return self._observation(), reward, False, False, info
+        return self._observation(), reward, unstable, False, info
 
     # -- observations --------------------------------------------------------
     def _observation(self):
@@ -152,7 +162,7 @@ class MorphSwimmerEnv(gymnasium.Env):
             "joint_pos": qpos[3:].copy(),
             "joint_vel": qvel[3:].copy(),
             "global": np.array([qpos[2], qvel[2], qvel[0], qvel[1]]),
-            "edge_index": self._edge_index,
+            "edge_index": self._edge_index.copy(),
         }
 
     def _reset_info(self) -> dict:

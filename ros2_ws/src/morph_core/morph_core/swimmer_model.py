@@ -83,8 +83,13 @@ def swimmer_mjcf(num_joints: int) -> str:
         pos = 0.5 if k == 1 else -SEGMENT_LENGTH
         parts.append(
             _SEGMENT.format(
-                ind=indent, name=segment_body_name(k, n), pos=pos, length=SEGMENT_LENGTH,
-                r=SEGMENT_RADIUS, k=k, rng=HINGE_RANGE_DEG,
+                ind=indent,
+                name=segment_body_name(k, n),
+                pos=pos,
+                length=SEGMENT_LENGTH,
+                r=SEGMENT_RADIUS,
+                k=k,
+                rng=HINGE_RANGE_DEG,
             )
         )
         indent += "  "
@@ -93,9 +98,7 @@ def swimmer_mjcf(num_joints: int) -> str:
         parts.append(f"{indent}</body>\n")
     parts.append("    </body>\n  </worldbody>\n  <actuator>\n")
     for k in range(1, n + 1):
-        parts.append(
-            f'    <motor ctrllimited="true" ctrlrange="-1 1" gear="{GEAR}" joint="motor{k}_rot"/>\n'
-        )
+        parts.append(f'    <motor ctrllimited="true" ctrlrange="-1 1" gear="{GEAR}" joint="motor{k}_rot"/>\n')
     parts.append("  </actuator>\n</mujoco>\n")
     return "".join(parts)
 

@@ -1,0 +1,50 @@
+"""morph_core is ROS-free: no module in it imports rclpy or any ROS message package."""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import morph_core
+
+ROS_MODULES = (
+    "rclpy",
+    "rosidl",
+    "rcl_interfaces",
+    "builtin_interfaces",
+    "std_msgs",
+    "sensor_msgs",
+    "nav_msgs",
+    "geometry_msgs",
+    "rosgraph_msgs",
+    "launch",
+    "ament_index_python",
+)
+CORE = pathlib.Path(morph_core.__file__).parent
+
+
+def _imported_modules(path):
+    tree = ast.parse(path.read_text(), filename=str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            yield node.module
+
+
+def test_no_ros_import_in_source():
+    files = sorted(CORE.rglob("*.py"))
+    assert len(files) >= 3
+    offenders = [(f.name, mod) for f in files for mod in _imported_modules(f) if mod.split(".")[0] in ROS_MODULES]
+    assert offenders == []
+
+
+def test_importing_every_core_module_loads_no_ros():
+    modules = [f"morph_core.{f.stem}" for f in sorted(CORE.glob("*.py")) if f.stem != "__init__"]
+    code = (
+        "import importlib, sys\n"
+        f"for m in {modules!r}: importlib.import_module(m)\n"
+        f"print(sorted(k for k in sys.modules if k.split('.')[0] in {ROS_MODULES!r}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

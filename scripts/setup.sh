@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Create the project venv at .venv and install the four workspace packages
+# editable, every version pinned by constraints.txt. Re-running is a no-op
+# unless constraints.txt, requirements-dev.txt or a setup.py changed.
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$root"
+python=${PYTHON:-python3}
+if ! "$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+    echo "setup: need Python 3.11 (the ROS 2 Jazzy wheels are built for it); got $("$python" --version)" >&2
+    exit 1
+fi
+stamp=.venv/.installed
+want=$(cat constraints.txt requirements-dev.txt ros2_ws/src/*/setup.py | sha256sum | cut -d' ' -f1)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+    exit 0
+fi
+echo "setup: installing into .venv (once; about a minute)" >&2
+[ -x .venv/bin/python ] || "$python" -m venv .venv
+.venv/bin/python -m pip install --quiet --upgrade "pip>=24"
+.venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
+    -e ros2_ws/src/morph_core -e ros2_ws/src/swimmer_sim_node \
+    -e ros2_ws/src/morph_policy_node -e ros2_ws/src/trainer
+echo "$want" > "$stamp"

@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Set everything up, then run the whole test suite (lint, unit, ROS integration).
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$root"
+bash scripts/setup.sh
+.venv/bin/ruff check .
+.venv/bin/ruff format --check .
+# Integration tests start real nodes on real DDS: keep them in a private netns.
+bash scripts/in_netns.sh .venv/bin/python -m pytest "$@"
