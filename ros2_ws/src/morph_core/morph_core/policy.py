@@ -1,0 +1,188 @@
+"""Graph actor-critic for chains of any length (the paper's architecture).
+
+Feature extractor (4,376 parameters, as in the paper): two NNConv layers
+(24 and 16 channels) over the joint graph, whose link nodes start from a
+constant 1 and whose edges carry the joint states; a global MLP 4 -> 128 -> 16
+on (yaw, yaw rate, vx, vy); the global embedding is added to every joint's
+embedding (the embedding of the link behind that joint). ReLU throughout.
+
+Heads (64-64 tanh MLPs, as in the reference): a per-joint Gaussian mean, one
+state-independent log-std shared by all joints, and a value from the mean of
+the joint embeddings. The log-probability of an action is the sum over the
+chain's joints, so it is a density over that sample's own action dimension.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file
+from safetensors.torch import save as safetensors_bytes
+from torch import nn
+
+from morph_core.atomic import atomic_write_bytes, atomic_writer
+from morph_core.chain_conv import dense_chain_conv, make_nnconv, pyg_chain_conv
+from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
+
+BACKENDS = ("dense", "pyg")
+
+
+@dataclass
+class PolicyConfig:
+    """Architecture of the graph actor-critic."""
+
+    conv1_channels: int = 24
+    """channels of the first NNConv layer"""
+    embed_channels: int = 16
+    """channels of the second NNConv layer and of the global embedding they are added to"""
+    global_hidden: int = 128
+    """hidden width of the global-state MLP"""
+    head_hidden: int = 64
+    """width of the two tanh layers in the actor and critic heads"""
+    bidirectional: bool = True
+    """messages flow both ways along the chain; False is the reference's torso-to-tail only"""
+    log_std_init: float = 0.0
+    """initial log standard deviation of every joint's Gaussian"""
+    backend: str = "dense"
+    """'dense': batched chain NNConv; 'pyg': PyTorch Geometric's NNConv (reference, same parameters)"""
+
+    def __post_init__(self):
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
+            if getattr(self, f) < 1:
+                raise ValueError(f"{f} must be >= 1, got {getattr(self, f)}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PolicyConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown policy config fields: {sorted(unknown)}")
+        return cls(**d)
+
+
+def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2 or last_act:
+            layers.append(act())
+    return nn.Sequential(*layers)
+
+
+class GraphFeatureExtractor(nn.Module):
+    """Joint graph + global state -> one embedding per joint, [B, J, embed_channels]."""
+
+    def __init__(self, config: PolicyConfig):
+        super().__init__()
+        self.config = config
+        self.conv1 = make_nnconv(1, config.conv1_channels)
+        self.conv2 = make_nnconv(config.conv1_channels, config.embed_channels)
+        self.global_mlp = _mlp([NUM_GLOBAL_FEATURES, config.global_hidden, config.embed_channels], nn.ReLU, True)
+        self._conv = dense_chain_conv if config.backend == "dense" else pyg_chain_conv
+
+    def forward(self, batch: ChainBatch) -> torch.Tensor:
+        bi = self.config.bidirectional
+        e, m = batch.edge_attr, batch.mask
+        x = e.new_ones(batch.batch_size, batch.max_joints + 1, 1)  # links carry no state of their own
+        x = torch.relu(self._conv(self.conv1, x, e, m, bi))
+        x = torch.relu(self._conv(self.conv2, x, e, m, bi))
+        joint_embed = x[:, 1:]  # joint j reads the link behind it (link j+1)
+        return joint_embed + self.global_mlp(batch.global_feats).unsqueeze(1)
+
+
+class GraphActorCritic(nn.Module):
+    """pi(a | s) = prod_j N(a_j; mu_j(s), sigma^2) over the chain's joints, and V(s)."""
+
+    def __init__(self, config: PolicyConfig | None = None):
+        super().__init__()
+        self.config = config or PolicyConfig()
+        h = self.config.head_hidden
+        self.features = GraphFeatureExtractor(self.config)
+        self.actor_head = _mlp([self.config.embed_channels, h, h, 1], nn.Tanh, False)
+        self.critic_head = _mlp([self.config.embed_channels, h, h, 1], nn.Tanh, False)
+        self.log_std = nn.Parameter(torch.tensor(float(self.config.log_std_init)))
+
+    def forward(self, batch: ChainBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns mean [B, J] (zero at padding), log_std (scalar), value [B]."""
+        z = self.features(batch)
+        # The head runs on real joints only: padding would be ~40% of the work on 2..10-joint mixes.
+        mean = z.new_zeros(batch.mask.shape)
+        mean[batch.mask] = self.actor_head(z[batch.mask]).squeeze(-1)
+        mask = batch.mask.to(z.dtype)
+        pooled = (z * mask.unsqueeze(-1)).sum(1) / batch.num_joints.unsqueeze(1).to(z.dtype)
+        value = self.critic_head(pooled).squeeze(-1)
+        return mean, self.log_std, value
+
+    def value(self, batch: ChainBatch) -> torch.Tensor:
+        return self.forward(batch)[2]
+
+    def log_prob(self, batch: ChainBatch, actions: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
+        """[B] log-density of padded actions [B, J] over each sample's own joints."""
+        if mean is None:
+            mean = self.forward(batch)[0]
+        return gaussian_log_prob(actions, mean, self.log_std, batch.mask)
+
+    def entropy(self, batch: ChainBatch) -> torch.Tensor:
+        """[B] entropy of each sample's joint action distribution (grows with its dimension)."""
+        per_joint = 0.5 * (1.0 + torch.log(torch.tensor(2 * torch.pi))) + self.log_std
+        return per_joint * batch.num_joints.to(per_joint.dtype)
+
+    @torch.no_grad()
+    def act(self, batch: ChainBatch, deterministic: bool = False, generator: torch.Generator | None = None):
+        """Sample (or take the mean): returns action [B, J], log_prob [B], value [B], mean [B, J]."""
+        mean, log_std, value = self.forward(batch)
+        if deterministic:
+            action = mean
+        else:
+            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+            action = (mean + log_std.exp() * noise) * batch.mask
+        return action, gaussian_log_prob(action, mean, log_std, batch.mask), value, mean
+
+    def actor_parameters(self) -> list[nn.Parameter]:
+        """Parameters the action distribution depends on (extractor, actor head, log-std)."""
+        return [*self.features.parameters(), *self.actor_head.parameters(), self.log_std]
+
+    # -- persistence: safetensors + JSON, nothing is ever unpickled ----------
+    def save(self, path: str | Path, metadata: dict | None = None) -> None:
+        """Write ``path`` (.safetensors) and ``path`` with .json (config + metadata), atomically."""
+        path = Path(path)
+        tensors = {k: v.detach().contiguous() for k, v in self.state_dict().items()}
+        atomic_write_bytes(path, safetensors_bytes(tensors))
+        with atomic_writer(path.with_suffix(".json")) as f:
+            json.dump({"policy": asdict(self.config), "metadata": metadata or {}}, f, indent=2)
+
+    @classmethod
+    def load(cls, path: str | Path, backend: str | None = None) -> GraphActorCritic:
+        path = Path(path)
+        if path.suffix != ".safetensors":
+            raise ValueError(f"expected a .safetensors file, got {path}")
+        meta_path = path.with_suffix(".json")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except FileNotFoundError:
+            raise FileNotFoundError(f"policy config {meta_path} missing beside {path}") from None
+        config = PolicyConfig.from_dict(meta["policy"])
+        if backend is not None:
+            config.backend = backend
+            config.__post_init__()
+        model = cls(config)
+        model.load_state_dict(load_file(str(path)))
+        return model
+
+
+def gaussian_log_prob(
+    actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor, mask: torch.Tensor
+) -> torch.Tensor:
+    """sum_j log N(a_j; mu_j, sigma^2) over valid joints; [B]."""
+    z = (actions - mean) * torch.exp(-log_std)
+    per_joint = -0.5 * z.pow(2) - log_std - 0.5 * torch.log(torch.tensor(2 * torch.pi))
+    return (per_joint * mask).sum(dim=1)
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)

@@ -1,0 +1,131 @@
+"""Graph actor-critic: shapes for any chain length, PyG equivalence, log-probs, persistence."""
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+import morph_core  # noqa: F401
+from morph_core.graph import ChainBatch
+from morph_core.policy import GraphActorCritic, PolicyConfig, count_parameters, gaussian_log_prob
+
+
+def _observations(lengths, seed=0):
+    obs = []
+    for i, n in enumerate(lengths):
+        env = gymnasium.make("MorphSwimmer-v0", num_joints=int(n))
+        o, _ = env.reset(seed=seed + i)
+        for _ in range(3):  # move away from the rest pose so joint states differ
+            o, *_ = env.step(env.action_space.sample())
+        obs.append(o)
+    return obs
+
+
+def test_parameter_counts_match_the_paper():
+    policy = GraphActorCritic()
+    assert count_parameters(policy.features) == 4376  # paper: feature extractor
+    assert count_parameters(policy) == 15003  # reference: whole actor-critic
+
+
+@pytest.mark.parametrize("lengths", [[1], [2], [7], [20], [64], [2, 10, 3, 20, 1, 5]])
+def test_shapes_for_any_chain_length(lengths):
+    policy = GraphActorCritic()
+    batch = ChainBatch.from_observations(_observations(lengths))
+    mean, log_std, value = policy(batch)
+    assert mean.shape == (len(lengths), max(lengths)) and value.shape == (len(lengths),)
+    assert log_std.shape == ()
+    # padding stays exactly zero, real joints do not
+    assert torch.all(mean[~batch.mask] == 0)
+    assert torch.all(mean[batch.mask] != 0)
+    action, logp, _, _ = policy.act(batch)
+    assert torch.all(action[~batch.mask] == 0) and logp.shape == (len(lengths),)
+
+
+def test_batched_forward_equals_one_chain_at_a_time():
+    policy = GraphActorCritic()
+    obs = _observations([3, 9, 2, 14])
+    mean, _, value = policy(ChainBatch.from_observations(obs))
+    for i, o in enumerate(obs):
+        m_i, _, v_i = policy(ChainBatch.from_observations([o]))
+        n = len(o["joint_pos"])
+        torch.testing.assert_close(mean[i, :n], m_i[0], atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(value[i], v_i[0], atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("bidirectional", [True, False])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dense_chain_conv_equals_pytorch_geometric(bidirectional, seed):
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(1, 21, size=32)
+    dense = GraphActorCritic(PolicyConfig(bidirectional=bidirectional, backend="dense"))
+    pyg = GraphActorCritic(PolicyConfig(bidirectional=bidirectional, backend="pyg"))
+    pyg.load_state_dict(dense.state_dict())
+    # random joint states, larger than the env's, to stress every weight
+    j = int(lengths.max())
+    batch = ChainBatch.from_padded(
+        rng.normal(0, 2, (32, j)), rng.normal(0, 5, (32, j)), rng.normal(0, 1, (32, 4)), lengths
+    )
+    for a, b in zip(dense(batch), pyg(batch), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    # gradients agree too
+    actions = torch.randn(32, j)
+    grads = []
+    for net in (dense, pyg):
+        net.zero_grad()
+        mean, _, value = net(batch)
+        (net.log_prob(batch, actions, mean).sum() + value.sum()).backward()
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-4, rtol=1e-4)
+
+
+def test_one_way_messages_never_reach_the_torso_side():
+    # With torso-to-tail edges a joint cannot hear joints behind it; both ways, it can.
+    for bidirectional, should_change in ((False, False), (True, True)):
+        torch.manual_seed(0)
+        policy = GraphActorCritic(PolicyConfig(bidirectional=bidirectional))
+        pos = torch.zeros(1, 6)
+        base = policy(ChainBatch.from_padded(pos, torch.zeros(1, 6), torch.zeros(1, 4), [6]))[0]
+        pos[0, 5] = 1.0  # move the last joint
+        moved = policy(ChainBatch.from_padded(pos, torch.zeros(1, 6), torch.zeros(1, 4), [6]))[0]
+        assert not torch.equal(base[0, 5], moved[0, 5])  # its own action always changes
+        assert torch.equal(base[0, :3], moved[0, :3])  # beyond two message hops: never
+        # joints 3 and 4 lie towards the torso, two and one hops away
+        assert (not torch.equal(base[0, 3:5], moved[0, 3:5])) == should_change
+        assert torch.equal(base[0, 3:5], moved[0, 3:5]) != should_change
+
+
+def test_log_prob_is_the_sum_over_the_chains_joints():
+    mean = torch.tensor([[0.1, -0.2, 0.0], [0.3, 0.0, 0.0]])
+    mask = torch.tensor([[True, True, True], [True, False, False]])
+    actions = torch.tensor([[0.5, 0.1, -0.3], [0.2, 9.0, 9.0]])  # padding values must not count
+    log_std = torch.tensor(-0.5)
+    normal = torch.distributions.Normal(mean, log_std.exp())
+    expected = torch.stack([normal.log_prob(actions)[0].sum(), normal.log_prob(actions)[1, :1].sum()])
+    torch.testing.assert_close(gaussian_log_prob(actions, mean, log_std, mask), expected)
+
+
+def test_save_load_roundtrip_without_pickle(tmp_path):
+    policy = GraphActorCritic(PolicyConfig(bidirectional=False))
+    with torch.no_grad():
+        policy.log_std.fill_(-0.7)
+    path = tmp_path / "policy.safetensors"
+    policy.save(path, metadata={"note": "test"})
+    assert path.read_bytes()[8:9] == b"{"  # safetensors header, not a pickle
+    loaded = GraphActorCritic.load(path)
+    assert loaded.config == policy.config
+    batch = ChainBatch.from_observations(_observations([4, 11]))
+    for a, b in zip(policy(batch), loaded(batch), strict=True):
+        torch.testing.assert_close(a, b)
+    assert GraphActorCritic.load(path, backend="pyg").config.backend == "pyg"
+
+
+def test_bad_config_and_files_give_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="backend"):
+        PolicyConfig(backend="onnx")
+    with pytest.raises(ValueError, match="safetensors"):
+        GraphActorCritic.load(tmp_path / "policy.pt")
+    with pytest.raises(FileNotFoundError, match="json"):
+        GraphActorCritic.load(tmp_path / "missing.safetensors")
+    with pytest.raises(ValueError, match="num_joints"):
+        ChainBatch.from_padded(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 4)), [4])
