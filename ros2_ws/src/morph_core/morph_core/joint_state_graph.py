@@ -1,0 +1,141 @@
+"""From a joint-state message and the torso's odometry to the policy's input, without ROS.
+
+The policy was trained on ``MorphSwimmerEnv``'s graph observation: per joint
+(angle, angular velocity), globally (yaw, yaw rate, vx, vy) where yaw is the
+torso hinge angle ``qpos[2]`` (never wrapped), yaw rate is ``qvel[2]`` and
+vx, vy are the torso frame's velocity in the WORLD frame (``qvel[0:2]``).
+
+On the wire the torso arrives as an odometry message whose pose is in the
+world ("odom") frame and whose twist is, by the ROS convention, in the body
+(child) frame. This module turns both back into exactly the training
+features: yaw from the orientation quaternion, unwrapped across messages;
+linear velocity rotated from body to world by that yaw.
+
+Nothing here imports ROS: callers pass plain sequences and numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.swimmer_model import MAX_JOINTS
+
+
+class JointStateError(ValueError):
+    """A joint state that cannot be turned into a chain; ``str(err)`` is the reason."""
+
+
+def validate_joint_state(
+    names: Sequence[str], positions: Sequence[float], velocities: Sequence[float], max_joints: int = MAX_JOINTS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check one joint state and return (positions, velocities) as float64 arrays, message order.
+
+    Raises ``JointStateError`` for: no joints, more than ``max_joints``, names /
+    positions / velocities of different lengths, duplicate names, NaN or inf.
+    """
+    n = len(names)
+    if n == 0:
+        raise JointStateError("empty joint state (no joint names)")
+    if n > max_joints:
+        raise JointStateError(f"{n} joints, more than the maximum of {max_joints}")
+    if len(positions) != n or len(velocities) != n:
+        raise JointStateError(
+            f"length mismatch: {n} names, {len(positions)} positions, {len(velocities)} velocities"
+        )
+    if len(set(names)) != n:
+        seen: set[str] = set()
+        dups = sorted({x for x in names if x in seen or seen.add(x)})
+        raise JointStateError(f"duplicate joint names: {dups}")
+    pos = np.asarray(positions, dtype=np.float64)
+    vel = np.asarray(velocities, dtype=np.float64)
+    if not (np.isfinite(pos).all() and np.isfinite(vel).all()):
+        raise JointStateError("NaN or inf in positions or velocities")
+    return pos, vel
+
+
+# -- torso frame conversions -----------------------------------------------------------
+def quaternion_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation by ``yaw`` about z."""
+    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """Rotation about z of a quaternion, in (-pi, pi]; exact inverse of ``quaternion_from_yaw`` there."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def world_to_body(yaw: float, vx: float, vy: float) -> tuple[float, float]:
+    """Planar velocity from the world frame into a frame rotated by ``yaw``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * vx + s * vy, -s * vx + c * vy
+
+
+def body_to_world(yaw: float, vx: float, vy: float) -> tuple[float, float]:
+    """Inverse of ``world_to_body``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * vx - s * vy, s * vx + c * vy
+
+
+class YawUnwrapper:
+    """Turns a stream of wrapped yaws into the continuous hinge angle the policy was trained on.
+
+    A swimmer that turns around accumulates yaw beyond +-pi (the torso hinge is
+    unlimited); a quaternion forgets that. Consecutive messages 40 ms apart
+    cannot turn by pi, so the nearest branch is the right one. The first yaw
+    is taken as it is (a fresh swimmer starts near 0); ``reset`` when the
+    robot is rebuilt.
+    """
+
+    def __init__(self):
+        self._last: float | None = None
+
+    def reset(self) -> None:
+        self._last = None
+
+    def __call__(self, wrapped: float) -> float:
+        if self._last is None:
+            self._last = wrapped
+        else:
+            step = math.remainder(wrapped - self._last, math.tau)  # in [-pi, pi]
+            self._last += step
+        return self._last
+
+
+def global_features(
+    orientation_xyzw: Sequence[float],
+    body_linear_xy: Sequence[float],
+    angular_z: float,
+    unwrap: YawUnwrapper | None = None,
+) -> np.ndarray:
+    """[4] float64 (yaw, yaw rate, vx, vy) as in ``MorphSwimmerEnv``, from an odometry's pose and body twist.
+
+    Raises ``JointStateError`` on NaN/inf or a zero-length quaternion.
+    """
+    q = [float(v) for v in orientation_xyzw]
+    lin = [float(v) for v in body_linear_xy]
+    wz = float(angular_z)
+    if not all(math.isfinite(v) for v in (*q, *lin, wz)):
+        raise JointStateError("NaN or inf in odometry")
+    if sum(v * v for v in q) < 1e-12:
+        raise JointStateError("odometry orientation is a zero quaternion")
+    yaw = yaw_from_quaternion(*q)
+    if unwrap is not None:
+        yaw = unwrap(yaw)
+    vx, vy = body_to_world(yaw, lin[0], lin[1])
+    return np.array([yaw, wz, vx, vy], dtype=np.float64)
+
+
+def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray) -> ChainBatch:
+    """A batch of one chain, joints in the given order (joint 0 next to the torso)."""
+    n = len(positions)
+    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, NUM_GLOBAL_FEATURES)
+    return ChainBatch.from_padded(
+        np.asarray(positions, dtype=np.float32).reshape(1, n),
+        np.asarray(velocities, dtype=np.float32).reshape(1, n),
+        glob,
+        np.array([n], dtype=np.int64),
+    )
