@@ -46,16 +46,18 @@ def dense_chain_conv(
     # One matmul gives every link's products with A_0, A_1 and B: [B, J+1, E+1, C_out].
     proj = torch.cat([a.permute(0, 2, 1).reshape(c_in, -1), b], dim=1)
     p = (x @ proj).view(*x.shape[:-1], -1, c_out)
-    e1 = torch.cat([edge_attr, torch.ones_like(edge_attr[..., :1])], dim=-1)  # [B, J, E+1]
+    # Zeroing the padded joints' attributes and constant term silences their messages.
     keep = joint_mask.unsqueeze(-1).to(x.dtype)
+    e = (edge_attr * keep).unsqueeze(-1)  # [B, J, E, 1]
+
+    def messages(src: torch.Tensor) -> torch.Tensor:  # src: [B, J, E+1, C_out] products of the sending links
+        return (e * src[:, :, :-1]).sum(dim=2) + src[:, :, -1] * keep
 
     # Torso-to-tail messages: link j -> link j+1 across joint j.
-    fwd = (e1.unsqueeze(-1) * p[:, :-1]).sum(dim=2) * keep
-    agg = F.pad(fwd, (0, 0, 1, 0))
+    agg = F.pad(messages(p[:, :-1]), (0, 0, 1, 0))
     if bidirectional:
         # Tail-to-torso messages: link j+1 -> link j across joint j.
-        bwd = (e1.unsqueeze(-1) * p[:, 1:]).sum(dim=2) * keep
-        agg = agg + F.pad(bwd, (0, 0, 0, 1))
+        agg = agg + F.pad(messages(p[:, 1:]), (0, 0, 0, 1))
     return agg + conv.lin(x) + conv.bias
 
 

@@ -15,6 +15,7 @@ chain's joints, so it is a density over that sample's own action dimension.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -46,6 +47,9 @@ class PolicyConfig:
     """messages flow both ways along the chain; False is the reference's torso-to-tail only"""
     log_std_init: float = 0.0
     """initial log standard deviation of every joint's Gaussian"""
+    ortho_init: bool = True
+    """orthogonal init as in Stable-Baselines3 (the reference's base): gain sqrt(2) for hidden
+    linear layers, 0.01 for the action output (initial means ~0), 1 for the value output"""
     backend: str = "dense"
     """'dense': batched chain NNConv; 'pyg': PyTorch Geometric's NNConv (reference, same parameters)"""
 
@@ -63,6 +67,14 @@ class PolicyConfig:
         if unknown:
             raise ValueError(f"unknown policy config fields: {sorted(unknown)}")
         return cls(**d)
+
+
+class Tanh(nn.Module):
+    """tanh computed as 2 sigmoid(2x) - 1: the same function (to float rounding), but torch's CPU
+    tanh kernel is ~10x slower than its sigmoid here, and the heads' tanh dominated the update."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(2.0 * x).mul(2.0).sub(1.0)
 
 
 def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequential:
@@ -103,9 +115,25 @@ class GraphActorCritic(nn.Module):
         self.config = config or PolicyConfig()
         h = self.config.head_hidden
         self.features = GraphFeatureExtractor(self.config)
-        self.actor_head = _mlp([self.config.embed_channels, h, h, 1], nn.Tanh, False)
-        self.critic_head = _mlp([self.config.embed_channels, h, h, 1], nn.Tanh, False)
+        self.actor_head = _mlp([self.config.embed_channels, h, h, 1], Tanh, False)
+        self.critic_head = _mlp([self.config.embed_channels, h, h, 1], Tanh, False)
         self.log_std = nn.Parameter(torch.tensor(float(self.config.log_std_init)))
+        if self.config.ortho_init:
+            self._orthogonal_init()
+
+    def _orthogonal_init(self) -> None:
+        # Only torch Linear layers, as SB3 does: PyG's root-weight layers keep PyG's own init.
+        def init(module: nn.Module, gain: float) -> None:
+            for m in module.modules():
+                if type(m) is nn.Linear:
+                    nn.init.orthogonal_(m.weight, gain=gain)
+                    nn.init.zeros_(m.bias)
+
+        init(self.features, math.sqrt(2))
+        init(self.actor_head, math.sqrt(2))
+        init(self.critic_head, math.sqrt(2))
+        init(self.actor_head[-1], 0.01)
+        init(self.critic_head[-1], 1.0)
 
     def forward(self, batch: ChainBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns mean [B, J] (zero at padding), log_std (scalar), value [B]."""

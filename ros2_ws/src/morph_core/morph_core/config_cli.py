@@ -1,0 +1,93 @@
+"""Command-line options generated from typed config dataclasses (one source of defaults).
+
+Each field becomes ``--field-name``; a nested dataclass field ``policy``
+contributes ``--policy-<name>`` options. Help texts are the attribute
+docstrings written under each field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import textwrap
+import typing
+
+
+def field_docs(cls) -> dict[str, str]:
+    """Attribute docstrings (a string literal right after a field) of a dataclass."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError):
+        return {}
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs = {}
+    for node, nxt in zip(body, body[1:], strict=False):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and isinstance(nxt, ast.Expr)
+            and isinstance(nxt.value, ast.Constant)
+            and isinstance(nxt.value.value, str)
+        ):
+            docs[node.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+def parse_bool(text: str) -> bool:
+    value = text.strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
+
+
+def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=()) -> None:
+    """Add one option per field; defaults are left to the dataclass (argparse default: None)."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        kind = hints[f.name]
+        if dataclasses.is_dataclass(kind):
+            add_dataclass_options(parser, kind, prefix=f"{prefix}{f.name}-")
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        conv = parse_bool if kind is bool else kind
+        parser.add_argument(
+            f"--{prefix}{f.name}".replace("_", "-"),
+            dest=f"{prefix}{f.name}".replace("-", "__"),
+            type=conv,
+            default=None,
+            metavar=kind.__name__.upper(),
+            help=f"{docs.get(f.name, '')} (default: {default})",
+        )
+
+
+def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict:
+    """Nested dict of the options given on the command line (None = not given)."""
+    hints = typing.get_type_hints(cls)
+    out: dict = {}
+    for f in dataclasses.fields(cls):
+        kind = hints[f.name]
+        if dataclasses.is_dataclass(kind):
+            sub = overrides_from_args(args, kind, prefix=f"{prefix}{f.name}__")
+            if sub:
+                out[f.name] = sub
+            continue
+        value = getattr(args, f"{prefix}{f.name}", None)
+        if value is not None:
+            out[f.name] = value
+    return out
+
+
+def replace_nested(obj, overrides: dict):
+    """dataclasses.replace that also descends into nested dataclass fields."""
+    changes = {}
+    for key, value in overrides.items():
+        current = getattr(obj, key)
+        changes[key] = replace_nested(current, value) if dataclasses.is_dataclass(current) else value
+    return dataclasses.replace(obj, **changes)

@@ -1,0 +1,50 @@
+"""Per-iteration metrics to a CSV (fixed columns) and TensorBoard, resumable."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+from morph_core.atomic import atomic_writer
+
+
+class RunLog:
+    def __init__(self, run_dir: Path, columns: list[str], resume_step: int | None = None, tensorboard: bool = True):
+        self.path = run_dir / "progress.csv"
+        self.columns = columns
+        if resume_step is not None and self.path.exists():
+            # Drop rows logged after the checkpoint we resume from: they will be produced again.
+            with self.path.open() as f:
+                rows = [r for r in csv.DictReader(f) if int(r["global_step"]) <= resume_step]
+            with atomic_writer(self.path) as f:
+                self._write(f, rows, header=True)
+        else:
+            with atomic_writer(self.path) as f:
+                self._write(f, [], header=True)
+        self.tb = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step)
+
+    def _write(self, f, rows, header: bool) -> None:
+        w = csv.DictWriter(f, fieldnames=self.columns, extrasaction="ignore")
+        if header:
+            w.writeheader()
+        w.writerows(rows)
+
+    def log(self, row: dict) -> None:
+        clean = {k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
+        with self.path.open("a", newline="") as f:
+            self._write(f, [clean], header=False)
+            f.flush()
+        if self.tb is not None:
+            step = int(row["global_step"])
+            for k, v in row.items():
+                if k != "global_step" and isinstance(v, (int, float)) and not math.isnan(v):
+                    self.tb.add_scalar(k.replace("_d", "/d", 1) if "_d" in k else k, v, step)
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()

@@ -1,0 +1,147 @@
+"""Several swimmers stepped together, each redrawing its chain length at every reset.
+
+Observations come out padded to the longest chain the range allows, ready for
+``ChainBatch.from_padded``. Episodes end at the time limit (truncation, with
+the final observation kept for bootstrapping) or when the physics diverges
+(termination); finished swimmers are reset at once.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from morph_core.swimmer_env import MorphSwimmerEnv
+
+MAX_EPISODE_STEPS = 1000
+
+
+@dataclass
+class PaddedObs:
+    """[E, J] joint states (zero padded), [E, 4] globals, [E] chain lengths."""
+
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    global_feats: np.ndarray
+    num_joints: np.ndarray
+
+
+@dataclass
+class StepResult:
+    obs: PaddedObs
+    reward: np.ndarray  # [E]
+    terminated: np.ndarray  # [E] bool
+    truncated: np.ndarray  # [E] bool
+    final_obs: dict[int, dict] = field(default_factory=dict)  # env index -> last graph obs of a finished episode
+    episodes: list[tuple[int, float, int]] = field(default_factory=list)  # (num_joints, return, length)
+
+
+class SwimmerVecEnv:
+    def __init__(
+        self,
+        num_envs: int,
+        joint_range: tuple[int, int],
+        seed: int,
+        max_episode_steps: int = MAX_EPISODE_STEPS,
+        num_threads: int = 1,
+    ):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.envs = [MorphSwimmerEnv(num_joints=joint_range) for _ in range(num_envs)]
+        self.max_joints = joint_range[1]
+        self.max_episode_steps = max_episode_steps
+        self.num_envs = num_envs
+        self._obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]
+        self.episode_steps = np.zeros(num_envs, dtype=np.int64)
+        self.episode_returns = np.zeros(num_envs, dtype=np.float64)
+        if num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
+        threads = min(num_threads, num_envs)
+        self._chunks = [list(range(k, num_envs, threads)) for k in range(threads)]
+        self._pool = ThreadPoolExecutor(threads - 1) if threads > 1 else None
+
+    def observations(self) -> PaddedObs:
+        e, j = self.num_envs, self.max_joints
+        pos, vel = np.zeros((e, j)), np.zeros((e, j))
+        glob, n = np.zeros((e, 4)), np.zeros(e, dtype=np.int64)
+        for i, o in enumerate(self._obs):
+            k = len(o["joint_pos"])
+            pos[i, :k], vel[i, :k], glob[i], n[i] = o["joint_pos"], o["joint_vel"], o["global"], k
+        return PaddedObs(pos, vel, glob, n)
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
+        if self._pool is None:
+            outcomes = [self._step_one(i, actions[i]) for i in range(self.num_envs)]
+        else:
+            # MuJoCo releases the GIL inside mj_step, so swimmers step in parallel threads.
+            futures = [self._pool.submit(self._step_chunk, c, actions) for c in self._chunks[1:]]
+            outcomes = self._step_chunk(self._chunks[0], actions)
+            for f in futures:
+                outcomes += f.result()
+        result = StepResult(
+            obs=None,  # type: ignore[arg-type]
+            reward=np.array([o[0] for o in outcomes]),
+            terminated=np.array([o[1] for o in outcomes]),
+            truncated=np.array([o[2] for o in outcomes]),
+        )
+        for i, (_, _, _, final_obs, episode) in enumerate(outcomes):
+            if episode is not None:
+                result.final_obs[i] = final_obs
+                result.episodes.append(episode)
+        result.obs = self.observations()
+        return result
+
+    def _step_chunk(self, indices: list[int], actions: np.ndarray) -> list:
+        return [self._step_one(i, actions[i]) for i in indices]
+
+    def _step_one(self, i: int, action: np.ndarray):
+        env = self.envs[i]
+        obs, r, term, _, _ = env.step(np.clip(action[: env.num_joints], -1.0, 1.0))
+        self.episode_steps[i] += 1
+        self.episode_returns[i] += r
+        trunc = not term and self.episode_steps[i] >= self.max_episode_steps
+        final_obs = episode = None
+        if term or trunc:
+            final_obs = obs
+            episode = (env.num_joints, float(self.episode_returns[i]), int(self.episode_steps[i]))
+            self.episode_steps[i], self.episode_returns[i] = 0, 0.0
+            obs, _ = env.reset()
+        self._obs[i] = obs
+        return r, term, trunc, final_obs, episode
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    # -- exact save/restore, for checkpoints that resume bit for bit ---------
+    def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
+        """(JSON-able scalars, arrays): chain lengths, RNG states, full MuJoCo integration states."""
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        arrays, meta = {}, {"envs": []}
+        for i, env in enumerate(self.envs):
+            state = np.empty(mujoco.mj_stateSize(env.model, spec))
+            mujoco.mj_getState(env.model, env.data, state, spec)
+            arrays[f"env{i}.mj_state"] = state
+            meta["envs"].append({"num_joints": env.num_joints, "rng": env.np_random.bit_generator.state})
+        arrays["episode_steps"] = self.episode_steps.copy()
+        arrays["episode_returns"] = self.episode_returns.copy()
+        return meta, arrays
+
+    def set_state(self, meta: dict, arrays: dict[str, np.ndarray]) -> None:
+        if len(meta["envs"]) != self.num_envs:
+            raise ValueError(f"checkpoint holds {len(meta['envs'])} envs, this run has {self.num_envs}")
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
+            env._build(int(m["num_joints"]))
+            env.np_random.bit_generator.state = m["rng"]
+            mujoco.mj_setState(env.model, env.data, np.asarray(arrays[f"env{i}.mj_state"], dtype=np.float64), spec)
+            # No mj_forward here: it would overwrite the restored solver warm start and the
+            # trajectories would drift apart at solver tolerance.
+            self._obs[i] = env._observation()
+        self.episode_steps[:] = arrays["episode_steps"]
+        self.episode_returns[:] = arrays["episode_returns"]

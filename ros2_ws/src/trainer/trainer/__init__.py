@@ -1,0 +1,1 @@
+"""Trainer: PPO command-line tools around morph_core (training, evaluation)."""

@@ -1,0 +1,126 @@
+"""``morph-eval``: evaluate every checkpoint of training runs, then plot.
+
+For each run directory, each checkpoint in ``checkpoints/`` is evaluated
+deterministically (the policy's mean action), ``--episodes`` episodes per
+chain length (default 2..10 plus the unseen 15 and 20), into the run's
+``eval.csv``. Checkpoints already in ``eval.csv`` are skipped, so an
+interrupted evaluation resumes. ``--stride k`` evaluates every k-th
+checkpoint (the last one always). Figures comparing the clip modes go to
+``--plots DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from morph_core.atomic import atomic_writer
+from morph_core.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.evaluate import evaluate_policy
+from morph_core.policy import GraphActorCritic
+
+CKPT = re.compile(r"policy_(\d+)\.safetensors$")
+EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return"]
+
+
+@dataclass
+class EvalConfig:
+    """Checkpoint evaluation."""
+
+    lengths: list[int] = field(default_factory=lambda: [*range(2, 11), 15, 20])
+    """chain lengths to evaluate"""
+    episodes: int = 10
+    """deterministic episodes per chain length"""
+    stride: int = 1
+    """evaluate every k-th checkpoint (the last one always)"""
+    seed: int = 10_000
+    """reset seed of episode 0 (episode k uses seed + k)"""
+    threads: int = 1
+    """threads stepping the swimmers"""
+
+
+def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
+    found = []
+    for p in (run_dir / "checkpoints").glob("policy_*.safetensors"):
+        m = CKPT.search(p.name)
+        if m:
+            found.append((int(m.group(1)), p))
+    return sorted(found)
+
+
+def read_eval(run_dir: Path) -> list[dict]:
+    path = run_dir / "eval.csv"
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return [r for r in csv.DictReader(f) if None not in r.values()]
+
+
+def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
+    rows = read_eval(run_dir)
+    done = {(int(r["global_step"]), int(r["num_joints"])) for r in rows}
+    ckpts = checkpoints(run_dir)
+    if not ckpts:
+        raise FileNotFoundError(f"no checkpoints in {run_dir / 'checkpoints'}")
+    chosen = ckpts[:: cfg.stride]
+    if chosen[-1] != ckpts[-1]:
+        chosen.append(ckpts[-1])
+    for step, path in chosen:
+        todo = [n for n in cfg.lengths if (step, n) not in done]
+        if not todo:
+            continue
+        policy = GraphActorCritic.load(path)
+        results = evaluate_policy(policy, todo, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+        for n in todo:
+            rows += [
+                {"global_step": step, "num_joints": n, "episode": k, "return": float(r)}
+                for k, r in enumerate(results[n])
+            ]
+        # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
+        with atomic_writer(run_dir / "eval.csv") as f:
+            w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        means = " ".join(f"{n}:{results[n].mean():.1f}" for n in todo)
+        log(f"{run_dir.name} step {step}: {means}")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--run", type=Path, nargs="+", required=True, help="training run directories")
+    parser.add_argument("--plots", type=Path, default=None, help="write comparison figures here")
+    parser.add_argument("--no-eval", action="store_true", help="only plot what eval.csv already holds")
+    add_dataclass_options(parser, EvalConfig, skip=("lengths",))
+    parser.add_argument("--lengths", type=int, nargs="+", default=None, help="chain lengths (default: 2..10 15 20)")
+    args = parser.parse_args(argv)
+    overrides = overrides_from_args(args, EvalConfig)
+    if args.lengths is not None:
+        overrides["lengths"] = args.lengths
+    cfg = replace_nested(EvalConfig(), overrides)
+    if cfg.episodes < 1 or cfg.stride < 1 or any(not 1 <= n <= 64 for n in cfg.lengths):
+        parser.error("episodes and stride must be >= 1, lengths in 1..64")
+    torch.set_num_threads(1)
+    for run in args.run:
+        if not (run / "config.json").exists():
+            parser.error(f"{run} is not a training run (config.json missing)")
+    if not args.no_eval:
+        for run in args.run:
+            evaluate_run(run, cfg)
+    if args.plots is not None:
+        from trainer.plots import plot_all
+
+        for path in plot_all(args.run, args.plots):
+            print(f"wrote {path}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
