@@ -54,14 +54,11 @@ def main() -> None:
     raw_mix = 1.0 / per_step
     print("| setting | env-steps/s overall | rollout s/iter | update s/iter | vs reference (360/s) |")
     print("|---|---:|---:|---:|---:|")
-    for label, tt, et in (
-        ("1 core (1 env thread, 1 torch thread)", 1, 1),
-        ("2 cores (2 env threads, 2 torch threads)", 2, 2),
-    ):
+    settings = [("1 core (1 env thread, 1 torch thread)", 1, 1), ("2 cores (2 env threads, 2 torch threads)", 2, 2)]
+    for label, tt, et in settings:
         r = run(max(2, args.iterations), tt, et)
-        print(
-            f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | {r['sps'] / REFERENCE_SPS:.1f}x |"
-        )
+        ratio = r["sps"] / REFERENCE_SPS
+        print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | {ratio:.1f}x |")
     print(f"\nraw MuJoCo for the same 2..10 mix, one core: {raw_mix:,.0f} env-steps/s "
           f"(a rollout of 6,144 steps needs >= {6144 / raw_mix:.2f} s of physics)")  # fmt: skip
 
