@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "morph_policy_node"
@@ -9,9 +11,15 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
     ],
+    # The shipped policy lives beside the node module, so the default checkpoint
+    # resolves the same way in a source checkout, a venv and a colcon install.
+    package_data={package_name: ["models/*.safetensors", "models/*.json", "models/README.md", "fastdds_profile.xml"]},
+    include_package_data=True,
     install_requires=["morph_core"],
-    zip_safe=True,
+    zip_safe=False,  # the shipped model is read from beside the module
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",
     description="ROS 2 node: morphology-agnostic GNN policy, joint graph built from each JointState message.",

@@ -43,9 +43,7 @@ def validate_joint_state(
     if n > max_joints:
         raise JointStateError(f"{n} joints, more than the maximum of {max_joints}")
     if len(positions) != n or len(velocities) != n:
-        raise JointStateError(
-            f"length mismatch: {n} names, {len(positions)} positions, {len(velocities)} velocities"
-        )
+        raise JointStateError(f"length mismatch: {n} names, {len(positions)} positions, {len(velocities)} velocities")
     if len(set(names)) != n:
         seen: set[str] = set()
         dups = sorted({x for x in names if x in seen or seen.add(x)})

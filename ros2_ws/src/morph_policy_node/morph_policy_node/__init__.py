@@ -1,0 +1,1 @@
+"""ROS 2 node running the morphology-agnostic GNN policy on JointState messages."""

@@ -1,0 +1,293 @@
+"""The morphology-agnostic GNN policy as a ROS 2 node: JointState (+ Odometry) in, efforts out.
+
+Each ``joint_states`` message is its own robot description: the joint graph
+is built from it (joint order = message order, joint 0 next to the torso),
+so any chain length works with no restart and no parameter change. The
+latest ``odom`` gives the global features; see ``morph_core.joint_state_graph``
+for how they are turned back into the training features (yaw unwrapped,
+body-frame twist rotated to the world frame). If the odometry for a state's
+stamp has not arrived yet the state waits for it briefly (a simulator
+publishes both at once; a state must not be paired with the previous
+odometry, or a lockstep loop would not be deterministic).
+
+Outputs
+- ``effort_commands`` (std_msgs/Float64MultiArray): one effort per joint, in
+  the message's joint order, clipped to [-1, 1].
+- ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
+  a trainer needs, stamped with the state's stamp; see ``unpack_policy_info``.
+
+No valid ``joint_states`` for ``input_timeout`` -> zero efforts at 25 Hz for
+the last chain seen. Malformed messages are rejected, counted and logged
+(throttled); the node keeps answering good ones.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+import torch
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from morph_core.joint_state_graph import (
+    JointStateError,
+    YawUnwrapper,
+    chain_batch,
+    global_features,
+    validate_joint_state,
+)
+from morph_core.policy import GraphActorCritic
+
+SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
+_WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
+_ODOM_WAIT = 0.02  # longest a state waits for its odometry before using the latest one
+_LOG_THROTTLE = 5.0
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+
+
+def default_checkpoint() -> str:
+    """The shipped model if it is installed beside this module, else '' (untrained policy)."""
+    return str(SHIPPED_MODEL) if SHIPPED_MODEL.is_file() else ""
+
+
+def load_policy(checkpoint: str) -> GraphActorCritic:
+    """The policy at ``checkpoint``; '' gives a freshly initialised one (seeded, so runs repeat)."""
+    if checkpoint:
+        policy = GraphActorCritic.load(checkpoint)
+    else:
+        torch.manual_seed(0)
+        policy = GraphActorCritic()
+    return policy.eval()
+
+
+def _stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def unpack_policy_info(msg: JointTrajectory) -> dict:
+    """Decode ``policy_info``: joint names, state stamp [ns], and per-joint float64 arrays.
+
+    Layout of the single trajectory point: positions = sampled action (before
+    clipping), velocities = Gaussian mean, accelerations = log-std of each
+    joint's Gaussian (one shared value), effort = each joint's term of the
+    log-density; ``log_prob`` = their sum, the action's log-probability.
+    """
+    p = msg.points[0]
+    effort = np.asarray(p.effort, dtype=np.float64)
+    return {
+        "names": list(msg.joint_names),
+        "stamp_ns": _stamp_ns(msg.header.stamp),
+        "action": np.asarray(p.positions, dtype=np.float64),
+        "mean": np.asarray(p.velocities, dtype=np.float64),
+        "log_std": float(p.accelerations[0]) if len(p.accelerations) else math.nan,
+        "log_prob_per_joint": effort,
+        "log_prob": float(effort.sum()),
+    }
+
+
+class MorphPolicyNode(Node):
+    def __init__(self):
+        super().__init__("morph_policy")
+        self.declare_parameter(
+            "checkpoint",
+            default_checkpoint(),
+            ParameterDescriptor(description="policy .safetensors (config .json beside it); '' = untrained policy"),
+        )
+        self.declare_parameter(
+            "deterministic",
+            True,
+            ParameterDescriptor(description="act with the Gaussian mean; false samples and publishes policy_info"),
+        )
+        self.declare_parameter(
+            "input_timeout",
+            0.5,
+            ParameterDescriptor(
+                description="wall seconds without valid joint_states before publishing zero efforts",
+                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)],
+            ),
+        )
+        self.declare_parameter(
+            "seed", 0, ParameterDescriptor(description="seed of the action sampling", read_only=True)
+        )
+        self._candidate: GraphActorCritic | None = None
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        torch.set_num_threads(1)  # NNConv's scatter stalls with 2 threads on a loaded 2-core machine
+        checkpoint = self.get_parameter("checkpoint").value
+        self.policy = self._load_or_untrained(checkpoint)
+        self._deterministic = self.get_parameter("deterministic").value
+        self._input_timeout = self.get_parameter("input_timeout").value
+        self._generator = torch.Generator().manual_seed(self.get_parameter("seed").value)
+        # Warm up (lazy allocations, first-call dispatch) so the first real state is answered promptly.
+        self.policy.act(chain_batch(np.zeros(3), np.zeros(3), np.zeros(4)), deterministic=True)
+
+        self._effort_pub = self.create_publisher(Float64MultiArray, "effort_commands", 10)
+        self._info_pub = self.create_publisher(JointTrajectory, "policy_info", 10)
+        # Sensor-data QoS (best effort, keep last): matches any publisher and never queues stale states.
+        self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
+        self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
+        self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
+
+        self.rejected = 0
+        self._odom = None  # (stamp_ns, quaternion, body linear xy, angular z) of the latest valid odometry
+        self._unwrap = YawUnwrapper()
+        self._pending = None  # (msg, names, pos, vel, received_at) waiting for its odometry
+        self._names: list[str] = []  # joints of the last chain answered
+        self._last_input = time.monotonic()
+        self._silent = False
+
+    # -- parameters -------------------------------------------------------------
+    def _load_or_untrained(self, checkpoint: str) -> GraphActorCritic:
+        if not checkpoint:
+            self.get_logger().warn("no checkpoint (and no shipped model): running an UNTRAINED policy")
+            return load_policy("")
+        try:
+            policy = load_policy(checkpoint)
+        except (OSError, ValueError, KeyError, RuntimeError) as err:
+            self.get_logger().error(f"cannot load checkpoint {checkpoint!r} ({err}); running an UNTRAINED policy")
+            return load_policy("")
+        self.get_logger().info(f"policy loaded from {checkpoint}")
+        return policy
+
+    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        for param in params:
+            if param.name == "checkpoint":
+                if param.type_ != Parameter.Type.STRING:
+                    return SetParametersResult(successful=False, reason="checkpoint must be a string path")
+                try:
+                    self._candidate = load_policy(param.value)
+                except (OSError, ValueError, KeyError, RuntimeError) as err:
+                    return SetParametersResult(successful=False, reason=f"cannot load {param.value!r}: {err}")
+            elif param.name == "input_timeout":
+                if param.type_ != Parameter.Type.DOUBLE or not (math.isfinite(param.value) and param.value > 0):
+                    return SetParametersResult(successful=False, reason="input_timeout must be a finite double > 0")
+            elif param.name == "deterministic" and param.type_ != Parameter.Type.BOOL:
+                return SetParametersResult(successful=False, reason="deterministic must be a bool")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params: list[Parameter]) -> None:
+        for param in params:
+            if param.name == "checkpoint" and self._candidate is not None:
+                self.policy, self._candidate = self._candidate, None
+                self.get_logger().info(f"policy replaced by {param.value or 'an untrained one'}")
+            elif param.name == "deterministic":
+                self._deterministic = param.value
+            elif param.name == "input_timeout":
+                self._input_timeout = param.value
+
+    # -- inputs -----------------------------------------------------------------
+    def _reject(self, what: str, err: Exception) -> None:
+        self.rejected += 1
+        self.get_logger().warn(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        q = msg.pose.pose.orientation
+        lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+        quat, body = (q.x, q.y, q.z, q.w), (lin.x, lin.y)
+        try:
+            global_features(quat, body, ang.z)  # validation only; unwrapping happens when a state uses it
+        except JointStateError as err:
+            self._reject("odom", err)
+            return
+        self._odom = (_stamp_ns(msg.header.stamp), quat, body, ang.z)
+        if self._pending is not None and self._odom[0] >= _stamp_ns(self._pending[0].header.stamp):
+            self._act(*self._pending[:4])
+
+    def _on_joint_states(self, msg: JointState) -> None:
+        try:
+            pos, vel = validate_joint_state(msg.name, msg.position, msg.velocity)
+        except JointStateError as err:
+            self._reject("joint_states", err)
+            return
+        self._last_input = time.monotonic()
+        if self._pending is not None:  # a newer state: the older one goes with what odometry there is
+            self._act(*self._pending[:4])
+        names = list(msg.name)
+        if self._odom is None or self._odom[0] >= _stamp_ns(msg.header.stamp):
+            self._act(msg, names, pos, vel)
+        else:
+            self._pending = (msg, names, pos, vel, self._last_input)
+
+    def _on_watchdog(self) -> None:
+        now = time.monotonic()
+        if self._pending is not None and now - self._pending[4] > _ODOM_WAIT:
+            self.get_logger().warn(
+                "no odometry with the joint state's stamp: using the latest one", throttle_duration_sec=_LOG_THROTTLE
+            )
+            self._act(*self._pending[:4])
+        if now - self._last_input > self._input_timeout and self._names:
+            if not self._silent:
+                self.get_logger().warn(f"no joint_states for {self._input_timeout} s: publishing zero efforts")
+                self._silent = True
+            self._effort_pub.publish(Float64MultiArray(data=array.array("d", bytes(8 * len(self._names)))))
+
+    # -- acting -----------------------------------------------------------------
+    def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
+        self._pending = None
+        self._silent = False
+        if names != self._names:
+            self._names = names
+            self._unwrap.reset()  # a new robot (or a rebuilt one): its yaw starts afresh
+        if self._odom is None:
+            glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
+        else:
+            _, quat, body, wz = self._odom
+            glob = global_features(quat, body, wz, self._unwrap)
+        batch = chain_batch(pos, vel, glob)
+        action, _, _, mean = self.policy.act(batch, deterministic=self._deterministic, generator=self._generator)
+        efforts = np.clip(action[0].numpy(), -1.0, 1.0).astype(np.float64)
+        self._effort_pub.publish(Float64MultiArray(data=array.array("d", efforts.tobytes())))
+        if not self._deterministic:
+            self._publish_info(msg, names, action[0], mean[0])
+
+    def _publish_info(self, msg: JointState, names: list[str], action: torch.Tensor, mean: torch.Tensor) -> None:
+        log_std = self.policy.log_std.detach()
+        z = (action - mean) * torch.exp(-log_std)
+        per_joint = (-0.5 * z.pow(2) - log_std - _HALF_LOG_2PI).double().numpy()
+        point = JointTrajectoryPoint()
+        point.positions = array.array("d", action.double().numpy().tobytes())
+        point.velocities = array.array("d", mean.double().numpy().tobytes())
+        point.accelerations = array.array("d", [float(log_std)] * len(names))
+        point.effort = array.array("d", per_joint.tobytes())
+        info = JointTrajectory()
+        info.header.stamp = msg.header.stamp
+        info.header.frame_id = msg.header.frame_id
+        info.joint_names = names
+        info.points = [point]
+        self._info_pub.publish(info)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = MorphPolicyNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        # A callback that was publishing when SIGINT/SIGTERM shut the context down
+        # fails on the dead context: that is still a normal end.
+        if rclpy.ok():
+            raise
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

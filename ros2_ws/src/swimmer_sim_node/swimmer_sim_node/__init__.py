@@ -1,0 +1,1 @@
+"""ROS 2 node wrapping morph_core.sim.SwimmerSim."""

@@ -1,0 +1,257 @@
+"""Sim node and policy node at topic level: real processes, real Fast DDS, matched endpoints, no sleeps.
+
+Runs inside a private network namespace (``scripts/test.sh``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from nav_msgs.msg import Odometry
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory
+
+from morph_core.joint_state_graph import chain_batch
+from morph_core.policy import GraphActorCritic
+from morph_core.sim import SwimmerSim
+from morph_policy_node.policy_node import SHIPPED_MODEL, unpack_policy_info
+
+STARTUP = 60.0  # seconds for processes to start and match (torch import on a loaded 2-core machine)
+DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _collect(probe, msg_type, topic, qos=DEEP):
+    got = []
+    probe.node.create_subscription(msg_type, topic, got.append, qos)
+    return got
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def _set_parameter(probe, node_name: str, name: str, value):
+    client = probe.node.create_client(SetParameters, f"{node_name}/set_parameters")
+    probe.spin_until(client.service_is_ready, STARTUP, f"{node_name}/set_parameters")
+    future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+    probe.spin_until(future.done, 10.0, "set_parameters response")
+    return future.result().results[0]
+
+
+def _state(names, pos, vel, sec=0):
+    msg = JointState(name=list(names), position=[float(x) for x in pos], velocity=[float(x) for x in vel])
+    msg.header.stamp.sec = sec
+    return msg
+
+
+# -- sim + policy --------------------------------------------------------------------------
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("joints", [2, 7, 20])
+def test_efforts_have_one_value_per_joint(probe, launch, untrained_checkpoint, joints):
+    states = _collect(probe, JointState, "joint_states")
+    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    launch("swimmer_sim_node", num_joints=joints)
+    launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
+    probe.spin_until(lambda: len(efforts) >= 10, STARTUP, "10 effort commands")
+    assert {len(s.name) for s in states} == {joints}
+    assert {len(e.data) for e in efforts} == {joints}
+    values = np.array([e.data for e in efforts])
+    assert np.isfinite(values).all() and np.abs(values).max() <= 1.0
+    assert np.abs(values).max() > 0  # a real policy output, not the silence fallback
+    # The sim reports the efforts it applied: the policy's, once they arrive.
+    applied = {tuple(s.effort) for s in states}
+    assert any(tuple(e.data) in applied for e in efforts)
+
+
+@pytest.mark.timeout(120)
+def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, namespace):
+    states = _collect(probe, JointState, "joint_states")
+    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    launch("swimmer_sim_node", num_joints=6)
+    launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
+    probe.spin_until(lambda: any(len(e.data) == 6 for e in efforts), STARTUP, "6 efforts")
+
+    result = _set_parameter(probe, f"{namespace}/swimmer_sim", "num_joints", 11)
+    assert result.successful, result.reason
+    n_before = len(states)
+    probe.spin_until(lambda: any(len(e.data) == 11 for e in efforts), 20.0, "11 efforts after the rebuild")
+    # Once the chain has 11 joints, every later joint state has 11.
+    lengths = [len(s.name) for s in states[n_before:]]
+    first = lengths.index(11)
+    assert set(lengths[first:]) == {11}
+
+    refused = _set_parameter(probe, f"{namespace}/swimmer_sim", "num_joints", 0)
+    assert not refused.successful and "num_joints" in refused.reason
+    refused = _set_parameter(probe, f"{namespace}/swimmer_sim", "real_time_factor", -1.0)
+    assert not refused.successful and refused.reason
+    n = len(states)
+    probe.spin_until(lambda: len(states) > n + 5, 20.0, "joint states after a refused change")
+    assert {len(s.name) for s in states[n:]} == {11}
+
+
+def _rollout(policy: GraphActorCritic, joints: int, seed: int, steps: int) -> list[tuple[float, float]]:
+    """The same closed loop in-process: torso (x, y) after each control step, index 0 = reset."""
+    torch.set_num_threads(1)
+    sim = SwimmerSim(num_joints=joints, seed=seed, effort_timeout=None)
+    xy = [(sim.torso().x, sim.torso().y)]
+    for k in range(steps):
+        obs = sim.observation()
+        action, *_ = policy.act(chain_batch(obs["joint_pos"], obs["joint_vel"], obs["global"]), deterministic=True)
+        sim.command(np.clip(action[0].numpy(), -1, 1).astype(np.float64), now=k)
+        sim.step(now=k)
+        xy.append((sim.torso().x, sim.torso().y))
+    return xy
+
+
+def _run_lockstep(probe, launch, checkpoint, joints, seed, sim_seconds):
+    """Sim in lockstep + policy; returns {step: (x, y)} from odom up to ``sim_seconds``."""
+    odoms = _collect(probe, Odometry, "odom")
+    launch(
+        "swimmer_sim_node",
+        num_joints=joints,
+        seed=seed,
+        lockstep=True,
+        real_time_factor=0.0,
+        effort_timeout=2.0,  # no re-publishing while a loaded machine is slow to answer
+    )
+    launch("morph_policy_node", checkpoint=str(checkpoint))
+    probe.spin_until(
+        lambda: odoms and _stamp(odoms[-1]) >= sim_seconds, STARTUP + 4 * sim_seconds, f"{sim_seconds} s of sim"
+    )
+    return {round(_stamp(o) / 0.04): (o.pose.pose.position.x, o.pose.pose.position.y) for o in odoms}
+
+
+@pytest.mark.timeout(180)
+def test_lockstep_loop_is_the_in_process_rollout(probe, launch, untrained_checkpoint):
+    """Over DDS, in lockstep, the closed loop is step for step the in-process one (nothing stale, nothing lost)."""
+    steps = 150
+    by_step = _run_lockstep(probe, launch, untrained_checkpoint, joints=4, seed=5, sim_seconds=steps * 0.04)
+    want = _rollout(GraphActorCritic.load(untrained_checkpoint).eval(), 4, 5, steps)
+    assert set(range(steps + 1)) <= set(by_step)
+    got = np.array([by_step[k] for k in range(steps + 1)])
+    np.testing.assert_allclose(got, np.array(want), atol=1e-6)
+    assert np.abs(got[-1] - got[0]).max() > 1e-3  # the swimmer did move
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason=f"no shipped policy yet at {SHIPPED_MODEL} (PPO issue)")
+def test_trained_policy_swims_forward(probe, launch):
+    steps = 500  # 20 s of sim time
+    by_step = _run_lockstep(probe, launch, SHIPPED_MODEL, joints=6, seed=0, sim_seconds=steps * 0.04)
+    advance = by_step[steps][0] - by_step[0][0]
+    want = _rollout(GraphActorCritic.load(SHIPPED_MODEL).eval(), 6, 0, steps)
+    assert advance == pytest.approx(want[steps][0] - want[0][0], abs=1e-3)
+    assert advance > 0.2, f"torso advanced only {advance:.3f} m in 20 s"
+
+
+# -- policy node alone ---------------------------------------------------------------------
+def _policy_with_publisher(probe, launch, checkpoint, **params):
+    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    pub = probe.node.create_publisher(JointState, "joint_states", 10)
+    proc = launch("morph_policy_node", checkpoint=str(checkpoint), **params)
+    probe.spin_until(
+        lambda: pub.get_subscription_count() > 0 and probe.node.count_subscribers("effort_commands") > 0,
+        STARTUP,
+        "the policy node's endpoints",
+    )
+    probe.spin_until(lambda: probe.node.count_publishers("effort_commands") > 0, STARTUP, "effort publisher")
+    return proc, pub, efforts
+
+
+def _answer(probe, pub, efforts, msg, joints):
+    """Publish ``msg`` until an answer of ``joints`` values arrives (the policy's input is best effort)."""
+    for _ in range(5):
+        n = len(efforts)
+        pub.publish(msg)
+        try:
+            probe.spin_until(lambda n=n: any(len(e.data) == joints for e in efforts[n:]), 2.0, "an answer")
+            return [e for e in efforts[n:] if len(e.data) == joints][0]
+        except AssertionError:
+            continue
+    raise AssertionError(f"no answer with {joints} efforts")
+
+
+@pytest.mark.timeout(120)
+def test_malformed_joint_states_are_rejected_and_good_ones_answered(probe, launch, untrained_checkpoint):
+    proc, pub, efforts = _policy_with_publisher(probe, launch, untrained_checkpoint)
+    bad = [
+        _state(["a", "b"], [0.1], [0.0, 0.0]),  # length mismatch
+        _state(["a", "b"], [0.1, 0.2], [0.0]),
+        _state(["a", "b"], [0.1, math.nan], [0.0, 0.0]),
+        _state(["a", "b"], [0.1, 0.2], [math.inf, 0.0]),
+        _state([], [], []),
+        _state([f"j{i}" for i in range(65)], [0.0] * 65, [0.0] * 65),
+        _state(["a", "a"], [0.1, 0.2], [0.0, 0.0]),
+    ]
+    for i, msg in enumerate(bad):
+        pub.publish(msg)
+        joints = 3 + i  # a length no bad message has, so its answer is unambiguous
+        good = _state([f"j{k}" for k in range(joints)], np.linspace(-0.3, 0.3, joints), np.zeros(joints))
+        answer = _answer(probe, pub, efforts, good, joints)
+        assert np.isfinite(answer.data).all()
+    assert {len(e.data) for e in efforts} <= set(range(3, 3 + len(bad)))  # nothing answered the bad ones
+    assert proc.alive()
+    assert "rejected joint_states" in proc.log()
+    assert "duplicate" in proc.log() or "length mismatch" in proc.log()
+
+
+@pytest.mark.timeout(120)
+def test_silent_input_gives_zero_efforts(probe, launch, untrained_checkpoint):
+    proc, pub, efforts = _policy_with_publisher(probe, launch, untrained_checkpoint, input_timeout=0.3)
+    good = _state([f"j{k}" for k in range(5)], [0.3, -0.2, 0.1, 0.0, 0.2], [0.0] * 5)
+    answer = _answer(probe, pub, efforts, good, 5)
+    assert np.abs(answer.data).max() > 0
+    n = len(efforts)
+    probe.spin_until(lambda: any(not any(e.data) for e in efforts[n:]), 10.0, "zero efforts after silence")
+    zeros = [e for e in efforts[n:] if not any(e.data)]
+    assert len(zeros[0].data) == 5
+    # New input ends the silence: real efforts again.
+    answer = _answer(probe, pub, efforts, good, 5)
+    assert np.abs(answer.data).max() > 0
+    assert "publishing zero efforts" in proc.log()
+
+
+@pytest.mark.timeout(120)
+def test_sampling_publishes_policy_info(probe, launch, untrained_checkpoint):
+    infos = _collect(probe, JointTrajectory, "policy_info")
+    proc, pub, efforts = _policy_with_publisher(probe, launch, untrained_checkpoint, deterministic=False)
+    good = _state(["x", "y", "z", "w"], [0.3, -0.2, 0.1, 0.0], [0.1] * 4, sec=42)
+    answer = _answer(probe, pub, efforts, good, 4)
+    probe.spin_until(lambda: infos, 10.0, "policy_info")
+    info = unpack_policy_info(infos[0])
+    assert info["names"] == ["x", "y", "z", "w"] and info["stamp_ns"] == 42 * 10**9
+    np.testing.assert_allclose(np.clip(info["action"], -1, 1), answer.data, atol=1e-12)
+    # The log-prob is the Gaussian's, recomputed here from the published mean and log-std.
+    z = (info["action"] - info["mean"]) / math.exp(info["log_std"])
+    want = float(np.sum(-0.5 * z**2 - info["log_std"] - 0.5 * math.log(2 * math.pi)))
+    assert info["log_prob"] == pytest.approx(want, abs=1e-4)
+    assert not np.allclose(info["action"], info["mean"])  # it sampled
+
+
+# -- sim node alone ------------------------------------------------------------------------
+@pytest.mark.timeout(120)
+def test_sim_rejects_malformed_commands_and_keeps_running(probe, launch):
+    states = _collect(probe, JointState, "joint_states")
+    odoms = _collect(probe, Odometry, "odom")
+    pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", 10)
+    proc = launch("swimmer_sim_node", num_joints=3, real_time_factor=2.0, effort_timeout=5.0)
+    probe.spin_until(lambda: pub.get_subscription_count() > 0 and states, STARTUP, "the sim")
+    for bad in ([0.5, 0.5], [0.5, math.nan, 0.5], [0.1] * 4):
+        pub.publish(Float64MultiArray(data=bad))
+    pub.publish(Float64MultiArray(data=[0.7, -0.4, 2.0]))
+    probe.spin_until(lambda: states[-1].effort.tolist() == [0.7, -0.4, 1.0], 10.0, "the good command applied")
+    n = len(states)
+    probe.spin_until(lambda: len(states) > n + 10, 10.0, "the sim still publishing")
+    assert proc.alive() and "rejected effort command" in proc.log()
+    stamps = [_stamp(s) for s in states]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    np.testing.assert_allclose(np.diff(stamps), 0.04, atol=1e-9)  # one state per control period
+    # Odometry goes out with every joint state, same stamp.
+    assert {_stamp(o) for o in odoms} >= set(stamps[-5:])
