@@ -1,10 +1,12 @@
 """Graph actor-critic for chains of any length (the paper's architecture).
 
-Feature extractor (4,376 parameters, as in the paper): two NNConv layers
+Feature extractor (the paper's, 4,376 parameters, with ``bidirectional=False``): two NNConv layers
 (24 and 16 channels) over the joint graph, whose link nodes start from a
 constant 1 and whose edges carry the joint states; a global MLP 4 -> 128 -> 16
 on (yaw, yaw rate, vx, vy); the global embedding is added to every joint's
 embedding (the embedding of the link behind that joint). ReLU throughout.
+By default messages also flow tail-to-torso, through a second edge network
+per layer (5,600 parameters; see chain_conv for why direction matters).
 
 Heads (64-64 tanh MLPs, as in the reference): a per-joint Gaussian mean, one
 state-independent log-std shared by all joints, and a value from the mean of
@@ -25,10 +27,8 @@ from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
 from morph_core.atomic import atomic_write_bytes, atomic_writer
-from morph_core.chain_conv import dense_chain_conv, make_nnconv, pyg_chain_conv
+from morph_core.chain_conv import BACKENDS, ChainConv
 from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
-
-BACKENDS = ("dense", "pyg")
 
 
 @dataclass
@@ -44,7 +44,8 @@ class PolicyConfig:
     head_hidden: int = 64
     """width of the two tanh layers in the actor and critic heads"""
     bidirectional: bool = True
-    """messages flow both ways along the chain; False is the reference's torso-to-tail only"""
+    """messages flow both ways along the chain, tail-to-torso through its own edge network;
+    False is the reference's torso-to-tail only (exactly the paper's 4,376-parameter extractor)"""
     log_std_init: float = 0.0
     """initial log standard deviation of every joint's Gaussian"""
     ortho_init: bool = True
@@ -92,17 +93,16 @@ class GraphFeatureExtractor(nn.Module):
     def __init__(self, config: PolicyConfig):
         super().__init__()
         self.config = config
-        self.conv1 = make_nnconv(1, config.conv1_channels)
-        self.conv2 = make_nnconv(config.conv1_channels, config.embed_channels)
+        bi, backend = config.bidirectional, config.backend
+        self.conv1 = ChainConv(1, config.conv1_channels, bi, backend)
+        self.conv2 = ChainConv(config.conv1_channels, config.embed_channels, bi, backend)
         self.global_mlp = _mlp([NUM_GLOBAL_FEATURES, config.global_hidden, config.embed_channels], nn.ReLU, True)
-        self._conv = dense_chain_conv if config.backend == "dense" else pyg_chain_conv
 
     def forward(self, batch: ChainBatch) -> torch.Tensor:
-        bi = self.config.bidirectional
         e, m = batch.edge_attr, batch.mask
         x = e.new_ones(batch.batch_size, batch.max_joints + 1, 1)  # links carry no state of their own
-        x = torch.relu(self._conv(self.conv1, x, e, m, bi))
-        x = torch.relu(self._conv(self.conv2, x, e, m, bi))
+        x = torch.relu(self.conv1(x, e, m))
+        x = torch.relu(self.conv2(x, e, m))
         joint_embed = x[:, 1:]  # joint j reads the link behind it (link j+1)
         return joint_embed + self.global_mlp(batch.global_feats).unsqueeze(1)
 

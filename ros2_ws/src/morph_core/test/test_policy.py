@@ -22,9 +22,11 @@ def _observations(lengths, seed=0):
 
 
 def test_parameter_counts_match_the_paper():
-    policy = GraphActorCritic()
-    assert count_parameters(policy.features) == 4376  # paper: feature extractor
-    assert count_parameters(policy) == 15003  # reference: whole actor-critic
+    one_way = GraphActorCritic(PolicyConfig(bidirectional=False))
+    assert count_parameters(one_way.features) == 4376  # paper: feature extractor
+    assert count_parameters(one_way) == 15003  # reference: whole actor-critic
+    # both ways: one more edge network per layer (2*24 + 24 and 2*384 + 384 weights)
+    assert count_parameters(GraphActorCritic().features) == 4376 + 72 + 1152
 
 
 @pytest.mark.parametrize("lengths", [[1], [2], [7], [20], [64], [2, 10, 3, 20, 1, 5]])
