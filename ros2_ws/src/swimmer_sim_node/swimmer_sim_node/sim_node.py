@@ -58,6 +58,9 @@ _TICK_BUDGET = 0.02
 # from now instead of bursting to catch up.
 _MAX_LAG = 0.5
 _LOG_THROTTLE = 5.0
+# Until a controller has answered once, the state is re-sent this often: a reader
+# that matched a moment after the first publication missed it.
+_FIRST_RESEND = 0.2
 
 
 def _stamp(seconds: float) -> Time:
@@ -127,6 +130,7 @@ class SwimmerSimNode(Node):
         self._answered = False  # lockstep: efforts for the latest state are in, step when due
         self._published_at = -math.inf
         self.resends = 0
+        self._ever_answered = False
         self._timer = None
         self._restart_pacing()
         self.get_logger().info(
@@ -206,7 +210,7 @@ class SwimmerSimNode(Node):
                 if self._state_pub.get_subscription_count() > 0:
                     self._publish(now)
                 return
-            elif now - self._published_at > self.sim.effort_timeout:
+            elif now - self._published_at > (self.sim.effort_timeout if self._ever_answered else _FIRST_RESEND):
                 self.resends += 1
                 self.get_logger().warn(
                     f"no efforts for the state at t={self.sim.time:.2f} s within the effort timeout: "
@@ -247,6 +251,7 @@ class SwimmerSimNode(Node):
             )
             return
         if self._lockstep and self._awaiting_answer:
+            self._ever_answered = True
             self._awaiting_answer = False
             self._answered = True
             self._lockstep_step(now)

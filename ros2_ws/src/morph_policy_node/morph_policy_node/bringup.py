@@ -1,0 +1,115 @@
+"""Bring up sim + policy as two processes, run a fixed stretch of sim time, print the swim speed.
+
+    python -m morph_policy_node.bringup [--joints 6] [--sim-seconds 30] [--checkpoint PATH]
+
+What ``ros2 launch morph_policy_node swimmer_policy.launch.py`` does on a Jazzy
+install, for machines without ``launch``: the sim runs in lockstep as fast as
+possible (a deterministic closed loop), the policy uses the shipped model (or
+``--checkpoint``), and this process watches ``odom`` until the sim clock has
+run ``--sim-seconds``, then stops both nodes with SIGINT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+PROFILE = Path(__file__).resolve().parent / "fastdds_profile.xml"
+
+
+def _start(module: str, params: dict) -> subprocess.Popen:
+    args = [sys.executable, "-m", module, "--ros-args"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={v}"]
+    return subprocess.Popen(args)
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout: float) -> dict:
+    # Nodes started together must find each other quickly: fast initial announcements.
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(PROFILE))
+    import rclpy
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    sim_params = {"num_joints": joints, "lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0}
+    policy_params = {} if checkpoint is None else {"checkpoint": checkpoint}
+    rclpy.init()
+    node = rclpy.create_node("bringup")
+    first, last, loop_start = [], [], []
+
+    def on_odom(msg: Odometry) -> None:
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        sample = (t, msg.pose.pose.position.x, msg.pose.pose.position.y)
+        if not first:
+            first.append(sample)
+            loop_start.append(time.monotonic())
+        last[:] = [sample]
+
+    node.create_subscription(Odometry, "odom", on_odom, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    procs = [_start("swimmer_sim_node.sim_node", sim_params)]
+    try:
+        # The lockstep sim holds its first state until the policy listens: start the policy
+        # only once we hear the sim, so the measurement sees the swimmer from its reset pose.
+        t_start = time.monotonic()
+        while node.count_publishers("odom") == 0:
+            if procs[0].poll() is not None or time.monotonic() - t_start > startup_timeout:
+                raise RuntimeError("the sim node did not come up (exited, or DDS discovery failed)")
+            rclpy.spin_once(node, timeout_sec=0.05)
+        procs.append(_start("morph_policy_node.policy_node", policy_params))
+        while not (last and last[0][0] >= sim_seconds):
+            if any(p.poll() is not None for p in procs):
+                raise RuntimeError("a node exited early; see its output above")
+            if not first and time.monotonic() - t_start > startup_timeout:
+                raise RuntimeError(f"no odometry within {startup_timeout} s: DDS discovery failed?")
+            rclpy.spin_once(node, timeout_sec=0.1)
+        wall = time.monotonic() - loop_start[0]
+    finally:
+        _stop(procs)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    (t0, x0, y0), (t1, x1, y1) = first[0], last[0]
+    if t0 > 0:
+        raise RuntimeError(f"missed the start of the run (first odometry at t={t0:.2f} s)")
+    return {"sim_seconds": t1 - t0, "dx": x1 - x0, "dy": y1 - y0, "speed": (x1 - x0) / (t1 - t0), "wall": wall}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    ap.add_argument("--sim-seconds", type=float, default=30.0, help="sim time to run")
+    ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
+    args = ap.parse_args(argv)
+    from morph_policy_node.policy_node import SHIPPED_MODEL
+
+    if args.checkpoint is None and not SHIPPED_MODEL.is_file():
+        print(f"bringup: no shipped policy at {SHIPPED_MODEL}: the policy node runs an UNTRAINED policy", flush=True)
+    r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout)
+    print(
+        f"swim speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
+        f"over {r['sim_seconds']:.2f} s of sim time, {args.joints} joints; "
+        f"closed loop over DDS at {r['sim_seconds'] / r['wall']:.1f}x real time",
+        flush=True,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
