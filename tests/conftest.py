@@ -84,9 +84,9 @@ class NodeProcess:
         return self.proc.poll() is None
 
     def stop(self) -> int | None:
-        """SIGINT (the nodes treat it as a normal end), then SIGKILL if it lingers. Returns the exit code."""
+        """SIGTERM (the nodes treat it as a normal end), then SIGKILL if it lingers. Returns the exit code."""
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
+            self.proc.send_signal(signal.SIGTERM)
             try:
                 self.proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
