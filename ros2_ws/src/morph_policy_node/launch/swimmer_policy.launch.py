@@ -1,6 +1,6 @@
 """Sim + policy on a Jazzy install.
 
-    ros2 launch morph_policy_node swimmer_policy.launch.py [num_joints:=10] [lockstep:=true] [real_time_factor:=0.0]
+ros2 launch morph_policy_node swimmer_policy.launch.py [num_joints:=10] [lockstep:=true] [real_time_factor:=0.0]
 """
 
 import os
