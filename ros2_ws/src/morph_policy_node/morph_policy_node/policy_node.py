@@ -12,7 +12,8 @@ odometry, or a lockstep loop would not be deterministic).
 
 Outputs
 - ``effort_commands`` (std_msgs/Float64MultiArray): one effort per joint, in
-  the message's joint order, clipped to [-1, 1].
+  the message's joint order, clipped to [-1, 1]; ``layout.dim[0]`` is
+  labelled ``joints@<sec>.<nanosec>`` with the stamp of the state answered.
 - ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
   a trainer needs, stamped with the state's stamp; see ``unpack_policy_info``.
 
@@ -38,7 +39,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.joint_state_graph import (
@@ -249,7 +250,13 @@ class MorphPolicyNode(Node):
         batch = chain_batch(pos, vel, glob)
         action, _, _, mean = self.policy.act(batch, deterministic=self._deterministic, generator=self._generator)
         efforts = np.clip(action[0].numpy(), -1.0, 1.0).astype(np.float64)
-        self._effort_pub.publish(Float64MultiArray(data=array.array("d", efforts.tobytes())))
+        out = Float64MultiArray(data=array.array("d", efforts.tobytes()))
+        # Say which state this answers (a lockstep sim drops answers to states it re-sent).
+        stamp = msg.header.stamp
+        out.layout.dim = [
+            MultiArrayDimension(label=f"joints@{stamp.sec}.{stamp.nanosec:09d}", size=len(names), stride=len(names))
+        ]
+        self._effort_pub.publish(out)
         if not self._deterministic:
             self._publish_info(msg, names, action[0], mean[0])
 

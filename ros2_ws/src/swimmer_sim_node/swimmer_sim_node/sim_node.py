@@ -22,7 +22,11 @@ as possible). With ``lockstep`` the sim steps only once efforts have arrived
 for the latest published state (a deterministic closed loop with a
 deterministic controller); if none arrive within ``effort_timeout`` the state
 is published again, so a lost message or a late-starting controller cannot
-stall the loop for good.
+stall the loop for good. A controller may tag its efforts with the state they
+answer (``layout.dim[0].label = "joints@<sec>.<nanosec>"``, as
+morph_policy_node does); in lockstep, tagged efforts for any other state are
+dropped, so a re-sent state answered twice cannot shift the loop by a step.
+Untagged efforts (any other controller) are taken as the answer.
 """
 
 from __future__ import annotations
@@ -66,6 +70,11 @@ _FIRST_RESEND = 0.2
 def _stamp(seconds: float) -> Time:
     ns = int(round(seconds * 1e9))
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def answer_tag(stamp: Time) -> str:
+    """Label of ``layout.dim[0]`` by which a controller says which state its efforts answer."""
+    return f"joints@{stamp.sec}.{stamp.nanosec:09d}"
 
 
 def _doubles(values) -> array.array:
@@ -130,6 +139,8 @@ class SwimmerSimNode(Node):
         self._answered = False  # lockstep: efforts for the latest state are in, step when due
         self._published_at = -math.inf
         self.resends = 0
+        self.stale_answers = 0
+        self._answer_tag = ""
         self._ever_answered = False
         self._timer = None
         self._restart_pacing()
@@ -243,6 +254,12 @@ class SwimmerSimNode(Node):
     # -- messages ---------------------------------------------------------------
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
+        if self._lockstep and msg.layout.dim and "@" in msg.layout.dim[0].label:
+            if msg.layout.dim[0].label != self._answer_tag:
+                # An answer to an earlier (re-sent) state: taking it for the current one would
+                # shift the whole loop by a step.
+                self.stale_answers += 1
+                return
         try:
             self.sim.command(msg.data, now)
         except EffortError as err:
@@ -283,6 +300,7 @@ class SwimmerSimNode(Node):
         self._state_pub.publish(state)
 
         self._published_at = now
+        self._answer_tag = answer_tag(stamp)
         if self._lockstep:
             self._awaiting_answer = True
 
