@@ -47,6 +47,7 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
 
     sim_params = {"num_joints": joints, "lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0}
     policy_params = {} if checkpoint is None else {"checkpoint": checkpoint}
@@ -59,16 +60,20 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
         sample = (t, msg.pose.pose.position.x, msg.pose.pose.position.y)
         if not first:
             first.append(sample)
-            loop_start.append(time.monotonic())
+        if t > 0 and not loop_start:  # the loop runs: the policy has answered the reset state
+            loop_start.append((time.monotonic(), t))
         last[:] = [sample]
 
-    node.create_subscription(Odometry, "odom", on_odom, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(Odometry, "odom", on_odom, qos)
+    # A joint_states listener makes the lockstep sim publish its reset state before the policy is up.
+    node.create_subscription(JointState, "joint_states", lambda msg: None, qos)
     procs = [_start("swimmer_sim_node.sim_node", sim_params)]
     try:
-        # The lockstep sim holds its first state until the policy listens: start the policy
-        # only once we hear the sim, so the measurement sees the swimmer from its reset pose.
+        # Start the policy only once the reset state has reached us, so the measurement
+        # surely starts from the swimmer's reset pose.
         t_start = time.monotonic()
-        while node.count_publishers("odom") == 0:
+        while not first:
             if procs[0].poll() is not None or time.monotonic() - t_start > startup_timeout:
                 raise RuntimeError("the sim node did not come up (exited, or DDS discovery failed)")
             rclpy.spin_once(node, timeout_sec=0.05)
@@ -79,7 +84,7 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
             if not first and time.monotonic() - t_start > startup_timeout:
                 raise RuntimeError(f"no odometry within {startup_timeout} s: DDS discovery failed?")
             rclpy.spin_once(node, timeout_sec=0.1)
-        wall = time.monotonic() - loop_start[0]
+        rate = (last[0][0] - loop_start[0][1]) / (time.monotonic() - loop_start[0][0])
     finally:
         _stop(procs)
         node.destroy_node()
@@ -87,7 +92,7 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
     (t0, x0, y0), (t1, x1, y1) = first[0], last[0]
     if t0 > 0:
         raise RuntimeError(f"missed the start of the run (first odometry at t={t0:.2f} s)")
-    return {"sim_seconds": t1 - t0, "dx": x1 - x0, "dy": y1 - y0, "speed": (x1 - x0) / (t1 - t0), "wall": wall}
+    return {"sim_seconds": t1 - t0, "dx": x1 - x0, "dy": y1 - y0, "speed": (x1 - x0) / (t1 - t0), "rate": rate}
 
 
 def main(argv=None) -> int:
@@ -105,7 +110,7 @@ def main(argv=None) -> int:
     print(
         f"swim speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
         f"over {r['sim_seconds']:.2f} s of sim time, {args.joints} joints; "
-        f"closed loop over DDS at {r['sim_seconds'] / r['wall']:.1f}x real time",
+        f"closed loop over DDS at {r['rate']:.1f}x real time",
         flush=True,
     )
     return 0
