@@ -1,0 +1,544 @@
+"""``morph-theory``: figures and CSV grids for the paper's section III, and run overlays.
+
+    morph-theory --out docs/figures/theory
+    morph-theory --out /tmp/th --run-csv runs/compensated/progress.csv --run-csv runs/fixed
+
+Figures (PNG, with the CSV they are drawn from):
+
+1. ``fig1_clip_probability``: exact ``P(|log r| <= eps)`` over (dim, nu0), contours of approx - exact.
+2. ``fig2_compensated``: the same at ``eps sqrt(dim)``, contours of the deviation from dim = 1.
+3. ``fig3_monte_carlo``: Monte Carlo from sampled Gaussian policies vs the closed forms, eta != 1 included.
+4. ``fig4_update_scaling``: TRPO and beta-PPO update norms vs dim on the GNN policy (log-log, fitted slopes).
+5. ``fig5_run_overlay`` (with ``--run-csv``): measured in-eps fraction per dim vs the closed form.
+
+Numbers quoted in docs/theory.md come from ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import sys
+import time
+import typing
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from morph_core import theory
+
+
+@dataclass
+class TheoryConfig:
+    """Options of ``morph-theory``; the argparse parser is generated from these fields."""
+
+    out: Path = field(default=Path("theory_out"), metadata={"help": "output directory for PNGs, CSVs, summary.json"})
+    eps: float = field(default=0.2, metadata={"help": "clip threshold eps of figures 1-3 (paper: 0.2)"})
+    max_dim: int = field(default=20, metadata={"help": "largest action dimension on the figure axes"})
+    nu0_points: int = field(default=200, metadata={"help": "grid points of nu0 in [nu0_min, 1] for figures 1-2"})
+    nu0_min: float = field(default=0.005, metadata={"help": "smallest nu0 of figures 1-2 (log-spaced grid up to 1)"})
+    mc_nu0: tuple[float, ...] = field(default=(0.05, 0.2), metadata={"help": "per-joint drifts nu0 of figure 3"})
+    mc_eta: tuple[float, ...] = field(default=(0.9, 1.0, 1.1), metadata={"help": "std ratios eta of figure 3"})
+    mc_samples: int = field(default=20_000, metadata={"help": "Monte Carlo samples per (dim, nu0, eta) point"})
+    seed: int = field(default=0, metadata={"help": "seed of the Monte Carlo and of the Fisher states/policy"})
+    fisher: bool = field(default=True, metadata={"help": "compute figure 4 (needs morph_core.policy)"})
+    fisher_dims: tuple[int, ...] = field(
+        default=tuple(range(2, 21)), metadata={"help": "chain lengths d of the Fisher / update-norm study"}
+    )
+    fisher_states: int = field(default=16, metadata={"help": "env states per chain length for the Fisher matrix"})
+    fisher_warmup: int = field(default=5, metadata={"help": "random-action steps after reset before a state is kept"})
+    trpo_delta: float = field(default=0.01, metadata={"help": "TRPO KL radius delta"})
+    beta: float = field(default=1.0, metadata={"help": "beta of the KL-penalty PPO update"})
+    damping: float = field(
+        default=1e-4, metadata={"help": "Tikhonov damping of the Fisher solve, relative to its mean eigenvalue at d=2"}
+    )
+    run_csv: list[Path] = field(
+        default_factory=list,
+        metadata={"help": "progress.csv of a morph-train run (or its run dir); repeat for several runs"},
+    )
+    run_tail: float = field(default=1.0, metadata={"help": "fraction of the last CSV rows averaged in the overlay"})
+
+
+# -- argparse from the dataclass ---------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """One argument per :class:`TheoryConfig` field, with the field's default, type and help."""
+    parser = argparse.ArgumentParser(prog="morph-theory", description=__doc__.split("\n\n")[0])
+    hints = typing.get_type_hints(TheoryConfig)
+    defaults = TheoryConfig()
+    for f in dataclasses.fields(TheoryConfig):
+        flag = "--" + f.name.replace("_", "-")
+        hint, default = hints[f.name], getattr(defaults, f.name)
+        kwargs: dict[str, typing.Any] = {"help": f"{f.metadata['help']} (default: {default})", "dest": f.name}
+        origin = typing.get_origin(hint)
+        if hint is bool:
+            kwargs.update(action=argparse.BooleanOptionalAction, default=default)
+        elif origin is tuple:
+            kwargs.update(nargs="+", type=typing.get_args(hint)[0], default=default)
+        elif origin is list:
+            kwargs.update(action="extend", nargs="+", type=typing.get_args(hint)[0], default=None)
+        else:
+            kwargs.update(type=hint, default=default)
+        parser.add_argument(flag, **kwargs)
+    return parser
+
+
+def parse_config(argv: Sequence[str] | None = None) -> TheoryConfig:
+    ns = vars(build_parser().parse_args(argv))
+    hints = typing.get_type_hints(TheoryConfig)
+    for f in dataclasses.fields(TheoryConfig):
+        origin = typing.get_origin(hints[f.name])
+        if origin is tuple:
+            ns[f.name] = tuple(ns[f.name])
+        elif origin is list:
+            ns[f.name] = list(ns[f.name] or [])
+    return TheoryConfig(**ns)
+
+
+# -- small helpers -----------------------------------------------------------------------------------
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # headless: figures go to files only
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def write_csv(path: Path, header: Sequence[str], rows: typing.Iterable[Sequence[typing.Any]]) -> None:
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        for row in rows:
+            writer.writerow([f"{v:.6g}" if isinstance(v, float | np.floating) else v for v in row])
+
+
+def nu0_axis(cfg: TheoryConfig) -> np.ndarray:
+    """Log-spaced nu0 grid up to 1: the error is concentrated at small drifts, a log axis resolves it."""
+    return np.geomspace(cfg.nu0_min, 1.0, cfg.nu0_points)
+
+
+# -- figure 1 ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class ProbabilityGrid:
+    dims: np.ndarray  # [D] integer action dimensions
+    nu0: np.ndarray  # [N]
+    exact: np.ndarray  # [N, D]
+    approx: np.ndarray  # [N, D]
+
+    @property
+    def error(self) -> np.ndarray:
+        """Signed approximation error ``approx - exact`` (>= 0: the approximation overestimates)."""
+        return self.approx - self.exact
+
+
+def probability_grid(cfg: TheoryConfig, compensated: bool, dims: np.ndarray | None = None) -> ProbabilityGrid:
+    dims = np.arange(1, cfg.max_dim + 1) if dims is None else dims
+    nu0 = nu0_axis(cfg)
+    d, n = dims[None, :], nu0[:, None]
+    return ProbabilityGrid(
+        dims,
+        nu0,
+        theory.clip_probability(d, n, cfg.eps, compensated),
+        theory.clip_probability_approx(d, n, cfg.eps, compensated),
+    )
+
+
+def _heatmap(ax, grid: ProbabilityGrid):
+    edges = np.concatenate([grid.dims - 0.5, [grid.dims[-1] + 0.5]])
+    log_nu = np.log(grid.nu0)
+    half = (log_nu[1] - log_nu[0]) / 2
+    nu_edges = np.exp(np.concatenate([log_nu - half, [log_nu[-1] + half]]))
+    mesh = ax.pcolormesh(edges, nu_edges, grid.exact, cmap="viridis", vmin=0.0, vmax=1.0, shading="flat")
+    ax.set_xlabel("action dimension dim(A)")
+    ax.set_ylabel(r"per-joint normalised drift $\nu_0$")
+    ax.set_xticks(grid.dims[::2] if len(grid.dims) > 10 else grid.dims)
+    ax.set_yscale("log")
+    ax.set_ylim(grid.nu0[0], 1.0)
+    return mesh
+
+
+def figure1(cfg: TheoryConfig, plt) -> dict[str, float]:
+    grid = probability_grid(cfg, compensated=False)
+    fine = probability_grid(cfg, compensated=False, dims=np.linspace(1.0, cfg.max_dim, 400))
+    err = grid.error
+    i = np.unravel_index(int(np.argmax(err)), err.shape)
+    sup, nu_star = theory.approx_error_supremum(cfg.eps)
+
+    fig, ax = plt.subplots(figsize=(7.0, 4.6))
+    mesh = _heatmap(ax, grid)
+    fig.colorbar(mesh, ax=ax, label=r"exact $P[-\epsilon \leq \log r \leq \epsilon]$")
+    levels = [0.01, 0.05, 0.1, 0.15, 0.2]
+    cs = ax.contour(fine.dims, fine.nu0, fine.error, levels=levels, colors="white", linewidths=0.9)
+    ax.clabel(cs, fmt="%.2f", fontsize=7)
+    # The error peaks on the curve |nu| = sqrt(2/pi) eps, where the capped approximation reaches 1.
+    dd = np.linspace(1.0, cfg.max_dim, 200)
+    ax.plot(dd, nu_star / np.sqrt(dd), "r--", lw=1.0, label=rf"$|\nu| = \sqrt{{2/\pi}}\,\epsilon$ (sup err {sup:.3f})")
+    ax.plot(grid.dims[i[1]], grid.nu0[i[0]], "rx", ms=8, label=f"grid max {err[i]:.3f}")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(rf"Fig. 1: clip-free probability, $\epsilon$={cfg.eps}; contours: approx $-$ exact", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(cfg.out / "fig1_clip_probability.png", dpi=130)
+    plt.close(fig)
+
+    rows = (
+        (int(d), float(n), float(ex), float(ap), float(ap - ex))
+        for n, row_ex, row_ap in zip(grid.nu0, grid.exact, grid.approx, strict=True)
+        for d, ex, ap in zip(grid.dims, row_ex, row_ap, strict=True)
+    )
+    write_csv(cfg.out / "fig1_grid.csv", ["dim", "nu0", "exact", "approx", "approx_minus_exact"], rows)
+    return {
+        "fig1_max_error_grid": float(err[i]),
+        "fig1_max_error_dim": int(grid.dims[i[1]]),
+        "fig1_max_error_nu0": float(grid.nu0[i[0]]),
+        "fig1_min_error_grid": float(err.min()),
+        "approx_error_supremum": sup,
+        "approx_error_supremum_nu": nu_star,
+    }
+
+
+# -- figure 2 ----------------------------------------------------------------------------------------
+
+
+def figure2(cfg: TheoryConfig, plt) -> dict[str, float]:
+    grid = probability_grid(cfg, compensated=True)
+    fine = probability_grid(cfg, compensated=True, dims=np.linspace(1.0, cfg.max_dim, 400))
+    # Deviation from the dim = 1 reference: what compensation leaves of the dimension dependence.
+    deviation = grid.exact - grid.exact[:, :1]
+    fine_dev = fine.exact - theory.clip_probability(1, fine.nu0, cfg.eps)[:, None]
+    i = np.unravel_index(int(np.argmax(np.abs(deviation))), deviation.shape)
+
+    fig, ax = plt.subplots(figsize=(7.0, 4.6))
+    mesh = _heatmap(ax, grid)
+    fig.colorbar(mesh, ax=ax, label=r"exact $P[|\log r| \leq \epsilon\sqrt{\dim}]$")
+    cs = ax.contour(fine.dims, fine.nu0, fine_dev, levels=[-0.12, -0.08, -0.04, -0.01], colors="white", linewidths=0.9)
+    ax.clabel(cs, fmt="%.2f", fontsize=7)
+    ax.plot(grid.dims[i[1]], grid.nu0[i[0]], "rx", ms=8, label=f"max |deviation| {abs(deviation[i]):.3f}")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(r"Fig. 2: compensated ($\epsilon\sqrt{\dim}$), contours: $P(\dim) - P(1)$", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(cfg.out / "fig2_compensated.png", dpi=130)
+    plt.close(fig)
+
+    rows = (
+        (int(d), float(n), float(ex), float(dv), float(ap - ex))
+        for n, row_ex, row_dv, row_ap in zip(grid.nu0, grid.exact, deviation, grid.approx, strict=True)
+        for d, ex, dv, ap in zip(grid.dims, row_ex, row_dv, row_ap, strict=True)
+    )
+    write_csv(cfg.out / "fig2_grid.csv", ["dim", "nu0", "exact", "deviation_from_dim1", "approx_minus_exact"], rows)
+    return {
+        "fig2_max_abs_deviation": float(abs(deviation[i])),
+        "fig2_max_abs_deviation_dim": int(grid.dims[i[1]]),
+        "fig2_max_abs_deviation_nu0": float(grid.nu0[i[0]]),
+        "fig2_max_approx_error": float(grid.error.max()),
+    }
+
+
+# -- figure 3 ----------------------------------------------------------------------------------------
+
+
+def monte_carlo_table(cfg: TheoryConfig) -> list[dict[str, float]]:
+    """Monte Carlo vs Gaussian closed form vs exact non-central chi2 law, per (compensated, nu0, eta, dim)."""
+    rng = np.random.default_rng(cfg.seed)
+    rows = []
+    for compensated in (False, True):
+        for nu0 in cfg.mc_nu0:
+            for eta in cfg.mc_eta:
+                for dim in range(1, cfg.max_dim + 1):
+                    est = theory.monte_carlo_point(dim, nu0, cfg.eps, eta, cfg.mc_samples, rng, compensated)
+                    gauss = float(theory.clip_probability(dim, nu0, cfg.eps, compensated))
+                    exact_eta = float(theory.clip_probability_eta(dim, nu0, cfg.eps, eta, compensated))
+                    m_th, s_th = theory.log_ratio_moments(dim, nu0, eta)
+                    rows.append(
+                        {
+                            "compensated": int(compensated),
+                            "nu0": nu0,
+                            "eta": eta,
+                            "dim": dim,
+                            "mc": est.probability,
+                            "mc_stderr": est.stderr,
+                            "closed_form_eta1": gauss,
+                            "exact_eta": exact_eta,
+                            "z_vs_closed_form": (est.probability - gauss) / max(est.stderr, 1.0 / cfg.mc_samples),
+                            "mc_logr_mean": est.logr_mean,
+                            "mc_logr_std": est.logr_std,
+                            "theory_logr_mean": float(m_th),
+                            "theory_logr_std": float(s_th),
+                        }
+                    )
+    return rows
+
+
+def figure3(cfg: TheoryConfig, plt) -> dict[str, float]:
+    rows = monte_carlo_table(cfg)
+    write_csv(cfg.out / "fig3_monte_carlo.csv", list(rows[0]), (list(r.values()) for r in rows))
+    colors = {eta: f"C{k}" for k, eta in enumerate(cfg.mc_eta)}
+    fig, axes = plt.subplots(2, len(cfg.mc_nu0), figsize=(5.0 * len(cfg.mc_nu0), 7.0), squeeze=False)
+    for r_i, compensated in enumerate((0, 1)):
+        for c_i, nu0 in enumerate(cfg.mc_nu0):
+            ax = axes[r_i, c_i]
+            sel = [r for r in rows if r["compensated"] == compensated and r["nu0"] == nu0]
+            dims = np.array([r["dim"] for r in sel if r["eta"] == cfg.mc_eta[0]])
+            ax.plot(dims, [r["closed_form_eta1"] for r in sel if r["eta"] == cfg.mc_eta[0]], "k-", lw=2,
+                    label=r"closed form ($\eta$=1)")  # fmt: skip
+            for eta in cfg.mc_eta:
+                pts = [r for r in sel if r["eta"] == eta]
+                ax.errorbar(dims, [p["mc"] for p in pts], yerr=[2 * p["mc_stderr"] for p in pts], fmt="o", ms=3,
+                            color=colors[eta], capsize=2, label=rf"MC $\eta$={eta} ($\pm$2 s.e.)")  # fmt: skip
+                if eta != 1.0:
+                    ax.plot(dims, [p["exact_eta"] for p in pts], "--", color=colors[eta], lw=1,
+                            label=rf"exact $\chi'^2$ law $\eta$={eta}")  # fmt: skip
+            mode = r"$\epsilon\sqrt{\dim}$" if compensated else r"$\epsilon$"
+            ax.set_title(rf"$\nu_0$={nu0}, clip range {mode}, $\epsilon$={cfg.eps}", fontsize=10)
+            ax.set_xlabel("action dimension")
+            ax.set_ylabel(r"$P[|\log r| \leq$ clip range$]$")
+            ax.set_ylim(-0.02, 1.02)
+            ax.set_xticks(dims[::2] if len(dims) > 10 else dims)
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="lower left", framealpha=0.9)
+    fig.suptitle(f"Fig. 3: Monte Carlo from sampled Gaussian policies ({cfg.mc_samples} samples/point)", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(cfg.out / "fig3_monte_carlo.png", dpi=130)
+    plt.close(fig)
+
+    eta1 = [r for r in rows if r["eta"] == 1.0]
+    other = [r for r in rows if r["eta"] != 1.0]
+    summary = {"fig3_points": len(rows)}
+    if eta1:
+        summary["fig3_eta1_max_abs_z"] = float(max(abs(r["z_vs_closed_form"]) for r in eta1))
+        summary["fig3_eta1_max_abs_diff"] = float(max(abs(r["mc"] - r["closed_form_eta1"]) for r in eta1))
+    if other:
+        summary["fig3_eta_ne1_max_abs_diff_vs_closed_form"] = float(
+            max(abs(r["mc"] - r["closed_form_eta1"]) for r in other)
+        )
+        summary["fig3_eta_ne1_max_abs_diff_vs_exact_eta"] = float(max(abs(r["mc"] - r["exact_eta"]) for r in other))
+    return summary
+
+
+# -- figure 4 ----------------------------------------------------------------------------------------
+
+
+def figure4(cfg: TheoryConfig, plt) -> dict[str, float]:
+    try:
+        from morph_core import fisher_scaling
+    except ImportError as exc:  # the GNN policy is a separate module; say what is missing
+        raise SystemExit(f"morph-theory: figure 4 needs the GNN policy ({exc}); rerun with --no-fisher") from exc
+
+    result = fisher_scaling.update_norm_scaling(
+        fisher_scaling.ScalingConfig(
+            dims=cfg.fisher_dims,
+            states_per_dim=cfg.fisher_states,
+            warmup_steps=cfg.fisher_warmup,
+            delta=cfg.trpo_delta,
+            beta=cfg.beta,
+            damping=cfg.damping,
+            seed=cfg.seed,
+        )
+    )
+    write_csv(cfg.out / "fig4_update_scaling.csv", result.csv_header(), result.csv_rows())
+    fig, ax = plt.subplots(figsize=(6.0, 4.4))
+    dims = np.asarray(result.dims, dtype=float)
+    for norms, slope, intercept, label, color in (
+        (result.trpo_norms, result.trpo_slope, result.trpo_intercept, "TRPO", "tab:blue"),
+        (result.beta_norms, result.beta_slope, result.beta_intercept, r"$\beta$-PPO", "tab:red"),
+    ):
+        ax.loglog(dims, norms, "o", color=color, label=f"{label}: fitted slope {slope:+.2f}")
+        ax.loglog(dims, np.exp(intercept) * dims**slope, "-", color=color, lw=1)
+    ref = dims / dims[0]
+    ax.loglog(dims, result.trpo_norms[0] * ref**-0.5, ":", color="tab:blue", label="paper: slope -1/2")
+    ax.loglog(dims, result.beta_norms[0] * ref**-1.0, ":", color="tab:red", label="paper: slope -1")
+    ax.set_xlabel("chain length d (action dimension)")
+    ax.set_ylabel(r"$\|\Delta\theta\|$ (actor parameters)")
+    ax.set_title(f"Fig. 4: update norm vs dim, fixed g ({result.gradient_kind})", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(cfg.out / "fig4_update_scaling.png", dpi=130)
+    plt.close(fig)
+    return result.summary()
+
+
+# -- figure 5: training-run overlay ------------------------------------------------------------------
+
+
+@dataclass
+class RunData:
+    name: str
+    clip_eps: float
+    clip_mode: str
+    dims: list[int]
+    columns: dict[str, np.ndarray]
+
+
+RUN_COLUMNS = ("in_eps_frac", "logr_std", "logr_mean")
+
+
+def load_run(path: Path, fallback_eps: float | None = None) -> RunData:
+    """Read ``progress.csv`` (or the one inside a run dir) and the run's ``config.json``.
+
+    Raises ``ValueError`` naming the missing columns or file; empty cells (a dimension absent from
+    a minibatch) become NaN.
+    """
+    csv_path = path / "progress.csv" if path.is_dir() else path
+    if not csv_path.is_file():
+        raise ValueError(f"run CSV not found: {csv_path}")
+    with csv_path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = reader.fieldnames or []
+        records = list(reader)
+    dims = sorted(int(c.removeprefix("in_eps_frac_d")) for c in header if c.startswith("in_eps_frac_d"))
+    if not dims:
+        raise ValueError(f"{csv_path}: no in_eps_frac_d<d> columns (header: {', '.join(header) or 'empty'})")
+    missing = [f"{k}_d{d}" for d in dims for k in RUN_COLUMNS if f"{k}_d{d}" not in header]
+    if missing:
+        raise ValueError(f"{csv_path}: missing columns {', '.join(missing)}")
+    if not records:
+        raise ValueError(f"{csv_path}: no data rows")
+
+    def column(name: str) -> np.ndarray:
+        return np.array([float(r[name]) if r.get(name, "") not in ("", None) else np.nan for r in records])
+
+    columns = {f"{k}_d{d}": column(f"{k}_d{d}") for d in dims for k in RUN_COLUMNS}
+    config_path = csv_path.parent / "config.json"
+    if config_path.is_file():
+        config = json.loads(config_path.read_text())
+        if "clip_eps" not in config:
+            raise ValueError(f"{config_path}: no 'clip_eps' key")
+        clip_eps, clip_mode = float(config["clip_eps"]), str(config.get("clip_mode", "unknown"))
+    elif fallback_eps is not None:
+        print(f"morph-theory: {config_path} missing, assuming clip_eps={fallback_eps}", file=sys.stderr)
+        clip_eps, clip_mode = fallback_eps, "unknown"
+    else:
+        raise ValueError(f"{config_path} missing (needed for clip_eps)")
+    name = f"{csv_path.parent.name} ({clip_mode})"
+    return RunData(name, clip_eps, clip_mode, dims, columns)
+
+
+def run_overlay_rows(run: RunData, tail: float) -> list[dict[str, float]]:
+    """Per dimension: measured in-eps fraction vs the closed form at the measured ``|nu| = std(log r)``.
+
+    The in-eps fraction is measured with the base ``clip_eps`` whatever the clip mode, so the closed
+    form is evaluated uncompensated. The prediction is made row by row and then averaged, as the drift
+    changes during training. ``nu0 = |nu| / sqrt(d)`` tells whether the homogeneous-drift model holds.
+    """
+    n_rows = len(next(iter(run.columns.values())))
+    start = n_rows - max(1, int(round(tail * n_rows)))
+    rows = []
+    for d in run.dims:
+        frac = run.columns[f"in_eps_frac_d{d}"][start:]
+        std = run.columns[f"logr_std_d{d}"][start:]
+        mean = run.columns[f"logr_mean_d{d}"][start:]
+        ok = np.isfinite(frac) & np.isfinite(std) & np.isfinite(mean)
+        if not ok.any():
+            continue
+        pred = theory.clip_probability(1, std[ok], run.clip_eps)
+        rows.append(
+            {
+                "dim": d,
+                "n_rows": int(ok.sum()),
+                "measured_in_eps": float(frac[ok].mean()),
+                "measured_in_eps_sd": float(frac[ok].std()),
+                "predicted_at_measured_nu": float(pred.mean()),
+                "logr_std": float(std[ok].mean()),
+                "logr_mean": float(mean[ok].mean()),
+                "predicted_logr_mean": float((-(std[ok] ** 2) / 2).mean()),
+                "nu0_estimate": float((std[ok] / np.sqrt(d)).mean()),
+            }
+        )
+    return rows
+
+
+def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
+    runs = [load_run(p, fallback_eps=cfg.eps) for p in cfg.run_csv]
+    fig, (ax_p, ax_m) = plt.subplots(1, 2, figsize=(11.0, 4.4))
+    all_rows, summary = [], {}
+    for k, run in enumerate(runs):
+        rows = run_overlay_rows(run, cfg.run_tail)
+        if not rows:
+            raise ValueError(f"{run.name}: every row of every dimension is empty")
+        color = f"C{k}"
+        dims = np.array([r["dim"] for r in rows])
+        ax_p.errorbar(dims, [r["measured_in_eps"] for r in rows], yerr=[r["measured_in_eps_sd"] for r in rows],
+                      fmt="o", color=color, capsize=2, label=f"{run.name}: measured")  # fmt: skip
+        ax_p.plot(dims, [r["predicted_at_measured_nu"] for r in rows], "x--", color=color,
+                  label=r"closed form at measured $|\nu|$=std(log r)")  # fmt: skip
+        # Homogeneous-drift curve with nu0 fitted as the median over dims of std / sqrt(d).
+        nu0_hat = float(np.median([r["nu0_estimate"] for r in rows]))
+        dd = np.arange(1, max(cfg.max_dim, int(dims.max())) + 1)
+        ax_p.plot(dd, theory.clip_probability(dd, nu0_hat, run.clip_eps), ":", color=color,
+                  label=rf"homogeneous $\nu_0$={nu0_hat:.3f}")  # fmt: skip
+        ax_m.plot([r["predicted_logr_mean"] for r in rows], [r["logr_mean"] for r in rows], "o", color=color,
+                  label=run.name)  # fmt: skip
+        for r in rows:
+            all_rows.append({"run": run.name, "clip_eps": run.clip_eps, **r})
+        errs = [abs(r["measured_in_eps"] - r["predicted_at_measured_nu"]) for r in rows]
+        summary[f"run{k}_max_abs_in_eps_error"] = float(max(errs))
+        summary[f"run{k}_nu0_estimate"] = nu0_hat
+    lo = min(min(r["predicted_logr_mean"], r["logr_mean"]) for r in all_rows)
+    ax_m.plot([lo, 0], [lo, 0], "k-", lw=0.8, label="identity")
+    ax_m.set_xlabel(r"$-\mathrm{std}(\log r)^2 / 2$ (theory for $\eta$=1)")
+    ax_m.set_ylabel(r"measured mean$(\log r)$")
+    ax_m.legend(fontsize=7)
+    ax_m.grid(alpha=0.3)
+    ax_p.set_xlabel("action dimension")
+    ax_p.set_ylabel(r"fraction with $|\log r| \leq \epsilon$")
+    ax_p.set_ylim(-0.02, 1.02)
+    ax_p.grid(alpha=0.3)
+    ax_p.legend(fontsize=7)
+    fig.suptitle("Fig. 5: training runs vs theory", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(cfg.out / "fig5_run_overlay.png", dpi=130)
+    plt.close(fig)
+    write_csv(cfg.out / "fig5_run_overlay.csv", list(all_rows[0]), (list(r.values()) for r in all_rows))
+    return summary
+
+
+# -- entry point -------------------------------------------------------------------------------------
+
+
+def run(cfg: TheoryConfig) -> dict[str, float]:
+    """Make every figure of ``cfg``; returns (and writes) the summary numbers."""
+    import torch
+
+    torch.set_num_threads(1)  # the machine is shared with training runs
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    plt = _pyplot()
+    summary: dict[str, typing.Any] = {"config": {k: str(v) for k, v in dataclasses.asdict(cfg).items()}}
+    steps = [("fig1", figure1), ("fig2", figure2), ("fig3", figure3)]
+    if cfg.fisher:
+        steps.append(("fig4", figure4))
+    if cfg.run_csv:
+        steps.append(("fig5", figure5))
+    for name, make in steps:
+        t0 = time.perf_counter()
+        summary.update(make(cfg, plt))
+        summary[f"{name}_seconds"] = round(time.perf_counter() - t0, 2)
+    (cfg.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    cfg = parse_config(argv)
+    try:
+        summary = run(cfg)
+    except ValueError as exc:
+        print(f"morph-theory: error: {exc}", file=sys.stderr)
+        return 2
+    for key, value in summary.items():
+        if key != "config":
+            print(f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}")
+    print(f"wrote figures and CSVs to {cfg.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
