@@ -156,7 +156,7 @@ def test_trained_policy_swims_forward(probe, launch):
     advance = by_step[steps][0] - by_step[0][0]
     want = _rollout(GraphActorCritic.load(SHIPPED_MODEL).eval(), 6, 0, steps)
     assert advance == pytest.approx(want[steps][0] - want[0][0], abs=1e-3)
-    assert advance > 0.2, f"torso advanced only {advance:.3f} m in 20 s"
+    assert advance > 1.0, f"torso advanced only {advance:.3f} m in 20 s"  # a PPO checkpoint here: ~7 m
 
 
 # -- policy node alone ---------------------------------------------------------------------
