@@ -6,8 +6,9 @@ Real node processes through their console scripts, real Fast DDS on loopback
 (inside the private network namespace). Latency is measured by this
 process's node: publish a JointState, wait for the EffortCommands answer,
 one at a time; beside it, the same policy's inference alone in-process
-(joint graph + GNN + action, one torch thread). The sim node's real-time
-factor is its free-running sim clock over wall time at 20 joints.
+(validation, joint graph, the NumPy batch-1 GNN forward the node runs, and
+for comparison the torch forward). The sim node's real-time factor is its
+free-running sim clock over wall time at 20 joints.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 
 from morph_core.joint_state_graph import chain_batch, validate_joint_state
+from morph_core.policy_numpy import NumpyPolicy
 from morph_policy_node.policy_node import load_policy
 
 BIN = Path(sys.executable).parent
@@ -55,25 +57,31 @@ def spin_until(executor, condition, timeout: float) -> bool:
     return True
 
 
-def inference_alone(samples: int) -> dict[int, np.ndarray]:
-    """Per-call time [ms] of what the node does per message besides DDS: validate, graph, GNN, clip."""
+def inference_alone(samples: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+    """Per-call time [ms] of what the node does per message besides DDS (validate, graph, GNN, clip),
+    with the NumPy batch-1 forward the node runs and, beside it, the torch forward."""
     torch.set_num_threads(1)
     policy = load_policy("")
-    out = {}
+    fast = NumpyPolicy(policy)
+    out_np, out_torch = {}, {}
     rng = np.random.default_rng(0)
     for j in JOINTS:
         names = [f"j{k}" for k in range(j)]
         pos, vel, glob = rng.normal(size=j), rng.normal(size=j), rng.normal(size=4)
-        times = []
+        times_np, times_torch = [], []
         for i in range(samples + 50):
             t = time.perf_counter()
+            p, v = validate_joint_state(names, pos, vel)
+            np.clip(fast.mean(p, v, glob), -1.0, 1.0)
+            t1 = time.perf_counter()
             p, v = validate_joint_state(names, pos, vel)
             action, *_ = policy.act(chain_batch(p, v, glob), deterministic=True)
             np.clip(action[0].numpy(), -1.0, 1.0)
             if i >= 50:  # warm-up excluded
-                times.append(time.perf_counter() - t)
-        out[j] = np.array(times) * 1e3
-    return out
+                times_np.append(t1 - t)
+                times_torch.append(time.perf_counter() - t1)
+        out_np[j], out_torch[j] = np.array(times_np) * 1e3, np.array(times_torch) * 1e3
+    return out_np, out_torch
 
 
 def policy_latency(samples: int) -> dict[int, np.ndarray]:
@@ -154,20 +162,22 @@ def main() -> None:
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(PROFILE))
     import rclpy
 
-    alone = inference_alone(args.samples)
+    alone, alone_torch = inference_alone(args.samples)
     rclpy.init()
     try:
         latency = policy_latency(args.samples)
         rtf = sim_rtf(20, args.seconds)
     finally:
         rclpy.try_shutdown()
-    print("| joints | node latency p50 (ms) | p99 (ms) | inference alone p50 (ms) | p99 (ms) |")
-    print("|---:|---:|---:|---:|---:|")
+    print(
+        "| joints | node latency p50 (ms) | p99 (ms) | inference alone p50 (ms) | p99 (ms) | torch forward p50 (ms) |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|")
     for j in JOINTS:
-        lat, inf = latency[j], alone[j]
+        lat, inf, inf_t = latency[j], alone[j], alone_torch[j]
         print(
             f"| {j} | {np.percentile(lat, 50):.3f} | {np.percentile(lat, 99):.3f} "
-            f"| {np.percentile(inf, 50):.3f} | {np.percentile(inf, 99):.3f} |"
+            f"| {np.percentile(inf, 50):.3f} | {np.percentile(inf, 99):.3f} | {np.percentile(inf_t, 50):.3f} |"
         )
     print()
     print(f"sim node, 20 joints, free-running (real_time_factor 0): {rtf:.1f}x real time")
