@@ -22,6 +22,7 @@ import dataclasses
 import json
 import sys
 import time
+import types
 import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -29,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from morph_core import theory
+from morph_core import fisher_scaling, theory
+
+_FISHER = fisher_scaling.ScalingConfig()  # figure 4's defaults live with the study itself
 
 
 @dataclass
@@ -45,16 +48,30 @@ class TheoryConfig:
     mc_eta: tuple[float, ...] = field(default=(0.9, 1.0, 1.1), metadata={"help": "std ratios eta of figure 3"})
     mc_samples: int = field(default=20_000, metadata={"help": "Monte Carlo samples per (dim, nu0, eta) point"})
     seed: int = field(default=0, metadata={"help": "seed of the Monte Carlo and of the Fisher states/policy"})
-    fisher: bool = field(default=True, metadata={"help": "compute figure 4 (needs morph_core.policy)"})
-    fisher_dims: tuple[int, ...] = field(
-        default=tuple(range(2, 21)), metadata={"help": "chain lengths d of the Fisher / update-norm study"}
+    fisher: bool = field(default=True, metadata={"help": "compute figure 4 (Fisher of the GNN policy)"})
+    fisher_dims: tuple[int, ...] = field(default=_FISHER.dims, metadata={"help": "chain lengths d of figure 4"})
+    fisher_states: int = field(
+        default=_FISHER.states_per_dim, metadata={"help": "env states per chain length averaged in the Fisher"}
     )
-    fisher_states: int = field(default=16, metadata={"help": "env states per chain length for the Fisher matrix"})
-    fisher_warmup: int = field(default=5, metadata={"help": "random-action steps after reset before a state is kept"})
-    trpo_delta: float = field(default=0.01, metadata={"help": "TRPO KL radius delta"})
-    beta: float = field(default=1.0, metadata={"help": "beta of the KL-penalty PPO update"})
+    fisher_warmup: int = field(
+        default=_FISHER.warmup_steps, metadata={"help": "random-action steps between two kept states"}
+    )
+    fisher_subspace: str = field(
+        default=_FISHER.subspace,
+        metadata={"help": f"actor parameters of the Fisher, one of {fisher_scaling.SUBSPACES}"},
+    )
+    fisher_subspace_dim: int = field(default=_FISHER.subspace_dim, metadata={"help": "k of --fisher-subspace random"})
+    fisher_gradient: str = field(
+        default=_FISHER.gradient, metadata={"help": f"the fixed gradient g, one of {fisher_scaling.GRADIENTS}"}
+    )
+    fisher_checkpoint: str | None = field(
+        default=_FISHER.checkpoint, metadata={"help": "policy .safetensors to analyse (default: fresh init)"}
+    )
+    trpo_delta: float = field(default=_FISHER.delta, metadata={"help": "TRPO KL radius delta"})
+    beta: float = field(default=_FISHER.beta, metadata={"help": "beta of the KL-penalty PPO update"})
     damping: float = field(
-        default=1e-4, metadata={"help": "Tikhonov damping of the Fisher solve, relative to its mean eigenvalue at d=2"}
+        default=_FISHER.damping,
+        metadata={"help": "damping of the Fisher solve, relative to its largest eigenvalue at the smallest d"},
     )
     run_csv: list[Path] = field(
         default_factory=list,
@@ -82,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
             kwargs.update(nargs="+", type=typing.get_args(hint)[0], default=default)
         elif origin is list:
             kwargs.update(action="extend", nargs="+", type=typing.get_args(hint)[0], default=None)
+        elif typing.get_origin(hint) in (typing.Union, types.UnionType):  # "X | None": parse as X
+            kwargs.update(type=next(t for t in typing.get_args(hint) if t is not type(None)), default=default)
         else:
             kwargs.update(type=hint, default=default)
         parser.add_argument(flag, **kwargs)
@@ -328,39 +347,75 @@ def figure3(cfg: TheoryConfig, plt) -> dict[str, float]:
 
 
 def figure4(cfg: TheoryConfig, plt) -> dict[str, float]:
-    try:
-        from morph_core import fisher_scaling
-    except ImportError as exc:  # the GNN policy is a separate module; say what is missing
-        raise SystemExit(f"morph-theory: figure 4 needs the GNN policy ({exc}); rerun with --no-fisher") from exc
-
     result = fisher_scaling.update_norm_scaling(
         fisher_scaling.ScalingConfig(
             dims=cfg.fisher_dims,
             states_per_dim=cfg.fisher_states,
             warmup_steps=cfg.fisher_warmup,
+            subspace=cfg.fisher_subspace,
+            subspace_dim=cfg.fisher_subspace_dim,
+            gradient=cfg.fisher_gradient,
             delta=cfg.trpo_delta,
             beta=cfg.beta,
             damping=cfg.damping,
             seed=cfg.seed,
+            checkpoint=cfg.fisher_checkpoint,
         )
     )
     write_csv(cfg.out / "fig4_update_scaling.csv", result.csv_header(), result.csv_rows())
-    fig, ax = plt.subplots(figsize=(6.0, 4.4))
+    write_csv(
+        cfg.out / "fig4_damping_sweep.csv",
+        ["relative_damping", "trpo_slope", "beta_slope"],
+        ([k, v[0], v[1]] for k, v in result.damping_sweep.items()),
+    )
+    fig, (ax_n, ax_e, ax_s) = plt.subplots(1, 3, figsize=(15.0, 4.4))
     dims = np.asarray(result.dims, dtype=float)
-    for norms, slope, intercept, label, color in (
-        (result.trpo_norms, result.trpo_slope, result.trpo_intercept, "TRPO", "tab:blue"),
-        (result.beta_norms, result.beta_slope, result.beta_intercept, r"$\beta$-PPO", "tab:red"),
-    ):
-        ax.loglog(dims, norms, "o", color=color, label=f"{label}: fitted slope {slope:+.2f}")
-        ax.loglog(dims, np.exp(intercept) * dims**slope, "-", color=color, lw=1)
     ref = dims / dims[0]
-    ax.loglog(dims, result.trpo_norms[0] * ref**-0.5, ":", color="tab:blue", label="paper: slope -1/2")
-    ax.loglog(dims, result.beta_norms[0] * ref**-1.0, ":", color="tab:red", label="paper: slope -1")
-    ax.set_xlabel("chain length d (action dimension)")
-    ax.set_ylabel(r"$\|\Delta\theta\|$ (actor parameters)")
-    ax.set_title(f"Fig. 4: update norm vs dim, fixed g ({result.gradient_kind})", fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    for norms, slope, intercept, label, color, paper in (
+        (result.trpo_norms, result.trpo_slope, result.trpo_intercept, "TRPO", "C0", -0.5),
+        (result.beta_norms, result.beta_slope, result.beta_intercept, r"$\beta$-PPO", "C3", -1.0),
+    ):
+        ax_n.loglog(dims, norms, "o", color=color, label=f"{label}: fitted slope {slope:+.2f}")
+        ax_n.loglog(dims, np.exp(intercept) * dims**slope, "-", color=color, lw=1)
+        ax_n.loglog(dims, norms[0] * ref**paper, ":", color=color, label=f"paper: slope {paper:+.1f}")
+    ax_n.set_xlabel("chain length d (action dimension)")
+    ax_n.set_ylabel(r"$\|\Delta\theta\|$")
+    ax_n.set_title(f"update norm, fixed g ({result.gradient_kind}), damping {cfg.damping:g}", fontsize=9)
+    ax_n.legend(fontsize=7)
+    slopes = result.eigen_slopes()
+    for values, name, marker in (
+        (result.eig_max, "max", "^"),
+        (result.eig_mean, "mean", "o"),
+        (result.eig_min, "min", "v"),
+    ):
+        label = f"{name} eigenvalue" + (
+            f", slope {slopes[f'fisher_eig_{name}_slope']:+.2f}" if f"fisher_eig_{name}_slope" in slopes else ""
+        )
+        ax_e.loglog(dims, values, marker + "-", ms=4, label=label)  # fmt: skip
+    ax_e.loglog(dims, result.eig_mean[0] * ref, "k:", label="slope +1 (paper's assumption)")
+    ax_e.set_xlabel("chain length d")
+    ax_e.set_ylabel("Fisher eigenvalue")
+    ax_e.set_title(f"Fisher spectrum: {result.subspace} + log-std", fontsize=9)
+    ax_e.legend(fontsize=7)
+    damp = np.array(list(result.damping_sweep))
+    swept = np.array(list(result.damping_sweep.values()))
+    ax_s.semilogx(damp, swept[:, 0], "o-", color="C0", label="TRPO slope")
+    ax_s.semilogx(damp, swept[:, 1], "s-", color="C3", label=r"$\beta$-PPO slope")
+    ax_s.axhline(-0.5, color="C0", ls=":", label="paper -1/2")
+    ax_s.axhline(-1.0, color="C3", ls=":", label="paper -1")
+    ax_s.set_xlabel(r"damping / $\lambda_{max}(F_{d_{min}})$")
+    ax_s.set_ylabel("fitted log-log slope")
+    ax_s.set_title("slopes vs damping of the Fisher solve", fontsize=9)
+    ax_s.legend(fontsize=7)
+    ticks = [t for t in (1, 2, 3, 5, 10, 15, 20, 30, 50) if dims[0] <= t <= dims[-1]]
+    for ax in (ax_n, ax_e):
+        ax.set_xticks(ticks, [str(t) for t in ticks])
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())
+    for ax in (ax_n, ax_e, ax_s):
+        ax.grid(alpha=0.3, which="both")
+    fig.suptitle(
+        f"Fig. 4: TRPO / beta-PPO update norms on the GNN policy ({cfg.fisher_states} states per d)", fontsize=11
+    )
     fig.tight_layout()
     fig.savefig(cfg.out / "fig4_update_scaling.png", dpi=130)
     plt.close(fig)
