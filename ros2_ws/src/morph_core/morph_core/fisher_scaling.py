@@ -67,6 +67,9 @@ class ScalingConfig:
     """k for subspace='random'"""
     gradient: str = "random"
     """'random': fixed random unit vector; 'policy_gradient': score-weighted random advantages at min(dims)"""
+    gradient_rcond: float = 0.0
+    """if > 0, project g onto F's eigenvectors at min(dims) with eigenvalue > rcond * lambda_max
+    (drops directions a trained policy cannot move at all, e.g. saturated units)"""
     delta: float = 0.01
     """TRPO KL radius"""
     beta: float = 1.0
@@ -227,6 +230,16 @@ class Fisher:
         lam[len(mean_eigs)] = self.log_std_block
         return np.sort(lam)[::-1]
 
+    def numerical_rank(self, rcond: float = 1e-10) -> int:
+        lam = self.eigenvalues()
+        return int((lam > rcond * lam[0]).sum())
+
+    def project_to_range(self, g: torch.Tensor, rcond: float) -> torch.Tensor:
+        """``g`` without its components along eigenvectors with eigenvalue <= rcond * lambda_max."""
+        keep = self.singular_values**2 > rcond * float(self.eigenvalues()[0])
+        v = self.right_vectors[keep]
+        return torch.cat([v.T @ (v @ g[:-1]), g[-1:]])
+
     def solve(self, g: torch.Tensor, damping: float) -> torch.Tensor:
         """``(F + damping I)^-1 g``."""
         gm, gl = g[:-1], g[-1:]
@@ -278,6 +291,7 @@ class ScalingResult:
     eig_max: np.ndarray
     eig_min: np.ndarray
     eig_mean: np.ndarray
+    rank: np.ndarray
     trpo_slope: float
     trpo_intercept: float
     beta_slope: float
@@ -289,22 +303,32 @@ class ScalingResult:
     """relative damping -> (TRPO slope, beta slope)"""
 
     def csv_header(self) -> list[str]:
-        return ["dim", "trpo_norm", "beta_norm", "fisher_eig_max", "fisher_eig_min", "fisher_eig_mean"]
+        return ["dim", "trpo_norm", "beta_norm", "fisher_eig_max", "fisher_eig_min", "fisher_eig_mean", "rank_1e-10"]
 
     def csv_rows(self) -> list[list[float]]:
         return [
-            [d, float(t), float(b), float(mx), float(mn), float(me)]
-            for d, t, b, mx, mn, me in zip(
-                self.dims, self.trpo_norms, self.beta_norms, self.eig_max, self.eig_min, self.eig_mean, strict=True
+            [d, float(t), float(b), float(mx), float(mn), float(me), int(r)]
+            for d, t, b, mx, mn, me, r in zip(
+                self.dims,
+                self.trpo_norms,
+                self.beta_norms,
+                self.eig_max,
+                self.eig_min,
+                self.eig_mean,
+                self.rank,
+                strict=True,
             )
         ]
 
     def eigen_slopes(self) -> dict[str, float]:
-        """Slopes of log eigenvalue statistics vs log d (the paper's assumption: all +1)."""
+        """Slopes of log eigenvalue statistics vs log d (the paper's assumption: all +1).
+
+        The smallest eigenvalue's slope is left out when it is numerically zero at some d.
+        """
         dims = np.asarray(self.dims)
         out = {}
         for name, values in (("max", self.eig_max), ("min", self.eig_min), ("mean", self.eig_mean)):
-            if np.all(values > 0):
+            if np.all(values > 1e-10 * self.eig_max):
                 out[f"fisher_eig_{name}_slope"] = fit_slope(dims, values)[0]
         return out
 
@@ -313,6 +337,8 @@ class ScalingResult:
             "fisher_subspace": self.subspace,
             "fisher_gradient": self.gradient_kind,
             "fisher_damping_abs": self.damping_abs,
+            "fisher_rank_min_d": int(self.rank[0]),
+            "fisher_rank_max_d": int(self.rank[-1]),
             "trpo_slope": self.trpo_slope,
             "beta_slope": self.beta_slope,
             **self.eigen_slopes(),
@@ -355,6 +381,8 @@ def update_norm_scaling(cfg: ScalingConfig, policy: GraphActorCritic | None = No
             else:
                 gen = torch.Generator().manual_seed(cfg.seed + 1)
                 g = torch.randn(subspace.dim + 1, generator=gen, dtype=torch.float64)
+            if cfg.gradient_rcond > 0:
+                g = fishers[0].project_to_range(g, cfg.gradient_rcond)
             g = g / g.norm()  # only directions matter for the slopes; unit norm keeps numbers readable
 
     # One absolute damping for every d, as a TRPO implementation would use (scaled to F at min d).
@@ -378,6 +406,7 @@ def update_norm_scaling(cfg: ScalingConfig, policy: GraphActorCritic | None = No
         eig_max=np.array([e[0] for e in eigs]),
         eig_min=np.array([e[-1] for e in eigs]),
         eig_mean=np.array([e.mean() for e in eigs]),
+        rank=np.array([f.numerical_rank() for f in fishers]),
         trpo_slope=trpo_fit[0],
         trpo_intercept=trpo_fit[1],
         beta_slope=beta_fit[0],

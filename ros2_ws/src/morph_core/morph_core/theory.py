@@ -127,8 +127,8 @@ def clip_probability_eta(
     Completing the square, ``sum_i (a z_i^2 + b z_i + c) = a X + dim (c - b^2 / (4a))`` with
     ``X = sum_i (z_i + b / 2a)^2 ~ chi2'(df=dim, nc=dim b^2 / 4a^2)``, the non-central chi-squared
     law the paper mentions. Where ``|eta - 1| < 1e-6`` (a ~ 0) the Gaussian closed form is used.
-    The non-centrality grows like ``1/(eta-1)^2``, so the cdf is only reliable for eta not too close to 1
-    (used here with ``|eta - 1| >= 0.02``).
+    The non-centrality grows like ``1/(eta-1)^2``; scipy's cdf agreed with Monte Carlo (200k samples,
+    within ~2.5 standard errors) for ``|eta - 1|`` down to 0.0065 at dim <= 20.
     """
     dim, nu0, eps, eta = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (dim, nu0, eps, eta)))
     out = np.asarray(clip_probability(dim, nu0, eps, compensated), dtype=float).copy()

@@ -64,6 +64,10 @@ class TheoryConfig:
     fisher_gradient: str = field(
         default=_FISHER.gradient, metadata={"help": f"the fixed gradient g, one of {fisher_scaling.GRADIENTS}"}
     )
+    fisher_gradient_rcond: float = field(
+        default=_FISHER.gradient_rcond,
+        metadata={"help": "if > 0, keep only g's components along F(min d) eigenvalues > rcond * max"},
+    )
     fisher_checkpoint: str | None = field(
         default=_FISHER.checkpoint, metadata={"help": "policy .safetensors to analyse (default: fresh init)"}
     )
@@ -355,6 +359,7 @@ def figure4(cfg: TheoryConfig, plt) -> dict[str, float]:
             subspace=cfg.fisher_subspace,
             subspace_dim=cfg.fisher_subspace_dim,
             gradient=cfg.fisher_gradient,
+            gradient_rcond=cfg.fisher_gradient_rcond,
             delta=cfg.trpo_delta,
             beta=cfg.beta,
             damping=cfg.damping,
@@ -525,12 +530,12 @@ def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
         ax_p.errorbar(dims, [r["measured_in_eps"] for r in rows], yerr=[r["measured_in_eps_sd"] for r in rows],
                       fmt="o", color=color, capsize=2, label=f"{run.name}: measured")  # fmt: skip
         ax_p.plot(dims, [r["predicted_at_measured_nu"] for r in rows], "x--", color=color,
-                  label=r"closed form at measured $|\nu|$=std(log r)")  # fmt: skip
+                  label=rf"{run.name}: closed form at measured $|\nu|$=std(log r)")  # fmt: skip
         # Homogeneous-drift curve with nu0 fitted as the median over dims of std / sqrt(d).
         nu0_hat = float(np.median([r["nu0_estimate"] for r in rows]))
         dd = np.arange(1, max(cfg.max_dim, int(dims.max())) + 1)
         ax_p.plot(dd, theory.clip_probability(dd, nu0_hat, run.clip_eps), ":", color=color,
-                  label=rf"homogeneous $\nu_0$={nu0_hat:.3f}")  # fmt: skip
+                  label=rf"{run.name}: closed form, homogeneous $\nu_0$={nu0_hat:.3f}")  # fmt: skip
         ax_m.plot([r["predicted_logr_mean"] for r in rows], [r["logr_mean"] for r in rows], "o", color=color,
                   label=run.name)  # fmt: skip
         for r in rows:

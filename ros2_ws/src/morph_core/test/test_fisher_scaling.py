@@ -101,6 +101,12 @@ def test_fisher_solve_is_the_damped_inverse_even_when_singular():
         for damping in (1e-3, 0.5):
             expected = torch.linalg.solve(dense + damping * torch.eye(k + 1, dtype=torch.float64), g)
             torch.testing.assert_close(fisher.solve(g, damping), expected, rtol=1e-8, atol=1e-10)
+        assert fisher.numerical_rank() == min(rows, k) + 1
+        # Projected onto the range, g has no null-space part, so a vanishing damping leaves the solve bounded.
+        g_range = fisher.project_to_range(g, 1e-12)
+        assert g_range[-1] == g[-1]
+        torch.testing.assert_close(dense @ torch.linalg.pinv(dense) @ g_range, g_range)
+        assert fisher.solve(g_range, 1e-12).norm() < 1e6
 
 
 def test_update_norms_have_the_papers_slopes_when_fisher_is_exactly_d_times_fixed():
