@@ -418,8 +418,9 @@ def figure4(cfg: TheoryConfig, plt) -> dict[str, float]:
         ax.xaxis.set_minor_formatter(plt.NullFormatter())
     for ax in (ax_n, ax_e, ax_s):
         ax.grid(alpha=0.3, which="both")
+    which = f"checkpoint {Path(cfg.fisher_checkpoint).name}" if cfg.fisher_checkpoint else "fresh init"
     fig.suptitle(
-        f"Fig. 4: TRPO / beta-PPO update norms on the GNN policy ({cfg.fisher_states} states per d)", fontsize=11
+        f"Fig. 4: TRPO / beta-PPO update norms, GNN policy ({which}), {cfg.fisher_states} states per d", fontsize=11
     )
     fig.tight_layout()
     fig.savefig(cfg.out / "fig4_update_scaling.png", dpi=130)
