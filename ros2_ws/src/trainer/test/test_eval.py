@@ -1,6 +1,7 @@
 """morph-eval: deterministic checkpoint evaluation into eval.csv, resumable, and the comparison plots."""
 
 import csv
+import json
 import subprocess
 import sys
 
@@ -42,6 +43,25 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
         assert (tmp_path / "fig" / name).read_bytes()[:4] == b"\x89PNG"
     table = (tmp_path / "fig" / "final_eval_table.md").read_text()
     assert "| 2 |" in table and "| 3 |" in table and "compensated (1 seeds)" in table
+    assert "| 3 |" in (tmp_path / "fig" / "late_eval_table.md").read_text()
+
+    # Ship the best evaluated checkpoint: it loads, and says where it came from and how it scored.
+    dest = tmp_path / "models" / "swimmer_gnn.safetensors"
+    subprocess.run([sys.executable, "-m", "trainer.ship", "--run", *map(str, runs), "--dest", str(dest)], check=True)
+    meta = json.loads(dest.with_suffix(".json").read_text())["metadata"]
+    best = max(
+        (np.mean([float(r["return"]) for r in rows_of(run) if r["global_step"] == step]), run.name, int(step))
+        for run in runs
+        for step in {r["global_step"] for r in rows_of(run)}
+    )
+    assert (meta["source_run"], meta["global_step"]) == best[1:]
+    assert set(meta["eval_mean_return"]) == {"2", "3"} and "morph-train" in meta["training_command"]
+    GraphActorCritic.load(dest)
+
+
+def rows_of(run):
+    with (run / "eval.csv").open() as f:
+        return list(csv.DictReader(f))
 
 
 def test_eval_cli_refuses_a_directory_that_is_not_a_run(tmp_path):

@@ -153,27 +153,38 @@ def plot_eval_per_length(groups, path: Path) -> Path | None:
     return path
 
 
-def final_table(groups) -> str:
-    """Markdown: final-checkpoint eval return per chain length, mean +- std over seeds, per mode."""
+def eval_table(groups, late_fraction: float | None = None) -> str:
+    """Markdown: eval return per chain length, mean +- std over seeds, per mode.
+
+    ``late_fraction=None``: each run's final checkpoint. Otherwise each run's
+    mean over its evaluated checkpoints at or beyond that fraction of its
+    training steps (less sensitive to one unlucky last update).
+    """
     lengths: set[int] = set()
-    finals: dict[str, list[dict[int, float]]] = {}
+    per_mode: dict[str, list[dict[int, float]]] = {}
     for mode in MODES:
-        finals[mode] = []
+        per_mode[mode] = []
         for run in groups.get(mode, []):
             means = eval_means(run)
             if not means:
                 continue
-            last = max(s for by_step in means.values() for s in by_step)
-            finals[mode].append({n: by_step[last] for n, by_step in means.items() if last in by_step})
-            lengths |= set(finals[mode][-1])
+            steps = sorted({s for by_step in means.values() for s in by_step})
+            if late_fraction is None:
+                chosen = [steps[-1]]
+            else:
+                chosen = [s for s in steps if s >= late_fraction * run["config"]["total_timesteps"]] or [steps[-1]]
+            per_mode[mode].append(
+                {n: float(np.mean([by_step[s] for s in chosen if s in by_step])) for n, by_step in means.items()}
+            )
+            lengths |= set(per_mode[mode][-1])
     if not lengths:
         return ""
-    head = "| joints | " + " | ".join(f"{m} ({len(finals[m])} seeds)" for m in MODES) + " |"
+    head = "| joints | " + " | ".join(f"{m} ({len(per_mode[m])} seeds)" for m in MODES) + " |"
     lines = [head, "|---:|" + "---:|" * len(MODES)]
     for n in sorted(lengths):
         cells = []
         for m in MODES:
-            vals = [f[n] for f in finals[m] if n in f]
+            vals = [f[n] for f in per_mode[m] if n in f and np.isfinite(f[n])]
             cells.append(f"{np.mean(vals):.1f} ± {np.std(vals):.1f}" if vals else "–")
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -190,9 +201,10 @@ def plot_all(run_dirs: list[Path], out: Path) -> list[Path]:
     eval_fig = plot_eval_per_length(groups, out / "eval_return_per_length.png")
     if eval_fig is not None:
         written.append(eval_fig)
-    table = final_table(groups)
-    if table:
-        with atomic_writer(out / "final_eval_table.md") as f:
-            f.write(table)
-        written.append(out / "final_eval_table.md")
+    for name, late in (("final_eval_table.md", None), ("late_eval_table.md", 0.5)):
+        table = eval_table(groups, late)
+        if table:
+            with atomic_writer(out / name) as f:
+                f.write(table)
+            written.append(out / name)
     return written

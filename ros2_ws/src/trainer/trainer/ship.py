@@ -2,9 +2,10 @@
 
     python -m trainer.ship --run runs/compensated-s* [--dest PATH.safetensors]
 
-"Best" is the highest mean deterministic return over the training chain
-lengths at each run's final checkpoint (from its eval.csv); the unseen
-lengths are reported, not used to choose. The JSON beside the weights
+"Best" is the evaluated checkpoint (any run, any step in its eval.csv) with
+the highest mean deterministic return over the training chain lengths; the
+unseen lengths are reported, not used to choose. (At the paper's constant
+learning rate of 0.01 the last checkpoint is not always the best one.) The JSON beside the weights
 records the source run, its training command and the evaluation table.
 """
 
@@ -28,13 +29,16 @@ DEFAULT_DEST = (
 )
 
 
-def final_eval(run_dir: Path) -> tuple[int, dict[int, float]]:
+def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
+    """{global_step: {num_joints: mean return}} of every evaluated checkpoint of a run."""
     runs = [r for group in load_runs([run_dir]).values() for r in group]
-    means = eval_means(runs[0])
-    if not means:
+    by_step: dict[int, dict[int, float]] = {}
+    for n, steps in eval_means(runs[0]).items():
+        for step, ret in steps.items():
+            by_step.setdefault(step, {})[n] = ret
+    if not by_step:
         raise ValueError(f"{run_dir} has no eval.csv yet: run morph-eval first")
-    last = max(s for by_step in means.values() for s in by_step)
-    return last, {n: by_step[last] for n, by_step in sorted(means.items()) if last in by_step}
+    return by_step
 
 
 def training_command(cfg: dict) -> str:
@@ -54,9 +58,11 @@ def main(argv: list[str] | None = None) -> None:
     scored = []
     for run in args.run:
         cfg = json.loads((run / "config.json").read_text())
-        step, table = final_eval(run)
-        train_lengths = [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]]
-        scored.append((float(np.mean([table[n] for n in train_lengths])), run, cfg, step, table))
+        for step, table in evaluated_checkpoints(run).items():
+            train_lengths = [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]]
+            scored.append(
+                (float(np.mean([table[n] for n in train_lengths])), run, cfg, step, dict(sorted(table.items())))
+            )
     score, run, cfg, step, table = max(scored, key=lambda s: s[0])
     policy = GraphActorCritic.load(run / "checkpoints" / f"policy_{step:08d}.safetensors")
     policy.save(
