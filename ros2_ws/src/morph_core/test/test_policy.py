@@ -1,5 +1,7 @@
 """Graph actor-critic: shapes for any chain length, PyG equivalence, log-probs, persistence."""
 
+import os
+
 import gymnasium
 import numpy as np
 import pytest
@@ -114,6 +116,9 @@ def test_save_load_roundtrip_without_pickle(tmp_path):
     path = tmp_path / "policy.safetensors"
     policy.save(path, metadata={"note": "test"})
     assert path.read_bytes()[8:9] == b"{"  # safetensors header, not a pickle
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # written atomically, yet readable like any file
     loaded = GraphActorCritic.load(path)
     assert loaded.config == policy.config
     batch = ChainBatch.from_observations(_observations([4, 11]))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -109,7 +110,9 @@ def plot_clip_fractions(groups, path: Path, key: str = "clip_frac", ylabel: str 
                 steps, y = _series(run["progress"], f"{key}_d{d}")
                 ys.append(y)
             n = min(len(y) for y in ys)
-            mean = _smooth(np.nanmean(np.array([y[:n] for y in ys]), 0), 5)
+            with warnings.catch_warnings():  # an iteration may hold no sample of dimension d: NaN there
+                warnings.simplefilter("ignore", RuntimeWarning)
+                mean = _smooth(np.nanmean(np.array([y[:n] for y in ys]), 0), 5)
             ax.plot(steps[:n], mean, color=cmap(i / max(1, len(dims) - 1)), lw=0.6 + 0.3 * i, label=f"d={d}")
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
