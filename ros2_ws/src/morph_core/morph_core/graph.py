@@ -49,12 +49,6 @@ class ChainBatch:
         """[B, J, 2] joint states, the edge attributes."""
         return torch.stack([self.joint_pos, self.joint_vel], dim=-1)
 
-    @property
-    def link_mask(self) -> torch.Tensor:
-        """[B, J+1] bool, True where the link exists (a chain of N joints has N+1 links)."""
-        links = torch.arange(self.max_joints + 1)
-        return links.unsqueeze(0) <= self.num_joints.unsqueeze(1)
-
     @classmethod
     def from_padded(cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True) -> ChainBatch:
         """Build from padded arrays or tensors; ``trim`` drops padding beyond the longest chain."""
