@@ -72,7 +72,7 @@ class PolicyConfig:
 
 class Tanh(nn.Module):
     """tanh computed as 2 sigmoid(2x) - 1: the same function (to float rounding), but torch's CPU
-    tanh kernel is ~10x slower than its sigmoid here, and the heads' tanh dominated the update."""
+    tanh kernel is ~5x slower than this form here (bench/bench_policy.py), and it dominated the update."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(2.0 * x).mul(2.0).sub(1.0)
