@@ -6,12 +6,18 @@ link j (parent) and link j+1 (child) and carries the joint state
 padded to its longest chain, ``J`` joints, with a validity mask; nothing
 per-graph is built in Python, so a forward pass costs the same whatever
 mix of lengths it holds.
+
+The network itself runs on ``ChainBatch.packed``: the chains laid end to end
+as one long chain, cut between consecutive chains (PyG's disjoint union of
+graphs, in chain order). Padding costs nothing there, which on the 2..10-joint
+training mix is about 40% of the padded work.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -85,8 +91,51 @@ class ChainBatch:
         glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
         return cls.from_padded(pos, vel, glob, n)
 
+    @cached_property
+    def packed(self) -> PackedChains:
+        """The batch as one cut chain; computed once per batch (no gradients flow through it)."""
+        return PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask)
+
     def select(self, index: torch.Tensor) -> ChainBatch:
         """The sub-batch at ``index`` (e.g. a minibatch), trimmed to its own longest chain."""
         return ChainBatch.from_padded(
             self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
         )
+
+
+@dataclass(frozen=True)
+class PackedChains:
+    """B chains back to back: L = V + B links in one sequence, V = total joint count.
+
+    Slot k sits between links k and k+1. It holds a joint when both links belong
+    to one chain, and a cut (no joint: zero state, no message) where one chain
+    ends and the next begins. Joint j of chain b is slot j + b + (joints of the
+    chains before b), its parent link that slot's index, its child link the next.
+
+    edge_attr: [L-1, 2] joint states per slot, zero at cuts.
+    slot_mask: [L-1] bool, True where the slot holds a joint.
+    joint_link: [V] the link behind each joint (its child), in the padded batch's row-major order.
+    joint_chain: [V] chain (batch row) of each joint.
+    joint_padded: [V] each joint's flat index in the padded [B * J] layout.
+    """
+
+    num_links: int
+    edge_attr: torch.Tensor
+    slot_mask: torch.Tensor
+    joint_link: torch.Tensor
+    joint_chain: torch.Tensor
+    joint_padded: torch.Tensor
+
+    @classmethod
+    def from_mask(cls, joint_pos: torch.Tensor, joint_vel: torch.Tensor, mask: torch.Tensor) -> PackedChains:
+        b, j = mask.shape
+        joint_padded = mask.flatten().nonzero().squeeze(1)
+        joint_chain = torch.div(joint_padded, j, rounding_mode="floor") if j else joint_padded
+        joint_slot = torch.arange(joint_padded.numel()) + joint_chain  # each earlier chain adds one cut
+        num_links = joint_padded.numel() + b
+        num_slots = max(num_links - 1, 0)
+        edge_attr = joint_pos.new_zeros(num_slots, NUM_EDGE_FEATURES)
+        edge_attr[joint_slot] = torch.stack([joint_pos.flatten(), joint_vel.flatten()], 1)[joint_padded]
+        slot_mask = torch.zeros(num_slots, dtype=torch.bool)
+        slot_mask[joint_slot] = True
+        return cls(num_links, edge_attr, slot_mask, joint_slot + 1, joint_chain, joint_padded)

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 from torch import nn
@@ -29,6 +30,8 @@ from torch import nn
 from morph_core.atomic import atomic_write_bytes, atomic_writer
 from morph_core.chain_conv import BACKENDS, ChainConv
 from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
+
+LOG_2PI = math.log(2 * math.pi)
 
 
 @dataclass
@@ -70,14 +73,6 @@ class PolicyConfig:
         return cls(**d)
 
 
-class Tanh(nn.Module):
-    """tanh computed as 2 sigmoid(2x) - 1: the same function (to float rounding), but torch's CPU
-    tanh kernel is ~5x slower than this form here (bench/bench_policy.py), and it dominated the update."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(2.0 * x).mul(2.0).sub(1.0)
-
-
 def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
@@ -87,8 +82,36 @@ def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequentia
     return nn.Sequential(*layers)
 
 
+class TanhMLP(nn.Sequential):
+    """Linear, Tanh, ..., Linear (the reference's heads), evaluated through tanh(u) = 2 sigmoid(2u) - 1.
+
+    Same function and gradients (to float rounding), but torch's CPU tanh kernel is ~5x slower than
+    sigmoid here (bench/bench_policy.py) and dominated the update. The factors 2 and the -1 are moved
+    into the small weight matrices, W (2s - 1) + b = (2W) s + (b - W 1), so the large activation
+    tensors see one sigmoid per layer and nothing else.
+    """
+
+    def __init__(self, sizes: list[int]):
+        layers: list[nn.Module] = []
+        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+            layers += [nn.Linear(a, b), nn.Tanh()] if i < len(sizes) - 2 else [nn.Linear(a, b)]
+        super().__init__(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        linears = [m for m in self if isinstance(m, nn.Linear)]
+        for i, lin in enumerate(linears):
+            w, b = lin.weight, lin.bias
+            if i > 0:  # the input is s = sigmoid(2u), the layer wants tanh(u) = 2s - 1
+                w, b = 2.0 * w, b - w.sum(1)
+            if i < len(linears) - 1:  # a tanh follows: compute sigmoid(2u)
+                x = torch.sigmoid(F.linear(x, 2.0 * w, 2.0 * b))
+            else:
+                x = F.linear(x, w, b)
+        return x
+
+
 class GraphFeatureExtractor(nn.Module):
-    """Joint graph + global state -> one embedding per joint, [B, J, embed_channels]."""
+    """Joint graph + global state -> one embedding per joint."""
 
     def __init__(self, config: PolicyConfig):
         super().__init__()
@@ -99,12 +122,14 @@ class GraphFeatureExtractor(nn.Module):
         self.global_mlp = _mlp([NUM_GLOBAL_FEATURES, config.global_hidden, config.embed_channels], nn.ReLU, True)
 
     def forward(self, batch: ChainBatch) -> torch.Tensor:
-        e, m = batch.edge_attr, batch.mask
-        x = e.new_ones(batch.batch_size, batch.max_joints + 1, 1)  # links carry no state of their own
+        """[V, embed_channels]: one row per joint of the batch, in the padded batch's row-major order."""
+        chains = batch.packed
+        e, m = chains.edge_attr, chains.slot_mask
+        x = e.new_ones(chains.num_links, 1)  # links carry no state of their own
         x = torch.relu(self.conv1(x, e, m))
         x = torch.relu(self.conv2(x, e, m))
-        joint_embed = x[:, 1:]  # joint j reads the link behind it (link j+1)
-        return joint_embed + self.global_mlp(batch.global_feats).unsqueeze(1)
+        joint_embed = x[chains.joint_link]  # joint j reads the link behind it (link j+1 of its chain)
+        return joint_embed + self.global_mlp(batch.global_feats)[chains.joint_chain]
 
 
 class GraphActorCritic(nn.Module):
@@ -115,8 +140,8 @@ class GraphActorCritic(nn.Module):
         self.config = config or PolicyConfig()
         h = self.config.head_hidden
         self.features = GraphFeatureExtractor(self.config)
-        self.actor_head = _mlp([self.config.embed_channels, h, h, 1], Tanh, False)
-        self.critic_head = _mlp([self.config.embed_channels, h, h, 1], Tanh, False)
+        self.actor_head = TanhMLP([self.config.embed_channels, h, h, 1])
+        self.critic_head = TanhMLP([self.config.embed_channels, h, h, 1])
         self.log_std = nn.Parameter(torch.tensor(float(self.config.log_std_init)))
         if self.config.ortho_init:
             self._orthogonal_init()
@@ -137,14 +162,12 @@ class GraphActorCritic(nn.Module):
 
     def forward(self, batch: ChainBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns mean [B, J] (zero at padding), log_std (scalar), value [B]."""
-        z = self.features(batch)
-        # The head runs on real joints only: padding would be ~40% of the work on 2..10-joint mixes.
-        mean = z.new_zeros(batch.mask.shape)
-        mean[batch.mask] = self.actor_head(z[batch.mask]).squeeze(-1)
-        mask = batch.mask.to(z.dtype)
-        pooled = (z * mask.unsqueeze(-1)).sum(1) / batch.num_joints.unsqueeze(1).to(z.dtype)
-        value = self.critic_head(pooled).squeeze(-1)
-        return mean, self.log_std, value
+        z = self.features(batch)  # [V, C], real joints only
+        chains = batch.packed
+        mean = z.new_zeros(batch.mask.numel()).index_copy(0, chains.joint_padded, self.actor_head(z).squeeze(1))
+        pooled = z.new_zeros(batch.batch_size, z.shape[1]).index_add(0, chains.joint_chain, z)
+        value = self.critic_head(pooled / batch.num_joints.unsqueeze(1)).squeeze(1)
+        return mean.view(batch.mask.shape), self.log_std, value
 
     def value(self, batch: ChainBatch) -> torch.Tensor:
         return self.forward(batch)[2]
@@ -157,7 +180,7 @@ class GraphActorCritic(nn.Module):
 
     def entropy(self, batch: ChainBatch) -> torch.Tensor:
         """[B] entropy of each sample's joint action distribution (grows with its dimension)."""
-        per_joint = 0.5 * (1.0 + torch.log(torch.tensor(2 * torch.pi))) + self.log_std
+        per_joint = 0.5 * (1.0 + LOG_2PI) + self.log_std
         return per_joint * batch.num_joints.to(per_joint.dtype)
 
     @torch.no_grad()
@@ -208,7 +231,7 @@ def gaussian_log_prob(
 ) -> torch.Tensor:
     """sum_j log N(a_j; mu_j, sigma^2) over valid joints; [B]."""
     z = (actions - mean) * torch.exp(-log_std)
-    per_joint = -0.5 * z.pow(2) - log_std - 0.5 * torch.log(torch.tensor(2 * torch.pi))
+    per_joint = -0.5 * z.pow(2) - log_std - 0.5 * LOG_2PI
     return (per_joint * mask).sum(dim=1)
 
 
