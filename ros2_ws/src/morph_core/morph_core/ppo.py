@@ -98,6 +98,11 @@ class PerDimensionStats:
         self.logr_sq += torch.bincount(d, weights=w * w, minlength=size)
         self.kl += torch.bincount(d, weights=((ratio - 1) - log_ratio).double(), minlength=size)
 
+    def overall(self) -> dict[str, float]:
+        """Approx KL and clip fraction over all samples, whatever their dimension."""
+        n = float(self.n.sum())
+        return {"approx_kl": float(self.kl.sum()) / n, "clip_frac": float(self.clipped.sum()) / n}
+
     def summary(self, dims) -> dict[str, float]:
         out = {}
         for d in dims:

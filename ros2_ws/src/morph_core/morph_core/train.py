@@ -22,6 +22,7 @@ from morph_core.checkpoint import load_training_state, restore_optimizer, save_t
 from morph_core.config_cli import replace_nested
 from morph_core.graph import ChainBatch
 from morph_core.policy import GraphActorCritic, PolicyConfig
+from morph_core.policy_numpy import NumpyPolicy
 from morph_core.ppo import (
     CLIP_MODES,
     PerDimensionStats,
@@ -31,7 +32,7 @@ from morph_core.ppo import (
     explained_variance,
 )
 from morph_core.run_log import RunLog
-from morph_core.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.vec_env import PaddedObs, SwimmerVecEnv, pad_observations
 
 
 @dataclass
@@ -129,8 +130,8 @@ def log_columns(cfg: TrainConfig) -> list[str]:
     ]  # fmt: skip
 
 
-def _batch(obs: PaddedObs) -> ChainBatch:
-    return ChainBatch.from_padded(obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints, trim=False)
+def _arrays(obs: PaddedObs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints
 
 
 def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
@@ -161,15 +162,16 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             json.dump(cfg.to_dict(), f, indent=2)
     log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
 
-    # Rollout storage, padded to the longest chain the range allows.
+    # Rollout storage, padded to the longest chain the range allows; NumPy during the rollout,
+    # shared with torch (no copy) for the update.
     T, E, J = cfg.num_steps, cfg.num_envs, cfg.max_joints
-    obs_pos, obs_vel = torch.zeros(T, E, J), torch.zeros(T, E, J)
-    obs_glob, obs_n = torch.zeros(T, E, 4), torch.zeros(T, E, dtype=torch.int64)
-    actions, logprobs = torch.zeros(T, E, J), torch.zeros(T, E)
-    rewards, dones, values = torch.zeros(T, E), torch.zeros(T, E), torch.zeros(T, E)
+    obs_pos, obs_vel = np.zeros((T, E, J), np.float32), np.zeros((T, E, J), np.float32)
+    obs_glob, obs_n = np.zeros((T, E, 4), np.float32), np.zeros((T, E), np.int64)
+    actions, logprobs = np.zeros((T, E, J), np.float32), np.zeros((T, E), np.float32)
+    rewards, dones, values = np.zeros((T, E), np.float32), np.zeros((T, E), np.float32), np.zeros((T, E), np.float32)
 
     obs = envs.observations()
-    next_done = torch.zeros(E)
+    next_done = np.zeros(E, np.float32)
     recent: list[tuple[int, float, int]] = []
     bar = _progress(cfg, global_step)
     while global_step < cfg.total_timesteps:
@@ -177,58 +179,50 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         t0 = time.perf_counter()
         episodes: list[tuple[int, float, int]] = []
 
-        # 1. Rollout.
-        torch.set_num_threads(1)  # batch-of-6 inference: more threads only add overhead
+        # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
+        # is mostly per-operation overhead (policy_numpy, tested equal to torch).
+        actor = NumpyPolicy(policy)
         for t in range(T):
-            batch = _batch(obs)
-            obs_pos[t], obs_vel[t] = batch.joint_pos, batch.joint_vel
-            obs_glob[t], obs_n[t], dones[t] = batch.global_feats, batch.num_joints, next_done
-            action, logp, value, _ = policy.act(batch, generator=gen)
-            actions[t], logprobs[t], values[t] = action, logp, value
-            step = envs.step(action.numpy())
-            reward = torch.as_tensor(step.reward, dtype=torch.float32)
+            obs_pos[t], obs_vel[t], obs_glob[t], obs_n[t] = _arrays(obs)
+            dones[t] = next_done
+            noise = torch.randn((E, J), generator=gen).numpy()
+            actions[t], logprobs[t], values[t], _ = actor.act(*_arrays(obs), noise)
+            step = envs.step(actions[t])
+            rewards[t] = step.reward
             # Time-limit bootstrapping: a truncated episode would have gone on, worth gamma * V(final obs).
             trunc = [i for i in step.final_obs if step.truncated[i]]
             if trunc:
-                with torch.no_grad():
-                    v_final = policy.value(ChainBatch.from_observations([step.final_obs[i] for i in trunc]))
-                reward[trunc] += cfg.gamma * v_final
-            rewards[t] = reward
-            next_done = torch.as_tensor(step.terminated | step.truncated, dtype=torch.float32)
+                final = pad_observations([step.final_obs[i] for i in trunc], J)
+                rewards[t, trunc] += cfg.gamma * actor.forward(*_arrays(final))[1]
+            next_done = (step.terminated | step.truncated).astype(np.float32)
             obs = step.obs
             episodes += step.episodes
             global_step += E
         rollout_s = time.perf_counter() - t0
 
         # 2. Advantages.
-        with torch.no_grad():
-            next_value = policy.value(_batch(obs))
+        next_value = torch.from_numpy(actor.forward(*_arrays(obs))[1])
         # A truncation was bootstrapped above; for GAE it cuts the trace like a termination.
-        advantages, returns = compute_gae(rewards, values, dones, next_value, next_done, cfg.gamma, cfg.gae_lambda)
+        advantages, returns = compute_gae(
+            *map(torch.from_numpy, (rewards, values, dones)), next_value, torch.from_numpy(next_done),
+            cfg.gamma, cfg.gae_lambda,
+        )  # fmt: skip
 
         # 3. Update: epochs of shuffled minibatches, each sample clipped at its own eps_i.
         t1 = time.perf_counter()
         torch.set_num_threads(cfg.torch_threads)
-        b_pos, b_vel, b_glob, b_n = (
-            obs_pos.flatten(0, 1),
-            obs_vel.flatten(0, 1),
-            obs_glob.flatten(0, 1),
-            obs_n.flatten(),
-        )
-        b_actions, b_logprobs = actions.flatten(0, 1), logprobs.flatten()
-        b_adv, b_returns, b_values = advantages.flatten(), returns.flatten(), values.flatten()
+        b_pos, b_vel, b_glob, b_n = (torch.from_numpy(x).flatten(0, 1) for x in (obs_pos, obs_vel, obs_glob, obs_n))
+        b_actions, b_logprobs = torch.from_numpy(actions).flatten(0, 1), torch.from_numpy(logprobs).flatten()
+        b_adv, b_returns, b_values = advantages.flatten(), returns.flatten(), torch.from_numpy(values).flatten()
         b_eps = clip_range(cfg.clip_eps, b_n, cfg.clip_mode)
-        stats = PerDimensionStats(cfg.max_joints)
-        sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clip_frac": 0.0}
-        n_mb = 0
+        mb_losses, mb_index, mb_log_ratio = [], [], []
         for _ in range(cfg.update_epochs):
             perm = torch.randperm(cfg.batch_size, generator=gen)
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
                 mb = perm[start : start + cfg.minibatch_size]
                 batch = ChainBatch.from_padded(b_pos[mb], b_vel[mb], b_glob[mb], b_n[mb])
-                j = batch.max_joints
                 mean, _, value = policy(batch)
-                new_logp = policy.log_prob(batch, b_actions[mb, :j], mean)
+                new_logp = policy.log_prob(batch, b_actions[mb, : batch.max_joints], mean)
                 log_ratio = new_logp - b_logprobs[mb]
                 ratio = log_ratio.exp()
                 adv = b_adv[mb]
@@ -242,15 +236,14 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm, foreach=True)
                 optimizer.step()
-
-                with torch.no_grad():
-                    stats.add(batch.num_joints, log_ratio, ratio, b_eps[mb], cfg.clip_eps)
-                    sums["policy_loss"] += float(pg_loss)
-                    sums["value_loss"] += float(v_loss)
-                    sums["entropy"] += float(entropy)
-                    sums["approx_kl"] += float(((ratio - 1) - log_ratio).mean())
-                    sums["clip_frac"] += float(((ratio - 1).abs() > b_eps[mb]).float().mean())
-                n_mb += 1
+                # Statistics are reduced once per update, not per minibatch.
+                mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
+                mb_index.append(mb)
+                mb_log_ratio.append(log_ratio.detach())
+        index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
+        stats = PerDimensionStats(cfg.max_joints)
+        stats.add(b_n[index], log_ratio, log_ratio.exp(), b_eps[index], cfg.clip_eps)
+        pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
         update_s = time.perf_counter() - t1
 
         # 4. Log and checkpoint.
@@ -263,7 +256,10 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             "update_s": update_s,
             "episodes": len(episodes),
             "return_mean": float(np.mean([r for _, r, _ in episodes])) if episodes else math.nan,
-            **{k: v / n_mb for k, v in sums.items()},
+            "policy_loss": pg_loss,
+            "value_loss": v_loss,
+            "entropy": entropy,
+            **stats.overall(),
             "explained_variance": explained_variance(b_values, b_returns),
             "log_std": float(policy.log_std.detach()),
             **stats.summary(cfg.dims),

@@ -39,6 +39,17 @@ class StepResult:
     episodes: list[tuple[int, float, int]] = field(default_factory=list)  # (num_joints, return, length)
 
 
+def pad_observations(observations: list[dict], max_joints: int) -> PaddedObs:
+    """Graph observations (dicts of ``MorphSwimmer-v0``) padded with zeros to ``max_joints``."""
+    e = len(observations)
+    pos, vel = np.zeros((e, max_joints), np.float32), np.zeros((e, max_joints), np.float32)
+    glob, n = np.zeros((e, 4), np.float32), np.zeros(e, dtype=np.int64)
+    for i, o in enumerate(observations):
+        k = len(o["joint_pos"])
+        pos[i, :k], vel[i, :k], glob[i], n[i] = o["joint_pos"], o["joint_vel"], o["global"], k
+    return PaddedObs(pos, vel, glob, n)
+
+
 class SwimmerVecEnv:
     def __init__(
         self,
@@ -64,13 +75,7 @@ class SwimmerVecEnv:
         self._pool = ThreadPoolExecutor(threads - 1) if threads > 1 else None
 
     def observations(self) -> PaddedObs:
-        e, j = self.num_envs, self.max_joints
-        pos, vel = np.zeros((e, j)), np.zeros((e, j))
-        glob, n = np.zeros((e, 4)), np.zeros(e, dtype=np.int64)
-        for i, o in enumerate(self._obs):
-            k = len(o["joint_pos"])
-            pos[i, :k], vel[i, :k], glob[i], n[i] = o["joint_pos"], o["joint_vel"], o["global"], k
-        return PaddedObs(pos, vel, glob, n)
+        return pad_observations(self._obs, self.max_joints)
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
