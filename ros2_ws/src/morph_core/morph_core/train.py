@@ -21,6 +21,7 @@ from morph_core.atomic import atomic_writer
 from morph_core.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
 from morph_core.config_cli import replace_nested
 from morph_core.graph import ChainBatch
+from morph_core.param_buffer import flatten_parameters
 from morph_core.policy import GraphActorCritic, PolicyConfig
 from morph_core.policy_numpy import NumpyPolicy
 from morph_core.ppo import (
@@ -145,8 +146,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     torch.set_num_threads(1)
     torch.manual_seed(cfg.seed)
     policy = GraphActorCritic(cfg.policy)
-    # Fused Adam: one kernel for all parameters instead of a Python loop over them (~8x faster step).
-    optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.learning_rate, eps=cfg.adam_eps, fused=True)
+    theta = flatten_parameters(policy)  # all parameters as one vector: optimizer and clip are a few ops
+    optimizer = torch.optim.Adam([theta], lr=cfg.learning_rate, eps=cfg.adam_eps, fused=True)
     gen = torch.Generator().manual_seed(cfg.seed)
     global_step, iteration, last_ckpt = 0, 0, 0
     if resume and state_path.exists():
@@ -232,9 +233,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
                 entropy = policy.entropy(batch).mean()
                 loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * entropy
 
-                optimizer.zero_grad()
+                theta.grad.zero_()
                 loss.backward()
-                torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm, foreach=True)
+                torch.nn.utils.clip_grad_norm_(theta, cfg.max_grad_norm)
                 optimizer.step()
                 # Statistics are reduced once per update, not per minibatch.
                 mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
