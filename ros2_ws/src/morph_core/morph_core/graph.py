@@ -16,8 +16,7 @@ training mix is about 40% of the padded work.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -41,6 +40,12 @@ class ChainBatch:
     global_feats: torch.Tensor
     num_joints: torch.Tensor
     mask: torch.Tensor
+    packed: PackedChains = field(init=False, repr=False, compare=False)
+    """the batch as one cut chain, which the network runs on (no gradients flow through it)"""
+
+    def __post_init__(self):
+        # Built here, outside any compiled region: its sizes depend on the data.
+        object.__setattr__(self, "packed", PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask))
 
     @property
     def batch_size(self) -> int:
@@ -90,11 +95,6 @@ class ChainBatch:
             vel[i, : n[i]] = o["joint_vel"]
         glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
         return cls.from_padded(pos, vel, glob, n)
-
-    @cached_property
-    def packed(self) -> PackedChains:
-        """The batch as one cut chain; computed once per batch (no gradients flow through it)."""
-        return PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask)
 
     def select(self, index: torch.Tensor) -> ChainBatch:
         """The sub-batch at ``index`` (e.g. a minibatch), trimmed to its own longest chain."""

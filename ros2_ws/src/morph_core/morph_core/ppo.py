@@ -33,6 +33,22 @@ def clipped_policy_loss(ratio: torch.Tensor, advantages: torch.Tensor, eps: torc
     return -torch.min(unclipped, clipped).mean()
 
 
+def ppo_loss(policy, batch, actions, old_log_prob, advantages, returns, eps, vf_coef: float, ent_coef: float):
+    """PPO's loss on one minibatch, with advantages normalised within it.
+
+    ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``eps`` the per-sample
+    clip ranges. Returns (loss, policy loss, value loss, entropy, log ratio per sample).
+    """
+    mean, _, value = policy(batch)
+    log_ratio = policy.log_prob(batch, actions, mean) - old_log_prob
+    ratio = log_ratio.exp()
+    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    pg_loss = clipped_policy_loss(ratio, adv, eps)
+    v_loss = torch.nn.functional.mse_loss(value, returns)
+    entropy = policy.entropy(batch).mean()
+    return pg_loss + vf_coef * v_loss - ent_coef * entropy, pg_loss, v_loss, entropy, log_ratio
+
+
 def compute_gae(
     rewards: torch.Tensor,
     values: torch.Tensor,

@@ -42,7 +42,7 @@ class RunLog:
         if self.tb is not None:
             step = int(row["global_step"])
             for k, v in row.items():
-                if k != "global_step" and isinstance(v, (int, float)) and not math.isnan(v):
+                if k not in ("global_step", "wall_time") and isinstance(v, (int, float)) and not math.isnan(v):
                     self.tb.add_scalar(k.replace("_d", "/d", 1) if "_d" in k else k, v, step)
 
     def close(self) -> None:

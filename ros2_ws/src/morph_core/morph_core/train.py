@@ -19,6 +19,7 @@ import torch
 
 from morph_core.atomic import atomic_writer
 from morph_core.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.compiled import compiled
 from morph_core.config_cli import replace_nested
 from morph_core.graph import ChainBatch
 from morph_core.param_buffer import flatten_parameters
@@ -28,9 +29,9 @@ from morph_core.ppo import (
     CLIP_MODES,
     PerDimensionStats,
     clip_range,
-    clipped_policy_loss,
     compute_gae,
     explained_variance,
+    ppo_loss,
 )
 from morph_core.run_log import RunLog
 from morph_core.vec_env import PaddedObs, SwimmerVecEnv, pad_observations
@@ -80,6 +81,9 @@ class TrainConfig:
     """torch intra-op threads in the update (rollout inference always uses 1)"""
     env_threads: int = 1
     """threads stepping the swimmers (MuJoCo releases the GIL); 2 uses both cores of a 2-core machine"""
+    compile: bool = True
+    """torch.compile the minibatch loss and its backward (~1.5x faster update, ~20 s to compile once;
+    falls back to eager mode with a warning where Inductor cannot run)"""
     tensorboard: bool = True
     """also write TensorBoard scalars"""
     progress_bar: bool = True
@@ -124,7 +128,7 @@ class TrainConfig:
 def log_columns(cfg: TrainConfig) -> list[str]:
     per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
-        "global_step", "iteration", "sps", "rollout_s", "update_s", "episodes", "return_mean",
+        "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "episodes", "return_mean",
         *[f"return_d{d}" for d in cfg.dims],
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
@@ -148,6 +152,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     policy = GraphActorCritic(cfg.policy)
     theta = flatten_parameters(policy)  # all parameters as one vector: optimizer and clip are a few ops
     optimizer = torch.optim.Adam([theta], lr=cfg.learning_rate, eps=cfg.adam_eps, fused=True)
+    loss_fn = compiled(ppo_loss, cfg.compile)
     gen = torch.Generator().manual_seed(cfg.seed)
     global_step, iteration, last_ckpt = 0, 0, 0
     if resume and state_path.exists():
@@ -222,17 +227,17 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             for start in range(0, cfg.batch_size, cfg.minibatch_size):
                 mb = perm[start : start + cfg.minibatch_size]
                 batch = ChainBatch.from_padded(b_pos[mb], b_vel[mb], b_glob[mb], b_n[mb])
-                mean, _, value = policy(batch)
-                new_logp = policy.log_prob(batch, b_actions[mb, : batch.max_joints], mean)
-                log_ratio = new_logp - b_logprobs[mb]
-                ratio = log_ratio.exp()
-                adv = b_adv[mb]
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = clipped_policy_loss(ratio, adv, b_eps[mb])
-                v_loss = torch.nn.functional.mse_loss(value, b_returns[mb])
-                entropy = policy.entropy(batch).mean()
-                loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * entropy
-
+                loss, pg_loss, v_loss, entropy, log_ratio = loss_fn(
+                    policy,
+                    batch,
+                    b_actions[mb, : batch.max_joints],
+                    b_logprobs[mb],
+                    b_adv[mb],
+                    b_returns[mb],
+                    b_eps[mb],
+                    cfg.vf_coef,
+                    cfg.ent_coef,
+                )
                 theta.grad.zero_()
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(theta, cfg.max_grad_norm)
@@ -252,6 +257,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         row = {
             "global_step": global_step,
             "iteration": iteration,
+            "wall_time": time.time(),
             "sps": T * E / (rollout_s + update_s),
             "rollout_s": rollout_s,
             "update_s": update_s,

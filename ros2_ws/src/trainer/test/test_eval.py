@@ -13,7 +13,7 @@ from morph_core.train import TrainConfig, train
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False,
+    tensorboard=False, progress_bar=False, compile=False,
 )  # fmt: skip
 
 

@@ -17,7 +17,7 @@ from morph_core.train import TrainConfig, train
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False,
+    tensorboard=False, progress_bar=False, compile=False,
 )  # fmt: skip
 
 
@@ -31,10 +31,12 @@ def _rows(run_dir):
         return list(csv.DictReader(f))
 
 
-def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
-    straight = train(TrainConfig(total_timesteps=384, seed=3, **SMALL), tmp_path / "a")
-    part = train(TrainConfig(total_timesteps=128, seed=3, **SMALL), tmp_path / "b")
-    train(TrainConfig(total_timesteps=384, seed=3, **SMALL), part, resume=True)
+@pytest.mark.parametrize("compiled", [False, True])
+def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
+    small = {**SMALL, "compile": compiled}
+    straight = train(TrainConfig(total_timesteps=384, seed=3, **small), tmp_path / "a")
+    part = train(TrainConfig(total_timesteps=128, seed=3, **small), tmp_path / "b")
+    train(TrainConfig(total_timesteps=384, seed=3, **small), part, resume=True)
     (wa, step_a), (wb, step_b) = _final_weights(straight), _final_weights(part)
     assert step_a == step_b == 384
     assert wa.keys() == wb.keys()
@@ -49,25 +51,27 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path):
 
 def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
-    args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false"]
+    args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
     cli = [sys.executable, "-m", "trainer.train_cli"]
-    subprocess.run([*cli, "--out", str(tmp_path / "ref"), "--total-timesteps", "1024", *args], check=True)
+    subprocess.run([*cli, "--out", str(tmp_path / "ref"), "--total-timesteps", "2048", *args], check=True)
     run = tmp_path / "killed"
-    proc = subprocess.Popen([*cli, "--out", str(run), "--total-timesteps", "1024", *args])
+    proc = subprocess.Popen([*cli, "--out", str(run), "--total-timesteps", "2048", *args])
     deadline = time.monotonic() + 120
-    while not (run / "state.safetensors").exists() and time.monotonic() < deadline:
-        time.sleep(0.01)  # polling a file the child writes; nothing to subscribe to
-    time.sleep(0.3)  # let it get somewhere between two checkpoints
+    # Kill it mid-run, once it has checkpointed twice: polling files the child writes (nothing to subscribe to).
+    while time.monotonic() < deadline and proc.poll() is None:
+        if (run / "state.safetensors").exists() and len(_rows(run)) >= 2:
+            break
+        time.sleep(0.005)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     _, killed_at = _final_weights(run)
-    assert killed_at < 1024, "the run finished before it could be killed; make it longer"
+    assert killed_at < 2048, "the run finished before it could be killed; make it longer"
     subprocess.run([*cli, "--out", str(run), "--resume"], check=True)
     (w_ref, s_ref), (w_run, s_run) = _final_weights(tmp_path / "ref"), _final_weights(run)
-    assert s_ref == s_run == 1024
+    assert s_ref == s_run == 2048
     for k in w_ref:
         assert torch.equal(w_ref[k], w_run[k]), k
-    assert [r["global_step"] for r in _rows(run)] == [str(128 * i) for i in range(1, 9)]
+    assert [r["global_step"] for r in _rows(run)] == [str(128 * i) for i in range(1, 17)]
 
 
 def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
