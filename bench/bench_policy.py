@@ -1,10 +1,11 @@
-"""Policy update step: dense chain NNConv vs PyTorch Geometric's, and torch's tanh vs 2*sigmoid(2x)-1.
+"""Policy update step: dense chain NNConv (eager and compiled) vs PyTorch Geometric's; tanh vs 2*sigmoid(2x)-1.
 
     python bench/bench_policy.py
 
 One PPO-sized minibatch (256 swimmer states, chains of 2..10 joints): forward,
-backward and a fused-Adam step, one torch thread, both backends with the
-same parameters, measured side by side. Then the heads' activation alone.
+backward and a fused-Adam step, one torch thread, with the same parameters,
+measured side by side: the dense layer in eager mode and under torch.compile
+(as training runs it), and PyG's NNConv. Then the heads' activation alone.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import gymnasium
 import torch
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
+from morph_core.compiled import compiled
 from morph_core.graph import ChainBatch
 from morph_core.policy import GraphActorCritic, PolicyConfig
 
@@ -36,13 +38,22 @@ def main() -> None:
     dense = GraphActorCritic(PolicyConfig(backend="dense"))
     pyg = GraphActorCritic(PolicyConfig(backend="pyg"))
     pyg.load_state_dict(dense.state_dict())
+
+    def loss_of(net, batch, actions):
+        mean, _, value = net(batch)
+        return net.log_prob(batch, actions, mean).mean() + value.pow(2).mean()
+
+    fast_loss = compiled(loss_of)
     print("| backend | forward+backward+Adam, 256 states (ms) |\n|---|---:|")
-    for name, net in (("dense chain NNConv", dense), ("PyG NNConv", pyg)):
+    for name, net, loss_fn in (
+        ("dense chain NNConv, eager", dense, loss_of),
+        ("dense chain NNConv, torch.compile", dense, fast_loss),
+        ("PyG NNConv, eager", pyg, loss_of),
+    ):
         opt = torch.optim.Adam(net.parameters(), lr=1e-5, fused=True)
 
-        def step(net=net, opt=opt):
-            mean, _, value = net(batch)
-            loss = net.log_prob(batch, actions, mean).mean() + value.pow(2).mean()
+        def step(net=net, opt=opt, loss_fn=loss_fn):
+            loss = loss_fn(net, batch, actions)
             opt.zero_grad()
             loss.backward()
             opt.step()
