@@ -3,10 +3,12 @@
     python bench/bench_train.py [--iterations 4]
 
 Runs the real training loop (6 envs x 1024 steps, minibatch 256, 10 epochs,
-chains drawn from 2..10) for a few iterations, once on one core and once
-using both cores (2 env threads, 2 torch threads in the update), and prints
-overall env-steps/s by wall clock (updates, logging and checkpoints
-included), and the median rollout and update seconds per iteration. The
+chains drawn from 2..10, torch.compile on as by default) for one warm-up
+iteration and a few timed ones, in three settings: one core; both cores
+for the physics with the paper's single torch thread; both cores for
+physics and update. It prints overall env-steps/s by wall clock (updates,
+logging and checkpoints included), and the median rollout and update
+seconds per iteration. The
 raw rate is MuJoCo alone: mj_step with frame_skip 4, averaged over the
 chain lengths 2..10 the way the envs draw them. The reference
 implementation's figure (~360 env-steps/s on this machine class) is quoted
