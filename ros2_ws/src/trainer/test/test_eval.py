@@ -44,6 +44,11 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     table = (tmp_path / "fig" / "final_eval_table.md").read_text()
     assert "| 2 |" in table and "| 3 |" in table and "compensated (1 seeds)" in table
     assert "| 3 |" in (tmp_path / "fig" / "late_eval_table.md").read_text()
+    summary = subprocess.run(
+        [sys.executable, "-m", "trainer.summary", "--run", *map(str, runs)], check=True, capture_output=True, text=True
+    ).stdout
+    assert "| compensated | never | never |" in summary and "| fixed | never | never |" in summary
+    assert "clip fraction per dimension, fixed (1 runs): 2:" in summary
 
     # Ship the best evaluated checkpoint: it loads, and says where it came from and how it scored.
     dest = tmp_path / "models" / "swimmer_gnn.safetensors"

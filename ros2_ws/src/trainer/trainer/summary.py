@@ -7,7 +7,8 @@ return (trailing mean over 5 updates) reached 100 and 200 and the mean of
 the last 10 updates; per clip mode the clip fraction per action dimension
 averaged over all updates and seeds; and per clip mode the late-training
 (>= half the steps) deterministic eval return averaged over the training
-chain lengths.
+chain lengths; and per run, whether the longest evaluated (unseen) chain
+scores above every trained length, late in training and per checkpoint.
 """
 
 from __future__ import annotations
@@ -53,6 +54,26 @@ def main(argv: list[str] | None = None) -> None:
             late.append(np.mean([np.mean([r for s, r in means[n].items() if s >= half]) for n in dims if n in means]))
         if all(np.isfinite(late)):
             print(f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {mode}: {np.mean(late):.1f}")
+
+    print("\n| run | unseen n | late mean, unseen | late mean, best trained (n) | unseen on top at checkpoints |")
+    print("|---|---:|---:|---:|---:|")
+    for mode in MODES:
+        for run in groups.get(mode, []):
+            means = eval_means(run)
+            if not means:
+                continue
+            cfg = run["config"]
+            trained = [n for n in range(cfg["min_joints"], cfg["max_joints"] + 1) if n in means]
+            unseen = max(means)
+            if unseen <= cfg["max_joints"] or not trained:
+                continue  # no chain longer than the training range was evaluated
+            half = 0.5 * cfg["total_timesteps"]
+            late = {n: np.mean([r for s, r in means[n].items() if s >= half]) for n in [*trained, unseen]}
+            best = max(trained, key=late.get)
+            steps = sorted(means[unseen])
+            on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
+            print(f"| {run['dir'].name} | {unseen} | {late[unseen]:.0f} | {late[best]:.0f} ({best}) "
+                  f"| {on_top} of {len(steps)} |")  # fmt: skip
 
 
 if __name__ == "__main__":
