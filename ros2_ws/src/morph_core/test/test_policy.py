@@ -136,3 +136,17 @@ def test_bad_config_and_files_give_clear_errors(tmp_path):
         GraphActorCritic.load(tmp_path / "missing.safetensors")
     with pytest.raises(ValueError, match="num_joints"):
         ChainBatch.from_padded(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 4)), [4])
+
+
+def test_packed_chains_lay_the_batch_end_to_end_with_cuts():
+    # Chains of 2 and 3 joints: links t0 l1 l2 | t0 l1 l2 l3, slots between neighbours, one cut.
+    pos = torch.tensor([[0.1, 0.2, 9.0], [0.3, 0.4, 0.5]])
+    vel = torch.tensor([[1.0, 2.0, 9.0], [3.0, 4.0, 5.0]])
+    packed = ChainBatch.from_padded(pos, vel, torch.zeros(2, 4), [2, 3]).packed
+    assert packed.num_links == 7
+    assert packed.slot_mask.tolist() == [True, True, False, True, True, True]
+    assert packed.joint_link.tolist() == [1, 2, 4, 5, 6]  # the link behind each joint
+    assert packed.joint_chain.tolist() == [0, 0, 1, 1, 1]
+    assert packed.joint_padded.tolist() == [0, 1, 3, 4, 5]
+    expected = [[0.1, 1.0], [0.2, 2.0], [0.0, 0.0], [0.3, 3.0], [0.4, 4.0], [0.5, 5.0]]  # padding never leaks
+    torch.testing.assert_close(packed.edge_attr, torch.tensor(expected))
