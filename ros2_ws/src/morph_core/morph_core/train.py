@@ -58,7 +58,9 @@ class TrainConfig:
     update_epochs: int = 10
     """passes over each rollout"""
     learning_rate: float = 0.01
-    """Adam learning rate (constant)"""
+    """Adam learning rate (constant unless anneal_lr)"""
+    anneal_lr: bool = False
+    """decay the learning rate linearly to 0 over the run (CleanRL's anneal_lr); off in the paper's configuration"""
     adam_eps: float = 1e-5
     """Adam epsilon"""
     gamma: float = 0.98
@@ -128,7 +130,8 @@ class TrainConfig:
 def log_columns(cfg: TrainConfig) -> list[str]:
     per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
-        "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "episodes", "return_mean",
+        "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "learning_rate", "episodes",
+        "return_mean",
         *[f"return_d{d}" for d in cfg.dims],
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
@@ -216,6 +219,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
 
         # 3. Update: epochs of shuffled minibatches, each sample clipped at its own eps_i.
         t1 = time.perf_counter()
+        if cfg.anneal_lr:  # a function of the step count alone, so a resumed run gets the same rate
+            optimizer.param_groups[0]["lr"] = cfg.learning_rate * (1.0 - (global_step - T * E) / cfg.total_timesteps)
         torch.set_num_threads(cfg.torch_threads)
         b_pos, b_vel, b_glob, b_n = (torch.from_numpy(x).flatten(0, 1) for x in (obs_pos, obs_vel, obs_glob, obs_n))
         b_actions, b_logprobs = torch.from_numpy(actions).flatten(0, 1), torch.from_numpy(logprobs).flatten()
@@ -261,6 +266,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             "sps": T * E / (rollout_s + update_s),
             "rollout_s": rollout_s,
             "update_s": update_s,
+            "learning_rate": optimizer.param_groups[0]["lr"],
             "episodes": len(episodes),
             "return_mean": float(np.mean([r for _, r, _ in episodes])) if episodes else math.nan,
             "policy_loss": pg_loss,

@@ -98,6 +98,15 @@ def test_logs_hold_per_dimension_diagnostics(tmp_path):
         assert 0.0 <= float(rows[-1][f"clip_frac_d{d}"]) <= 1.0
         assert 0.0 <= float(rows[-1][f"in_eps_frac_d{d}"]) <= 1.0
         assert float(rows[-1][f"logr_std_d{d}"]) >= 0.0
+    assert {r["learning_rate"] for r in rows} == {"0.01"}  # the paper's constant rate
+
+
+def test_annealed_learning_rate_falls_linearly_towards_zero(tmp_path):
+    run = train(TrainConfig(total_timesteps=512, anneal_lr=True, learning_rate=0.004, seed=0, **SMALL), tmp_path / "a")
+    rows = _rows(run)
+    before = [int(r["global_step"]) - 128 for r in rows]  # steps done before each update
+    assert before == [0, 128, 256, 384]
+    assert [float(r["learning_rate"]) for r in rows] == pytest.approx([0.004 * (1 - b / 512) for b in before])
 
 
 @pytest.mark.timeout(900)
