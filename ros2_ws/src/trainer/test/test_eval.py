@@ -60,7 +60,13 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
         for step in {r["global_step"] for r in rows_of(run)}
     )
     assert (meta["source_run"], meta["global_step"]) == best[1:]
-    assert set(meta["eval_mean_return"]) == {"2", "3"} and "morph-train" in meta["training_command"]
+    assert set(meta["eval_mean_return"]) == {"2", "3"}
+    # the command reproduces the run: every option that differs from the defaults
+    command = meta["training_command"]
+    assert command.startswith(f"morph-train --clip-mode {best[1]} --seed 1 ")
+    assert command.endswith(f"--out runs/{best[1]}")
+    for flag in ("--num-envs 2", "--num-steps 64", "--total-timesteps 256", "--compile false"):
+        assert flag in command
     GraphActorCritic.load(dest)
 
 

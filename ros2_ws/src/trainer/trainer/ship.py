@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.policy import GraphActorCritic
+from morph_core.train import TrainConfig
 from trainer.plots import eval_means, load_runs
 
 DEFAULT_DEST = (
@@ -41,13 +42,26 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
     return by_step
 
 
-def training_command(cfg: dict) -> str:
-    base = (
-        f"morph-train --clip-mode {cfg['clip_mode']} --seed {cfg['seed']} --out runs/{cfg['clip_mode']}-s{cfg['seed']}"
+def training_command(cfg: dict, run_name: str) -> str:
+    """The morph-train command of a run: clip mode, seed, and every option that differs from the defaults."""
+    given, defaults = _flat(cfg), _flat(TrainConfig().to_dict())
+    cosmetic = {"tensorboard", "progress_bar", "clip_mode", "seed"}
+    changed = {k: v for k, v in given.items() if k not in cosmetic and v != defaults.get(k)}
+    flags = [f"--{k.replace('_', '-')} {_text(v)}" for k, v in changed.items()]
+    return " ".join(
+        ["morph-train", f"--clip-mode {cfg['clip_mode']}", f"--seed {cfg['seed']}", *flags, f"--out runs/{run_name}"]
     )
-    if not cfg["policy"]["bidirectional"]:
-        base += " --policy-bidirectional false"
-    return base
+
+
+def _flat(cfg: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in cfg.items():
+        out.update(_flat(v, f"{prefix}{k}_") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def _text(value) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -72,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
             "global_step": step,
             "clip_mode": cfg["clip_mode"],
             "seed": cfg["seed"],
-            "training_command": training_command(cfg),
+            "training_command": training_command(cfg, run.name),
             "eval": "deterministic, 10 episodes of 1000 steps per chain length (morph-eval)",
             "eval_mean_return": {str(n): round(r, 2) for n, r in table.items()},
             "chosen_by": f"mean return over chain lengths {cfg['min_joints']}..{cfg['max_joints']} ({score:.1f})",
