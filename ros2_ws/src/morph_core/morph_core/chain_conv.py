@@ -58,10 +58,10 @@ class ChainConv(nn.Module):
         coef = torch.cat([edge_attr * keep, keep], dim=1)  # [e, 1] per slot; zero at cuts
         out = torch.addmm(self.fwd.bias, x, self.fwd.lin.weight.T)
         # Link k -> link k+1 across slot k.
-        out[1:] += _outer(coef, x[:-1]) @ _message_weights(self.fwd)
+        out[1:] += _outer(coef, x[:-1]) @ message_weights(self.fwd)
         if self.bwd is not None:
             # Link k+1 -> link k across slot k.
-            out[:-1] += _outer(coef, x[1:]) @ _message_weights(self.bwd)
+            out[:-1] += _outer(coef, x[1:]) @ message_weights(self.bwd)
         return out
 
     def _pyg(self, x: torch.Tensor, edge_attr: torch.Tensor, slot_mask: torch.Tensor) -> torch.Tensor:
@@ -82,7 +82,7 @@ def _outer(coef: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
     return torch.cat([coef[:, k : k + 1] * src for k in range(coef.shape[1])], dim=1)
 
 
-def _message_weights(conv: NNConv) -> torch.Tensor:
+def message_weights(conv: NNConv) -> torch.Tensor:
     """[(E+1) * C_in, C_out]: [A_0; A_1; B] from the linear edge network of a PyG NNConv."""
     c_in, c_out = conv.in_channels, conv.out_channels
     edge_net: nn.Linear = conv.nn

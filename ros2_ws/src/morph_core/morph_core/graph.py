@@ -4,8 +4,7 @@ Links are nodes (link 0 is the torso), joints are edges: joint j connects
 link j (parent) and link j+1 (child) and carries the joint state
 (angle, angular velocity) as its edge attribute. A batch of chains is held
 padded to its longest chain, ``J`` joints, with a validity mask; nothing
-per-graph is built in Python, so a forward pass costs the same whatever
-mix of lengths it holds.
+per-graph is built in Python.
 
 The network itself runs on ``ChainBatch.packed``: the chains laid end to end
 as one long chain, cut between consecutive chains (PyG's disjoint union of
@@ -55,11 +54,6 @@ class ChainBatch:
     def max_joints(self) -> int:
         return self.joint_pos.shape[1]
 
-    @property
-    def edge_attr(self) -> torch.Tensor:
-        """[B, J, 2] joint states, the edge attributes."""
-        return torch.stack([self.joint_pos, self.joint_vel], dim=-1)
-
     @classmethod
     def from_padded(cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True) -> ChainBatch:
         """Build from padded arrays or tensors; ``trim`` drops padding beyond the longest chain."""
@@ -86,21 +80,29 @@ class ChainBatch:
     @classmethod
     def from_observations(cls, observations: Sequence[dict]) -> ChainBatch:
         """Batch graph-mode observations of ``MorphSwimmer-v0`` (dicts with joint_pos, joint_vel, global)."""
-        n = np.array([len(o["joint_pos"]) for o in observations], dtype=np.int64)
-        j = int(n.max()) if len(n) else 0
-        pos = np.zeros((len(n), j), dtype=np.float32)
-        vel = np.zeros((len(n), j), dtype=np.float32)
-        for i, o in enumerate(observations):
-            pos[i, : n[i]] = o["joint_pos"]
-            vel[i, : n[i]] = o["joint_vel"]
-        glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
-        return cls.from_padded(pos, vel, glob, n)
+        return cls.from_padded(*pad_observations(observations))
 
     def select(self, index: torch.Tensor) -> ChainBatch:
         """The sub-batch at ``index`` (e.g. a minibatch), trimmed to its own longest chain."""
         return ChainBatch.from_padded(
             self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
         )
+
+
+def pad_observations(
+    observations: Sequence[dict], width: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Graph-mode observations as float32 arrays zero-padded to ``width`` joints (default: the longest).
+
+    Returns joint_pos [B, width], joint_vel [B, width], global_feats [B, 4], num_joints [B].
+    """
+    n = np.array([len(o["joint_pos"]) for o in observations], dtype=np.int64)
+    width = width if width is not None else int(n.max()) if len(n) else 0
+    pos, vel = np.zeros((len(n), width), np.float32), np.zeros((len(n), width), np.float32)
+    for i, o in enumerate(observations):
+        pos[i, : n[i]], vel[i, : n[i]] = o["joint_pos"], o["joint_vel"]
+    glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
+    return pos, vel, glob, n
 
 
 @dataclass(frozen=True)

@@ -14,20 +14,17 @@ import math
 
 import numpy as np
 
-from morph_core.policy import GraphActorCritic
+from morph_core.chain_conv import message_weights
+from morph_core.policy import LOG_2PI, GraphActorCritic
 
-LOG_2PI = math.log(2 * math.pi)
+
+def _numpy(t) -> np.ndarray:
+    """A C-ordered NumPy copy of a parameter (or a product of parameters)."""
+    return t.detach().numpy().copy()
 
 
 def _linear(layer) -> tuple[np.ndarray, np.ndarray]:
-    return layer.weight.detach().numpy().T.copy(), layer.bias.detach().numpy().copy()
-
-
-def _message_weights(conv) -> np.ndarray:
-    """[(E+1) * C_in, C_out]: [A_0; A_1; B] of an NNConv's linear edge network (see chain_conv)."""
-    c_in, c_out = conv.in_channels, conv.out_channels
-    a = conv.nn.weight.detach().numpy().reshape(c_in, c_out, -1).transpose(2, 0, 1)
-    return np.concatenate([a, conv.nn.bias.detach().numpy().reshape(1, c_in, c_out)]).reshape(-1, c_out)
+    return _numpy(layer.weight.T), _numpy(layer.bias)
 
 
 def _tanh_mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -44,9 +41,9 @@ class NumpyPolicy:
         f = policy.features
         self.layers = []
         for conv in (f.conv1, f.conv2):
-            bwd = _message_weights(conv.bwd) if conv.bwd is not None else None
-            root = conv.fwd.lin.weight.detach().numpy().T.copy()
-            self.layers.append((_message_weights(conv.fwd), bwd, root, conv.fwd.bias.detach().numpy().copy()))
+            bwd = _numpy(message_weights(conv.bwd)) if conv.bwd is not None else None
+            root = _numpy(conv.fwd.lin.weight.T)
+            self.layers.append((_numpy(message_weights(conv.fwd)), bwd, root, _numpy(conv.fwd.bias)))
         self.global_mlp = [_linear(f.global_mlp[0]), _linear(f.global_mlp[2])]
         self.actor = [_linear(policy.actor_head[i]) for i in (0, 2, 4)]
         self.critic = [_linear(policy.critic_head[i]) for i in (0, 2, 4)]

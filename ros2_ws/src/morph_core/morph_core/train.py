@@ -21,7 +21,7 @@ from morph_core.atomic import atomic_writer
 from morph_core.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
 from morph_core.compiled import compiled
 from morph_core.config_cli import replace_nested
-from morph_core.graph import ChainBatch
+from morph_core.graph import ChainBatch, pad_observations
 from morph_core.param_buffer import flatten_parameters
 from morph_core.policy import GraphActorCritic, PolicyConfig
 from morph_core.policy_numpy import NumpyPolicy
@@ -34,7 +34,7 @@ from morph_core.ppo import (
     ppo_loss,
 )
 from morph_core.run_log import RunLog
-from morph_core.vec_env import PaddedObs, SwimmerVecEnv, pad_observations
+from morph_core.vec_env import PaddedObs, SwimmerVecEnv
 
 
 @dataclass
@@ -202,7 +202,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             trunc = [i for i in step.final_obs if step.truncated[i]]
             if trunc:
                 final = pad_observations([step.final_obs[i] for i in trunc], J)
-                rewards[t, trunc] += cfg.gamma * actor.forward(*_arrays(final))[1]
+                rewards[t, trunc] += cfg.gamma * actor.forward(*final)[1]
             next_done = (step.terminated | step.truncated).astype(np.float32)
             obs = step.obs
             episodes += step.episodes

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from morph_core.graph import pad_observations
 from morph_core.swimmer_env import MorphSwimmerEnv
 
 MAX_EPISODE_STEPS = 1000
@@ -37,17 +38,6 @@ class StepResult:
     truncated: np.ndarray  # [E] bool
     final_obs: dict[int, dict] = field(default_factory=dict)  # env index -> last graph obs of a finished episode
     episodes: list[tuple[int, float, int]] = field(default_factory=list)  # (num_joints, return, length)
-
-
-def pad_observations(observations: list[dict], max_joints: int) -> PaddedObs:
-    """Graph observations (dicts of ``MorphSwimmer-v0``) padded with zeros to ``max_joints``."""
-    e = len(observations)
-    pos, vel = np.zeros((e, max_joints), np.float32), np.zeros((e, max_joints), np.float32)
-    glob, n = np.zeros((e, 4), np.float32), np.zeros(e, dtype=np.int64)
-    for i, o in enumerate(observations):
-        k = len(o["joint_pos"])
-        pos[i, :k], vel[i, :k], glob[i], n[i] = o["joint_pos"], o["joint_vel"], o["global"], k
-    return PaddedObs(pos, vel, glob, n)
 
 
 class SwimmerVecEnv:
@@ -75,7 +65,7 @@ class SwimmerVecEnv:
         self._pool = ThreadPoolExecutor(threads - 1) if threads > 1 else None
 
     def observations(self) -> PaddedObs:
-        return pad_observations(self._obs, self.max_joints)
+        return PaddedObs(*pad_observations(self._obs, self.max_joints))
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
