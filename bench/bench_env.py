@@ -13,8 +13,8 @@ import time
 import mujoco
 import numpy as np
 
-from morph_core.swimmer_env import MorphSwimmerEnv
-from morph_core.swimmer_model import swimmer_model
+from morph_core.env.model import swimmer_model
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 
 
 def rate(fn, seconds: float) -> float:

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.joint_state_graph import chain_batch, validate_joint_state
-from morph_core.policy_numpy import NumpyPolicy
+from morph_core.msgs.joint_state import chain_batch, validate_joint_state
+from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_policy_node.policy_node import load_policy
 
 BIN = Path(sys.executable).parent

@@ -16,9 +16,9 @@ import gymnasium
 import torch
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.compiled import compiled
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic, PolicyConfig
+from morph_core.algo.compiled import compiled
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.chains import ChainBatch
 
 
 def per_call_ms(fn, calls: int) -> float:

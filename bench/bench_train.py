@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from bench_env import raw_step_rate
 
-from morph_core.train import TrainConfig, train
+from morph_core.algo.train import TrainConfig, train
 
 REFERENCE_SPS = 360.0
 BATCH = 6 * 1024  # samples per iteration at the paper configuration

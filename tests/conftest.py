@@ -136,7 +136,7 @@ def untrained_checkpoint(tmp_path_factory) -> Path:
     """A randomly initialised policy saved like a trained one (so tests never depend on training)."""
     import torch
 
-    from morph_core.policy import GraphActorCritic
+    from morph_core.policy.actor_critic import GraphActorCritic
 
     torch.manual_seed(123)
     path = tmp_path_factory.mktemp("policy") / "untrained.safetensors"

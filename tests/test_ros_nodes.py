@@ -17,9 +17,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
-from morph_core.policy import GraphActorCritic
-from morph_core.policy_numpy import NumpyPolicy
-from morph_core.sim import SwimmerSim
+from morph_core.env.sim import SwimmerSim
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_policy_node.policy_node import SHIPPED_MODEL, unpack_policy_info
 
 STARTUP = 60.0  # seconds for processes to start and match (torch import on a loaded 2-core machine)

@@ -31,10 +31,4 @@ setup(
         "PPO with trust-region compensation, theory."
     ),
     license="Apache-2.0",
-    entry_points={
-        "console_scripts": [
-            "morph-gait = morph_core.gait_demo:main",
-            "morph-theory = morph_core.theory_cli:main",
-        ],
-    },
 )

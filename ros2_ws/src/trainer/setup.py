@@ -23,6 +23,8 @@ setup(
         "console_scripts": [
             "morph-train = trainer.train_cli:main",
             "morph-eval = trainer.eval_cli:main",
+            "morph-theory = trainer.theory_cli:main",
+            "morph-gait = trainer.gait_cli:main",
         ],
     },
 )

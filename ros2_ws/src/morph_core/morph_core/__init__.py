@@ -10,7 +10,7 @@ ENV_ID = "MorphSwimmer-v0"
 if ENV_ID not in gymnasium.registry:
     gymnasium.register(
         id=ENV_ID,
-        entry_point="morph_core.swimmer_env:MorphSwimmerEnv",
+        entry_point="morph_core.env.swimmer_env:MorphSwimmerEnv",
         max_episode_steps=1000,
     )
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from morph_core.compiled import compiled
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic
-from morph_core.ppo import clip_range, ppo_loss
+from morph_core.algo.compiled import compiled
+from morph_core.algo.ppo import clip_range, ppo_loss
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 
 
 def _minibatch(rng, size, max_joints):

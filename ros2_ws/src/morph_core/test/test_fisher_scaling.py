@@ -7,8 +7,8 @@ import pytest
 import torch
 from torch.func import functional_call, grad, vmap
 
-from morph_core import fisher_scaling as fs
-from morph_core.policy import GraphActorCritic, PolicyConfig, gaussian_log_prob
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig, gaussian_log_prob
+from morph_core.theory import fisher_scaling as fs
 
 torch.set_num_threads(1)
 

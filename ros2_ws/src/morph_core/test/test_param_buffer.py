@@ -4,9 +4,9 @@ import copy
 
 import torch
 
-from morph_core.graph import ChainBatch
-from morph_core.param_buffer import flatten_parameters
-from morph_core.policy import GraphActorCritic
+from morph_core.algo.param_buffer import flatten_parameters
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 
 
 def _loss(policy, batch):

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 import morph_core  # noqa: F401
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic, PolicyConfig, count_parameters, gaussian_log_prob
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig, count_parameters, gaussian_log_prob
+from morph_core.policy.chains import ChainBatch
 
 
 def _observations(lengths, seed=0):

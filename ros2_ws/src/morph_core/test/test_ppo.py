@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from morph_core.ppo import PerDimensionStats, clip_range, clipped_policy_loss, compute_gae
+from morph_core.algo.ppo import PerDimensionStats, clip_range, clipped_policy_loss, compute_gae
 
 
 def test_fixed_clip_range_ignores_dimension():

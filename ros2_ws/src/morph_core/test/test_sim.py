@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from morph_core.sim import EffortError, SwimmerSim
-from morph_core.swimmer_env import MorphSwimmerEnv
+from morph_core.env.sim import EffortError, SwimmerSim
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 
 
 def test_steps_like_the_env_with_the_same_seed():

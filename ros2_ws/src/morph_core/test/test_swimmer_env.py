@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.swimmer_model import MAX_JOINTS, swimmer_mjcf, swimmer_model
+from morph_core.env.model import MAX_JOINTS, swimmer_mjcf, swimmer_model
 
 
 @pytest.mark.parametrize("seed", [0, 123])
@@ -92,7 +92,7 @@ def test_reset_option_forces_chain_length():
 def test_travelling_wave_swims_forward():
     # An open-loop travelling wave must move every chain forward: checks the
     # physics (viscous thrust) end to end, not just shapes.
-    from morph_core.gait import TravellingWave, run_gait
+    from morph_core.env.gait import TravellingWave, run_gait
 
     for n in (2, 5, 10):
         speed = run_gait(n, TravellingWave(), seconds=20.0, seed=0)
@@ -112,14 +112,14 @@ def test_travelling_wave_swims_forward():
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs, error):
-    from morph_core.swimmer_env import MorphSwimmerEnv
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
 
     with pytest.raises(error, match="num_joints|observation_mode"):
         MorphSwimmerEnv(**kwargs)
 
 
 def test_bad_actions_raise_and_leave_state_untouched():
-    from morph_core.swimmer_env import MorphSwimmerEnv
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
 
     env = MorphSwimmerEnv(num_joints=3)
     env.reset(seed=0)
@@ -131,7 +131,7 @@ def test_bad_actions_raise_and_leave_state_untouched():
 
 
 def test_diverging_physics_ends_the_episode_instead_of_silently_resetting():
-    from morph_core.swimmer_env import MorphSwimmerEnv
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
 
     env = MorphSwimmerEnv(num_joints=64)
     env.reset(seed=0)

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from morph_core import theory
-from morph_core.theory_cli import TheoryConfig, load_run, main, parse_config
+from morph_core.theory import clip_analysis as theory
+from trainer.theory_cli import TheoryConfig, load_run, main, parse_config
 
 
 def phi_cdf(x: float) -> float:

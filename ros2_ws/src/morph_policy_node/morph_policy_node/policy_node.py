@@ -3,7 +3,7 @@
 Each ``joint_states`` message is its own robot description: the joint graph
 is built from it (joint order = message order, joint 0 next to the torso),
 so any chain length works with no restart and no parameter change. The
-latest ``odom`` gives the global features; see ``morph_core.joint_state_graph``
+latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
 for how they are turned back into the training features (yaw unwrapped,
 body-frame twist rotated to the world frame). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
@@ -42,15 +42,15 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from morph_core.joint_state_graph import (
+from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
     chain_batch,
     global_features,
     validate_joint_state,
 )
-from morph_core.policy import GraphActorCritic
-from morph_core.policy_numpy import NumpyPolicy
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.numpy_actor import NumpyPolicy
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent

@@ -1,1 +1,1 @@
-"""ROS 2 node wrapping morph_core.sim.SwimmerSim."""
+"""ROS 2 node wrapping morph_core.env.sim.SwimmerSim."""

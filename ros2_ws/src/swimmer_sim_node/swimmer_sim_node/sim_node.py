@@ -1,6 +1,6 @@
 """MuJoCo swimmer as a ROS 2 node: JointState, Odometry and /clock out, efforts in.
 
-All physics is ``morph_core.sim.SwimmerSim``; this node only paces it, converts
+All physics is ``morph_core.env.sim.SwimmerSim``; this node only paces it, converts
 messages and handles parameters.
 
 Wire conventions
@@ -51,9 +51,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from morph_core.joint_state_graph import quaternion_from_yaw, world_to_body
-from morph_core.sim import EffortError, SwimmerSim
-from morph_core.swimmer_model import MAX_JOINTS, MIN_JOINTS
+from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
+from morph_core.env.sim import EffortError, SwimmerSim
+from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.

@@ -7,9 +7,9 @@ import sys
 
 import numpy as np
 
-from morph_core.evaluate import evaluate_policy
-from morph_core.policy import GraphActorCritic
-from morph_core.train import TrainConfig, train
+from morph_core.algo.evaluate import evaluate_policy
+from morph_core.algo.train import TrainConfig, train
+from morph_core.policy.actor_critic import GraphActorCritic
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,

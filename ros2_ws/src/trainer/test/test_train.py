@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from morph_core.checkpoint import load_training_state
-from morph_core.train import TrainConfig, train
+from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.train import TrainConfig, train
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,

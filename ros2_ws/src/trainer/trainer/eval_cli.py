@@ -20,10 +20,10 @@ from pathlib import Path
 
 import torch
 
-from morph_core.atomic import atomic_writer
-from morph_core.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from morph_core.evaluate import evaluate_policy
-from morph_core.policy import GraphActorCritic
+from morph_core.algo.evaluate import evaluate_policy
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.util.atomic import atomic_writer
+from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return"]

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from morph_core.atomic import atomic_writer  # noqa: E402
+from morph_core.util.atomic import atomic_writer  # noqa: E402
 
 MODES = ("compensated", "fixed")
 COLORS = {"compensated": "tab:blue", "fixed": "tab:orange"}

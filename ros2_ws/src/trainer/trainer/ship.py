@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from morph_core.policy import GraphActorCritic
-from morph_core.train import TrainConfig
+from morph_core.algo.train import TrainConfig
+from morph_core.policy.actor_critic import GraphActorCritic
 from trainer.plots import eval_means, load_runs
 
 DEFAULT_DEST = (

@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from morph_core.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from morph_core.train import TrainConfig, load_run_config, train
+from morph_core.algo.train import TrainConfig, load_run_config, train
+from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 
 
 def build_parser() -> argparse.ArgumentParser:

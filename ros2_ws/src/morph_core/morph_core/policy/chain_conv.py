@@ -30,7 +30,7 @@ import torch
 from torch import nn
 from torch_geometric.nn import NNConv
 
-from morph_core.graph import NUM_EDGE_FEATURES
+from morph_core.policy.chains import NUM_EDGE_FEATURES
 
 BACKENDS = ("dense", "pyg")
 

@@ -21,8 +21,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
-from morph_core.swimmer_model import MAX_JOINTS
+from morph_core.env.model import MAX_JOINTS
+from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
 
 
 class JointStateError(ValueError):

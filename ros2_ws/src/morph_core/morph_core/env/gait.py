@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from morph_core.swimmer_env import MorphSwimmerEnv
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import csv
 import math
 from pathlib import Path
 
-from morph_core.atomic import atomic_writer
+from morph_core.util.atomic import atomic_writer
 
 
 class RunLog:

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from morph_core.graph import pad_observations
-from morph_core.swimmer_env import MorphSwimmerEnv
+from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.chains import pad_observations
 
 MAX_EPISODE_STEPS = 1000
 

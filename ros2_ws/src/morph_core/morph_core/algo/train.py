@@ -17,15 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.atomic import atomic_writer
-from morph_core.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
-from morph_core.compiled import compiled
-from morph_core.config_cli import replace_nested
-from morph_core.graph import ChainBatch, pad_observations
-from morph_core.param_buffer import flatten_parameters
-from morph_core.policy import GraphActorCritic, PolicyConfig
-from morph_core.policy_numpy import NumpyPolicy
-from morph_core.ppo import (
+from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.compiled import compiled
+from morph_core.algo.param_buffer import flatten_parameters
+from morph_core.algo.ppo import (
     CLIP_MODES,
     PerDimensionStats,
     clip_range,
@@ -33,8 +28,13 @@ from morph_core.ppo import (
     explained_variance,
     ppo_loss,
 )
-from morph_core.run_log import RunLog
-from morph_core.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.algo.run_log import RunLog
+from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.chains import ChainBatch, pad_observations
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.util.atomic import atomic_writer
+from morph_core.util.config_cli import replace_nested
 
 
 @dataclass

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from morph_core.swimmer_env import MorphSwimmerEnv
-from morph_core.swimmer_model import check_num_joints
+from morph_core.env.model import check_num_joints
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 
 
 class EffortError(ValueError):

@@ -7,7 +7,7 @@ coordinates ``alpha = Q^T g`` do not. Then, for a fixed gradient ``g``,
     |dtheta_TRPO| = sqrt(2 delta / (g^T F^-1 g)) |F^-1 g|  ~  d^-1/2,
     |dtheta_beta| = |F^-1 g| / beta                          ~  d^-1.
 
-This module computes ``F`` exactly for :class:`~morph_core.policy.GraphActorCritic` on real
+This module computes ``F`` exactly for :class:`~morph_core.policy.actor_critic.GraphActorCritic` on real
 ``MorphSwimmer-v0`` states of chains with ``d`` joints and fits ``log |dtheta|`` against ``log d``.
 
 Fisher of the policy. ``pi(a|s) = prod_j N(a_j; mu_j(s), sigma^2)`` with one state-independent
@@ -42,8 +42,8 @@ import torch
 from torch.func import functional_call, jacrev, jvp, vmap
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic, PolicyConfig
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.chains import ChainBatch
 
 SUBSPACES = ("output", "random", "full")
 GRADIENTS = ("random", "policy_gradient")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from morph_core.gait import TravellingWave, run_gait
+from morph_core.env.gait import TravellingWave, run_gait
 
 
 def main(argv: list[str] | None = None) -> None:

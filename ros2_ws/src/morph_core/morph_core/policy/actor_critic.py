@@ -27,9 +27,9 @@ from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
-from morph_core.atomic import atomic_write_bytes, atomic_writer
-from morph_core.chain_conv import BACKENDS, ChainConv
-from morph_core.graph import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.chain_conv import BACKENDS, ChainConv
+from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.util.atomic import atomic_write_bytes, atomic_writer
 
 LOG_2PI = math.log(2 * math.pi)
 

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from morph_core import fisher_scaling, theory
+from morph_core.theory import clip_analysis as theory
+from morph_core.theory import fisher_scaling
 
 _FISHER = fisher_scaling.ScalingConfig()  # figure 4's defaults live with the study itself
 

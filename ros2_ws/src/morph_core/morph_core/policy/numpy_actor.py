@@ -14,8 +14,8 @@ import math
 
 import numpy as np
 
-from morph_core.chain_conv import message_weights
-from morph_core.policy import LOG_2PI, GraphActorCritic
+from morph_core.policy.actor_critic import LOG_2PI, GraphActorCritic
+from morph_core.policy.chain_conv import message_weights
 
 
 def _numpy(t) -> np.ndarray:

@@ -7,10 +7,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic
-from morph_core.swimmer_env import MorphSwimmerEnv
-from morph_core.vec_env import MAX_EPISODE_STEPS
+from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.env.vec_env import MAX_EPISODE_STEPS
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 
 
 def evaluate_policy(

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from morph_core.graph import ChainBatch
-from morph_core.joint_state_graph import (
+from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
     body_to_world,
@@ -18,7 +18,7 @@ from morph_core.joint_state_graph import (
     world_to_body,
     yaw_from_quaternion,
 )
-from morph_core.sim import SwimmerSim
+from morph_core.policy.chains import ChainBatch
 
 
 def test_valid_state_keeps_message_order():

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from morph_core.swimmer_model import check_num_joints, swimmer_model
+from morph_core.env.model import check_num_joints, swimmer_model
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")

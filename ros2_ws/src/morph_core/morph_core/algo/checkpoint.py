@@ -16,7 +16,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save as safetensors_bytes
 
-from morph_core.atomic import atomic_write_bytes
+from morph_core.util.atomic import atomic_write_bytes
 
 
 def save_training_state(

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from morph_core.graph import ChainBatch
-from morph_core.policy import GraphActorCritic, PolicyConfig
-from morph_core.policy_numpy import NumpyPolicy
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.chains import ChainBatch
+from morph_core.policy.numpy_actor import NumpyPolicy
 
 
 @pytest.mark.parametrize("bidirectional", [True, False])
