@@ -29,9 +29,8 @@ from torch import nn
 
 from morph_core.policy.chain_conv import BACKENDS, ChainConv
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.gaussian import entropy_per_joint, log_density_per_joint
 from morph_core.util.atomic import atomic_write_bytes, atomic_writer
-
-LOG_2PI = math.log(2 * math.pi)
 
 
 @dataclass
@@ -180,7 +179,7 @@ class GraphActorCritic(nn.Module):
 
     def entropy(self, batch: ChainBatch) -> torch.Tensor:
         """[B] entropy of each sample's joint action distribution (grows with its dimension)."""
-        per_joint = 0.5 * (1.0 + LOG_2PI) + self.log_std
+        per_joint = entropy_per_joint(self.log_std)
         return per_joint * batch.num_joints.to(per_joint.dtype)
 
     @torch.no_grad()
@@ -231,8 +230,7 @@ def gaussian_log_prob(
 ) -> torch.Tensor:
     """sum_j log N(a_j; mu_j, sigma^2) over valid joints; [B]."""
     z = (actions - mean) * torch.exp(-log_std)
-    per_joint = -0.5 * z.pow(2) - log_std - 0.5 * LOG_2PI
-    return (per_joint * mask).sum(dim=1)
+    return (log_density_per_joint(z, log_std) * mask).sum(dim=1)
 
 
 def count_parameters(module: nn.Module) -> int:

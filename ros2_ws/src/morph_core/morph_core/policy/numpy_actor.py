@@ -14,8 +14,9 @@ import math
 
 import numpy as np
 
-from morph_core.policy.actor_critic import LOG_2PI, GraphActorCritic
+from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chain_conv import message_weights
+from morph_core.policy.gaussian import log_density_from_norm
 
 
 def _numpy(t) -> np.ndarray:
@@ -80,7 +81,7 @@ class NumpyPolicy:
         mean, value = self.forward(joint_pos, joint_vel, global_feats, num_joints)
         mask = np.arange(mean.shape[1]) < num_joints[:, None]
         action = (mean + math.exp(self.log_std) * noise) * mask
-        log_prob = (-0.5 * np.square(noise * mask)).sum(1) - num_joints * (self.log_std + 0.5 * LOG_2PI)
+        log_prob = log_density_from_norm(np.square(noise * mask).sum(1), num_joints, self.log_std)
         return action.astype(np.float32), log_prob.astype(np.float32), value, mean
 
     def _links(self, coef: np.ndarray) -> np.ndarray:

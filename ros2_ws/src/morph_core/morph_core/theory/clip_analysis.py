@@ -23,6 +23,8 @@ from numpy.typing import ArrayLike
 from scipy import stats
 from scipy.special import ndtr
 
+from morph_core.policy.gaussian import log_density_per_joint
+
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 
 
@@ -162,8 +164,8 @@ class MonteCarloEstimate:
 
 
 def gaussian_log_density(a: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
-    """``log N(a; mean, std^2)`` elementwise."""
-    return -0.5 * ((a - mean) / std) ** 2 - np.log(std) - 0.5 * np.log(2.0 * np.pi)
+    """``log N(a; mean, std^2)`` elementwise: the policy's own per-joint density (``policy.gaussian``)."""
+    return log_density_per_joint((a - mean) / std, np.log(std))
 
 
 def _monte_carlo_point(
