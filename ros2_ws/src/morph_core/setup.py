@@ -14,7 +14,6 @@ setup(
         "numpy",
         "mujoco",
         "gymnasium",
-        "imageio",
         "torch",
         "torch-geometric",
         "safetensors",

@@ -16,6 +16,7 @@ import numpy as np
 from gymnasium import spaces
 
 from morph_core.env.model import check_num_joints, swimmer_model
+from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, control_cost
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
@@ -55,8 +56,8 @@ class MorphSwimmerEnv(gymnasium.Env):
         num_joints: int | tuple[int, int] = 2,
         observation_mode: str = "graph",
         frame_skip: int = 4,
-        forward_reward_weight: float = 1.0,
-        ctrl_cost_weight: float = 1e-4,
+        forward_reward_weight: float = FORWARD_REWARD_WEIGHT,
+        ctrl_cost_weight: float = CTRL_COST_WEIGHT,
         reset_noise_scale: float = 0.1,
     ):
         if observation_mode not in OBSERVATION_MODES:
@@ -138,8 +139,8 @@ class MorphSwimmerEnv(gymnasium.Env):
         x_velocity, y_velocity = (xy_after - xy_before) / self.dt
 
         forward_reward = self.forward_reward_weight * x_velocity
-        ctrl_cost = self.ctrl_cost_weight * np.sum(np.square(a))
-        reward = forward_reward - ctrl_cost
+        ctrl_cost = control_cost(a, self.ctrl_cost_weight)
+        reward = forward_reward - ctrl_cost  # == swimmer_reward(x, x', dt, a): tested bit for bit
         info = {
             "x_position": xy_after[0],
             "y_position": xy_after[1],

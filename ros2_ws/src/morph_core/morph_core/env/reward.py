@@ -1,0 +1,38 @@
+"""Swimmer-v5's reward, the one definition: the env steps with it, the topic trainer rebuilds it from messages.
+
+    r = forward_weight * (x' - x) / dt - ctrl_cost_weight * sum_j a_j^2
+
+``x`` and ``x'`` are the torso's world x before and after one control period
+``dt`` (0.04 s: 4 physics steps of 0.01), ``a`` the action the env was
+stepped with (before the env's own clip to the motors' range: in training the
+sampled action, as Gymnasium's Swimmer-v5 charges it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FORWARD_REWARD_WEIGHT = 1.0
+CTRL_COST_WEIGHT = 1e-4
+
+
+def forward_velocity(x_before: float, x_after: float, dt: float) -> float:
+    """Mean forward (world x) velocity of the torso over one control period."""
+    return (x_after - x_before) / dt
+
+
+def control_cost(action, ctrl_cost_weight: float = CTRL_COST_WEIGHT) -> float:
+    """``ctrl_cost_weight * |a|^2``."""
+    return ctrl_cost_weight * np.sum(np.square(action))
+
+
+def swimmer_reward(
+    x_before: float,
+    x_after: float,
+    dt: float,
+    action,
+    forward_reward_weight: float = FORWARD_REWARD_WEIGHT,
+    ctrl_cost_weight: float = CTRL_COST_WEIGHT,
+) -> float:
+    """Swimmer-v5's reward for one control period (see the module docstring)."""
+    return forward_reward_weight * forward_velocity(x_before, x_after, dt) - control_cost(action, ctrl_cost_weight)

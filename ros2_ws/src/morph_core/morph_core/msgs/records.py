@@ -1,0 +1,83 @@
+"""The topics a trainer reads, as plain records: what a bag or a live subscription decodes into.
+
+Nothing here imports ROS. ``log_ns`` is when the message was received (a
+bag's log time), ``stamp_ns`` the stamp it carries. Arrays are float64 in
+the message's joint order (joint 0 next to the torso). These are the inputs
+of episode assembly (``protocol``); recorders and live trainers only fill
+them in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class JointStateRecord:
+    """``joint_states`` (sensor_msgs/JointState): ``effort`` is what was applied over the period
+    that ended at this state (empty if the publisher does not say)."""
+
+    log_ns: int
+    stamp_ns: int
+    names: tuple[str, ...]
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+
+@dataclass(frozen=True)
+class OdometryRecord:
+    """``odom`` (nav_msgs/Odometry): pose in the world frame, twist in the body frame."""
+
+    log_ns: int
+    stamp_ns: int
+    x: float
+    y: float
+    orientation_xyzw: tuple[float, float, float, float]
+    body_linear_xy: tuple[float, float]
+    angular_z: float
+
+
+@dataclass(frozen=True)
+class EffortRecord:
+    """``effort_commands`` (std_msgs/Float64MultiArray): ``answers_ns`` is the stamp of the state it
+    answers, from its answer tag (``msgs.stamps``), or None for an untagged command."""
+
+    log_ns: int
+    answers_ns: int | None
+    effort: np.ndarray
+
+
+@dataclass(frozen=True)
+class PolicyInfoRecord:
+    """``policy_info``: a sampling policy's action for the state stamped ``stamp_ns``
+    (layout: ``msgs.policy_info``)."""
+
+    log_ns: int
+    stamp_ns: int
+    names: tuple[str, ...]
+    action: np.ndarray
+    """sampled action, before any clip to the motors' range"""
+    mean: np.ndarray
+    log_std: np.ndarray
+    log_prob_per_joint: np.ndarray
+
+    @property
+    def log_prob(self) -> float:
+        """Log-probability of the whole action under the policy that sampled it."""
+        return float(self.log_prob_per_joint.sum())
+
+
+@dataclass(frozen=True)
+class EpisodeStartRecord:
+    """An episode announcement: the episode begins with the state stamped ``stamp_ns``."""
+
+    log_ns: int
+    stamp_ns: int
+    episode: int | None = None
+    num_joints: int | None = None
+
+
+Record = JointStateRecord | OdometryRecord | EffortRecord | PolicyInfoRecord | EpisodeStartRecord
