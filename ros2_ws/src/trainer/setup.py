@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["morph_core", "matplotlib", "numpy"],
+    install_requires=["morph_core", "matplotlib", "numpy", "rosbags"],
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",
@@ -25,6 +25,7 @@ setup(
             "morph-eval = trainer.eval_cli:main",
             "morph-theory = trainer.theory_cli:main",
             "morph-gait = trainer.gait_cli:main",
+            "morph-record = trainer.record:main",
         ],
     },
 )

@@ -1,0 +1,352 @@
+"""Record the swimmer's topics into a rosbag2 bag (MCAP or sqlite3), as ``ros2 bag record`` would.
+
+    morph-record --ros-args -r __ns:=/robot1 -p output:=bags/run1 -p max_episodes:=10
+
+Topics (relative names resolve under the node's namespace): ``joint_states``,
+``odom``, ``effort_commands``, ``policy_info``, ``episode_start`` and
+``/clock`` by default (parameter ``topics``). Each is subscribed once a
+publisher appears, with whatever type the graph says it has; messages are
+written as the serialized CDR bytes received (raw subscriptions, never
+re-serialized), with the reception time (the node's clock) as log time.
+
+Subscription QoS follows the publishers' offers, as rosbag2 does: reliable
+only if every publisher is reliable (a reliable reader gets nothing from a
+best-effort writer), transient-local only if every publisher is (then the
+late-joining recorder still gets what they kept), keep-last with a deep
+queue (``queue_depth``) so a burst is not dropped while a chunk is written.
+
+The bag (``trainer.bag_writer``): metadata.yaml version 9 with each topic's
+offered QoS profiles and type hash, MCAP (default) or sqlite3, split by size
+or duration, flushed every ``flush_period`` so a kill loses at most that
+much. SIGINT/SIGTERM close the bag; so does a stop condition
+(``max_messages``, ``max_duration``, ``max_episodes``), after which the
+process exits: a bring-up can record N episodes and wait for it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
+
+DEFAULT_TOPICS = ["joint_states", "odom", "effort_commands", "policy_info", "episode_start", "/clock"]
+EPISODE_TOPIC = "episode_start"
+_LOG_THROTTLE = 5.0
+
+
+def subscription_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
+    """A profile that matches every offer: reliable / transient-local only when all offers are."""
+    reliable = bool(offers) and all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
+    latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+def _qos_time(duration) -> QosTime:
+    sec, nsec = divmod(duration.nanoseconds, 1_000_000_000)
+    return QosTime(sec, nsec)
+
+
+def bag_qos(profile: QoSProfile) -> Qos:
+    """An offered rclpy profile as rosbags stores it (enums by name: rclpy and rmw number them differently)."""
+    return Qos(
+        QosHistory[profile.history.name],
+        profile.depth,
+        QosReliability[profile.reliability.name],
+        QosDurability[profile.durability.name],
+        _qos_time(profile.deadline),
+        _qos_time(profile.lifespan),
+        QosLiveliness[profile.liveliness.name],
+        _qos_time(profile.liveliness_lease_duration),
+        profile.avoid_ros_namespace_conventions,
+    )
+
+
+def message_class(msgtype: str):
+    """The Python class of ``pkg/msg/Type`` (raw subscriptions still need it for type support)."""
+    pkg, kind, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+def _msg_file(msgtype: str) -> Path:
+    """Where ``pkg/msg/Type`` is defined: the ament index of a sourced ROS install, else this
+    environment's share/ (the PyPI ROS wheels install there and set no AMENT_PREFIX_PATH)."""
+    pkg, kind, name = msgtype.split("/")
+    candidates = [Path(sys.prefix) / "share" / pkg]
+    if os.environ.get("AMENT_PREFIX_PATH"):
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
+        try:
+            candidates.insert(0, Path(get_package_share_directory(pkg)))
+        except PackageNotFoundError:
+            pass
+    for share in candidates:
+        if (share / kind / f"{name}.msg").is_file():
+            return share / kind / f"{name}.msg"
+    raise FileNotFoundError(f"no definition of {msgtype} in {[str(c) for c in candidates]}")
+
+
+def ensure_type(typestore, msgtype: str) -> None:
+    """Make ``typestore`` know ``msgtype``: types the Jazzy store lacks are read from their installed
+    ``.msg`` files (share/<pkg>/msg/<Type>.msg), with the types they use."""
+    if msgtype in typestore.fielddefs:
+        return
+    from rosbags.typesys import get_types_from_msg
+    from rosbags.typesys.base import Nodetype
+
+    types = get_types_from_msg(_msg_file(msgtype).read_text(), msgtype)
+    for _, (node, detail) in types[msgtype][1]:
+        if node in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+            node, detail = detail[0]
+        if node == Nodetype.NAME:
+            ensure_type(typestore, detail)
+    typestore.register(types)
+
+
+class RecorderNode(Node):
+    def __init__(self):
+        super().__init__("morph_record")
+        self.declare_parameter(
+            "output",
+            "",
+            ParameterDescriptor(
+                description="bag folder to create (must not exist); '' = rosbag2_<date>-<time> here", read_only=True
+            ),
+        )
+        self.declare_parameter(
+            "topics",
+            DEFAULT_TOPICS,
+            ParameterDescriptor(description="topics to record (relative: in the node's namespace)", read_only=True),
+        )
+        self.declare_parameter(
+            "episode_topic",
+            EPISODE_TOPIC,
+            ParameterDescriptor(description="the topic announcing episodes (counted by max_episodes)", read_only=True),
+        )
+        self.declare_parameter("storage", "mcap", ParameterDescriptor(description="mcap or sqlite3", read_only=True))
+        self.declare_parameter(
+            "max_bag_size",
+            0,
+            ParameterDescriptor(
+                description="bytes per storage file before splitting; 0 = no split",
+                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "max_bag_duration",
+            0.0,
+            ParameterDescriptor(
+                description="seconds of log time per storage file before splitting; 0 = no split",
+                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e9, step=0.0)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "chunk_size",
+            WriterOptions.chunk_size,
+            ParameterDescriptor(
+                description="MCAP chunk size in bytes: a kill loses at most the chunk being filled",
+                integer_range=[IntegerRange(from_value=1, to_value=2**20, step=1)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "flush_period",
+            1.0,
+            ParameterDescriptor(
+                description="wall seconds between flushes (MCAP: close the chunk; sqlite3: commit)",
+                floating_point_range=[FloatingPointRange(from_value=0.01, to_value=3600.0, step=0.0)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "queue_depth",
+            1000,
+            ParameterDescriptor(
+                description="keep-last depth of each subscription",
+                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "max_messages",
+            0,
+            ParameterDescriptor(
+                description="stop after writing this many messages (of count_topic, or of all); 0 = no limit",
+                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "count_topic",
+            "",
+            ParameterDescriptor(description="topic counted by max_messages; '' = every topic", read_only=True),
+        )
+        self.declare_parameter(
+            "max_duration",
+            0.0,
+            ParameterDescriptor(
+                description="stop this many wall seconds after the first message; 0 = no limit",
+                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e9, step=0.0)],
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "max_episodes",
+            0,
+            ParameterDescriptor(
+                description="stop when episode max_episodes+1 is announced (not recorded); 0 = no limit",
+                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
+                read_only=True,
+            ),
+        )
+        p = lambda name: self.get_parameter(name).value  # noqa: E731
+        output = p("output") or datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
+        options = WriterOptions(
+            storage=p("storage"),
+            max_bag_size=p("max_bag_size"),
+            max_bag_duration_ns=int(round(p("max_bag_duration") * 1e9)),
+            chunk_size=p("chunk_size"),
+        )
+        self.writer = BagWriter(Path(output), options)  # refuses an existing path
+        self._wanted = {self.resolve_topic_name(t): t for t in p("topics")}
+        self._episode_topic = self.resolve_topic_name(p("episode_topic"))
+        self._count_topic = self.resolve_topic_name(p("count_topic")) if p("count_topic") else ""
+        self._depth = p("queue_depth")
+        self._max_messages = p("max_messages")
+        self._max_duration = p("max_duration")
+        self._max_episodes = p("max_episodes")
+        self._counted = 0
+        self._episodes = 0
+        self._first_at: float | None = None
+        self._recorded = {}
+        self.finished = False
+        self.stop_reason = ""
+        self._discover()
+        self._discovery_timer = self.create_timer(0.1, self._discover)
+        self.create_timer(p("flush_period"), self._flush)
+        self.get_logger().info(f"recording {sorted(self._wanted)} into {self.writer.path} ({options.storage})")
+
+    # -- discovery ----------------------------------------------------------------------------
+    def _discover(self) -> None:
+        for topic in [t for t in self._wanted if t not in self._recorded]:
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            types = sorted({i.topic_type for i in infos})
+            msgtype = types[0]
+            if len(types) > 1:
+                self.get_logger().warn(f"{topic} is published with several types {types}: recording {msgtype}")
+            infos = [i for i in infos if i.topic_type == msgtype]
+            try:
+                self._subscribe(topic, msgtype, infos)
+            except (ImportError, AttributeError, OSError, BagWriterError) as err:
+                self.get_logger().error(f"cannot record {topic} ({msgtype}): {err}")
+                self._recorded[topic] = None  # do not retry every 0.1 s
+        if len(self._recorded) == len(self._wanted):
+            self._discovery_timer.cancel()
+
+    def _subscribe(self, topic: str, msgtype: str, infos) -> None:
+        offers = [i.qos_profile for i in infos]
+        type_hash = str(infos[0].topic_type_hash)
+        ensure_type(self.writer.typestore, msgtype)
+        topic_id = self.writer.add_topic(
+            BagTopic(
+                name=topic,
+                msgtype=msgtype,
+                offered_qos=tuple(bag_qos(q) for q in offers),
+                type_hash=type_hash if type_hash.startswith("RIHS01_") and not type_hash.endswith("0" * 64) else "",
+            )
+        )
+        qos = subscription_qos(offers, self._depth)
+        self._recorded[topic] = self.create_subscription(
+            message_class(msgtype),
+            topic,
+            lambda data, tid=topic_id, t=topic: self._on_message(tid, t, data),
+            qos,
+            raw=True,
+        )
+        self.get_logger().info(
+            f"recording {topic} ({msgtype}, {qos.reliability.name.lower()}, {qos.durability.name.lower()})"
+        )
+
+    # -- writing ------------------------------------------------------------------------------
+    def _on_message(self, topic_id: int, topic: str, data: bytes) -> None:
+        if self.finished:
+            return
+        if topic == self._episode_topic and self._max_episodes:
+            self._episodes += 1
+            if self._episodes > self._max_episodes:
+                self._finish(f"episode {self._episodes} announced after {self._max_episodes} episodes")
+                return
+        self.writer.write(topic_id, self.get_clock().now().nanoseconds, data)
+        now = time.monotonic()
+        if self._first_at is None:
+            self._first_at = now
+        if not self._count_topic or topic == self._count_topic:
+            self._counted += 1
+        if self._max_messages and self._counted >= self._max_messages:
+            self._finish(f"{self._counted} messages written")
+        elif self._max_duration and now - self._first_at >= self._max_duration:
+            self._finish(f"{self._max_duration} s recorded")
+
+    def _flush(self) -> None:
+        if not self.finished:
+            self.writer.flush()
+
+    def _finish(self, reason: str) -> None:
+        self.finished = True
+        self.stop_reason = reason
+
+    def close(self) -> None:
+        """Close the bag (metadata.yaml written) and say what is in it."""
+        path = self.writer.close()
+        counts = ", ".join(f"{t}: {n}" for t, n in self.writer.counts().items()) or "no topics"
+        missing = sorted(t for t, s in self._recorded.items() if s is None)
+        missing += sorted(t for t in self._wanted if t not in self._recorded)
+        self.get_logger().info(
+            f"bag {path} closed{' (' + self.stop_reason + ')' if self.stop_reason else ''}: "
+            f"{self.writer.message_count} messages ({counts})"
+            f"{'; never published: ' + ', '.join(missing) if missing else ''}"
+        )
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RecorderNode()
+        while rclpy.ok() and not node.finished:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except BagWriterError as err:
+        print(f"morph-record: {err}", file=sys.stderr)
+        return 1
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
