@@ -2,8 +2,8 @@
 
     morph-record --ros-args -r __ns:=/robot1 -p output:=bags/run1 -p max_episodes:=10
 
-Topics (relative names resolve under the node's namespace): ``joint_states``,
-``odom``, ``effort_commands``, ``policy_info``, ``episode_start`` and
+Topics (relative names resolve under the node's namespace): ``episode_start``,
+``joint_states``, ``odom``, ``effort_commands``, ``policy_info`` and
 ``/clock`` by default (parameter ``topics``). Each is subscribed once a
 publisher appears, with whatever type the graph says it has; messages are
 written as the serialized CDR bytes received (raw subscriptions, never
@@ -41,7 +41,9 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
-DEFAULT_TOPICS = ["joint_states", "odom", "effort_commands", "policy_info", "episode_start", "/clock"]
+# The announcement first: subscribed to before joint_states in the same discovery pass, so a lockstep
+# sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
+DEFAULT_TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_info", "/clock"]
 EPISODE_TOPIC = "episode_start"
 _LOG_THROTTLE = 5.0
 

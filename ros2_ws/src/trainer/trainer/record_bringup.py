@@ -1,0 +1,162 @@
+"""Record episodes of the sampling policy on the simulated swimmer into a bag: sim + policy + recorder.
+
+    python -m trainer.record_bringup --episodes 10 --out bags/run1 [--joints 6] [--storage mcap]
+
+What a launch file would do on a Jazzy install, for machines without
+``launch``: the recorder starts first (so it sees the first episode), then the
+sim (lockstep, as fast as possible) and the policy (``deterministic:=false``,
+so it samples and publishes ``policy_info``). If the sim has episodes (its
+``episode_steps`` parameter), the recorder stops by itself when episode
+N+1 is announced; otherwise it stops after N x ``--steps-per-episode``
+policy answers. Then the nodes are stopped and the bag's contents printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def _fastdds_profile() -> str | None:
+    """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
+    try:
+        import morph_policy_node
+    except ImportError:
+        return None
+    return str(Path(morph_policy_node.__file__).resolve().parent / "fastdds_profile.xml")
+
+
+def _start(module: str, namespace: str, params: dict) -> subprocess.Popen:
+    args = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace or '/'}"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={v}"]
+    return subprocess.Popen(args)
+
+
+def _stop(procs: list[subprocess.Popen], sig=signal.SIGTERM) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(sig)
+    for p in procs:
+        try:
+            p.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
+    """Whether node ``target`` declares parameter ``name`` (asked over its parameter service)."""
+    import rclpy
+    from rcl_interfaces.srv import ListParameters
+
+    client = node.create_client(ListParameters, f"{target}/list_parameters")
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise RuntimeError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
+    future = client.call_async(ListParameters.Request(names=[name]))
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if future.result() is None:
+        raise RuntimeError(f"no answer from {target}/list_parameters")
+    return name in future.result().result.names
+
+
+def run(args) -> int:
+    profile = _fastdds_profile()
+    if profile:
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    import rclpy
+
+    out = Path(args.out)
+    if out.exists():
+        print(f"record_bringup: {out} exists already: choose a new --out", file=sys.stderr)
+        return 1
+    ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    recorder_params = {"output": str(out), "storage": args.storage}
+    sim_params = {
+        "num_joints": args.joints,
+        "lockstep": "true",
+        "real_time_factor": 0.0,
+        "effort_timeout": 2.0,
+        "episode_steps": args.steps_per_episode,  # ignored by a sim without episodes
+        "seed": args.seed,
+    }
+    policy_params = {"deterministic": "false", "seed": args.seed}
+    if args.checkpoint:
+        policy_params["checkpoint"] = args.checkpoint
+
+    rclpy.init()
+    node = rclpy.create_node("record_bringup", namespace=ns or "/")
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(_start("swimmer_sim_node.sim_node", ns, sim_params))
+        episodes = _has_parameter(node, f"{ns}/swimmer_sim", "episode_steps", args.startup_timeout)
+        if episodes:
+            recorder_params["max_episodes"] = args.episodes
+            what = f"{args.episodes} episodes of {args.steps_per_episode} steps"
+        else:
+            recorder_params["max_messages"] = args.episodes * args.steps_per_episode
+            recorder_params["count_topic"] = "policy_info"
+            what = f"{args.episodes * args.steps_per_episode} steps (this sim has no episodes)"
+        # The lockstep sim publishes its first state once someone listens to joint_states: the
+        # recorder, started now, so the bag begins with the reset state.
+        recorder = _start("trainer.record", ns, recorder_params)
+        procs.insert(0, recorder)
+        procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
+        print(f"record_bringup: recording {what}, {args.joints} joints, into {out}", flush=True)
+        deadline = time.monotonic() + args.timeout
+        while recorder.poll() is None:
+            if any(p.poll() is not None for p in procs[1:]):
+                raise RuntimeError("a node exited early; see its output above")
+            if time.monotonic() > deadline:
+                print(f"record_bringup: timed out after {args.timeout} s: closing the bag early", flush=True)
+                _stop([recorder], signal.SIGINT)
+                break
+            time.sleep(0.2)
+    finally:
+        _stop(procs)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    if recorder.returncode not in (0, None):
+        print(f"record_bringup: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
+        return 1
+    return _summarise(out, ns)
+
+
+def _summarise(out: Path, ns: str) -> int:
+    from morph_core.msgs.records import EpisodeStartRecord
+    from trainer.bag_io import BagReader
+
+    reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
+    starts = sum(isinstance(r, EpisodeStartRecord) for r in reader.records())
+    counts = ", ".join(f"{k}: {v}" for k, v in sorted(reader.stats.counts.items()))
+    print(f"record_bringup: bag {out}: {counts}; {starts} episode announcements", flush=True)
+    for w in reader.stats.warnings:
+        print(f"record_bringup: warning: {w}", flush=True)
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", required=True, help="bag folder to create")
+    ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
+    ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")
+    ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the sim's resets and the policy's sampling")
+    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds before closing the bag early")
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the sim")
+    args = ap.parse_args(argv)
+    if args.episodes < 1 or args.steps_per_episode < 1:
+        ap.error("--episodes and --steps-per-episode must be >= 1")
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
