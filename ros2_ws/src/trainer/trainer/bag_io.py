@@ -92,7 +92,8 @@ def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
     an integer field ``episode`` / ``episode_index`` / ``index``, the joint
     count from ``num_joints`` / ``joints`` / ``joint_count`` or the length of
     a name list (``name``, ``joint_names``); else from ``key=value`` pairs in
-    a string field (``frame_id`` or ``data``, e.g. "episode=3 num_joints=6").
+    a string field (``frame_id``, ``header.frame_id`` or ``data``, e.g. a
+    std_msgs/Header with frame_id "episode=3 num_joints=6").
     Missing values are None. Raises ``DecodeError`` when there is no stamp.
     """
     stamp = getattr(getattr(msg, "header", None), "stamp", None) or getattr(msg, "stamp", None)
@@ -103,11 +104,9 @@ def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
     if joints is None:
         names = next((getattr(msg, f) for f in _NAME_LISTS if isinstance(getattr(msg, f, None), list)), None)
         joints = len(names) if names else None
-    text = " ".join(
-        str(s)
-        for s in (getattr(getattr(msg, "header", None), "frame_id", None), getattr(msg, "data", None))
-        if isinstance(s, str)
-    )
+    header = getattr(msg, "header", None)
+    strings = (getattr(header, "frame_id", None), getattr(msg, "frame_id", None), getattr(msg, "data", None))
+    text = " ".join(s for s in strings if isinstance(s, str))
     if episode is None:
         episode = _int_in_text(text, _EPISODE_FIELDS)
     if joints is None:

@@ -152,13 +152,19 @@ class _Sqlite3File(Sqlite3Writer):
         self.conn.execute("PRAGMA synchronous=NORMAL")
         self.conn.executescript(self.SQLITE_SCHEMA.replace("'rosbags'", f"'{ros_distro}'"))
         self.cursor = self.conn.cursor()
+        self._pending = 0  # message bytes not committed yet (in no file so far)
+
+    def write(self, connection: Connection, timestamp: int, data: bytes | memoryview) -> None:
+        super().write(connection, timestamp, data)
+        self._pending += len(data)
 
     def flush(self) -> None:
         self.conn.commit()
+        self._pending = 0
 
     def size(self) -> int:
         wal = self.path.with_name(self.path.name + "-wal")
-        return self.path.stat().st_size + (wal.stat().st_size if wal.exists() else 0)
+        return self.path.stat().st_size + (wal.stat().st_size if wal.exists() else 0) + self._pending
 
 
 @dataclass
@@ -350,3 +356,72 @@ class BagWriter:
         yaml = YAML(typ="safe")
         yaml.default_flow_style = False
         return yaml
+
+
+# -- what Jazzy's rosbag2 requires of metadata.yaml (rosbag2_storage/yaml.hpp, qos.cpp, version 9) --
+_QOS_ENUMS = {
+    "history": {"system_default", "keep_last", "keep_all", "unknown"},
+    "reliability": {"system_default", "reliable", "best_effort", "unknown", "best_available"},
+    "durability": {"system_default", "transient_local", "volatile", "unknown", "best_available"},
+    "liveliness": {"system_default", "automatic", "manual_by_topic", "unknown", "best_available"},
+}
+_QOS_TIMES = ("deadline", "lifespan", "liveliness_lease_duration")
+
+
+def jazzy_metadata_problems(info: dict) -> list[str]:
+    """What in a ``rosbag2_bagfile_information`` mapping Jazzy's ``ros2 bag info/play`` would reject
+    (a key its decoder reads that is missing or of the wrong kind); [] when it would accept it."""
+    problems: list[str] = []
+
+    def need(d, key, kind, where):
+        if d is None:  # its parent is missing: reported there
+            return None
+        if not isinstance(d, dict) or key not in d:
+            problems.append(f"{where}: no {key}")
+            return None
+        if not isinstance(d[key], kind) or (kind is int and isinstance(d[key], bool)):
+            problems.append(f"{where}.{key}: {d[key]!r} is not {getattr(kind, '__name__', kind)}")
+            return None
+        return d[key]
+
+    if need(info, "version", int, "metadata") != METADATA_VERSION:
+        problems.append(f"metadata.version: {info.get('version')!r}, Jazzy writes {METADATA_VERSION}")
+    need(info, "storage_identifier", str, "metadata")
+    need(need(info, "duration", dict, "metadata"), "nanoseconds", int, "duration")
+    need(need(info, "starting_time", dict, "metadata"), "nanoseconds_since_epoch", int, "starting_time")
+    need(info, "message_count", int, "metadata")
+    for key in ("compression_format", "compression_mode", "ros_distro"):
+        need(info, key, str, "metadata")
+    paths = need(info, "relative_file_paths", list, "metadata") or []
+    for i, f in enumerate(need(info, "files", list, "metadata") or []):
+        where = f"files[{i}]"
+        need(f, "path", str, where)
+        need(need(f, "starting_time", dict, where), "nanoseconds_since_epoch", int, where)
+        need(need(f, "duration", dict, where), "nanoseconds", int, where)
+        need(f, "message_count", int, where)
+    if "custom_data" not in info or not (info["custom_data"] is None or isinstance(info["custom_data"], dict)):
+        problems.append("metadata: custom_data missing or not a mapping")
+    for i, t in enumerate(need(info, "topics_with_message_count", list, "metadata") or []):
+        need(t, "message_count", int, f"topics[{i}]")
+        meta = need(t, "topic_metadata", dict, f"topics[{i}]") or {}
+        where = f"topics[{i}] ({meta.get('name')})"
+        for key in ("name", "type", "serialization_format", "type_description_hash"):
+            need(meta, key, str, where)
+        if isinstance(meta.get("type_description_hash"), str) and not meta["type_description_hash"].startswith(
+            "RIHS01_"
+        ):
+            problems.append(f"{where}: type_description_hash {meta['type_description_hash']!r} is not RIHS01_...")
+        for j, q in enumerate(need(meta, "offered_qos_profiles", list, where) or []):
+            qwhere = f"{where}.offered_qos_profiles[{j}]"
+            need(q, "depth", int, qwhere)
+            need(q, "avoid_ros_namespace_conventions", bool, qwhere)
+            for key, allowed in _QOS_ENUMS.items():
+                if need(q, key, str, qwhere) not in allowed | {None}:
+                    problems.append(f"{qwhere}.{key}: {q[key]!r} is not one of {sorted(allowed)}")
+            for key in _QOS_TIMES:
+                t_ = need(q, key, dict, qwhere)
+                need(t_, "sec", int, f"{qwhere}.{key}")
+                need(t_, "nsec", int, f"{qwhere}.{key}")
+    if paths and isinstance(info.get("files"), list) and [f.get("path") for f in info["files"]] != paths:
+        problems.append("metadata: files[].path differ from relative_file_paths")
+    return problems
