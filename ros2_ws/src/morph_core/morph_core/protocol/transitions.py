@@ -1,0 +1,607 @@
+"""Transitions from recorded (or live) topics: the records of one swimmer in, RL steps out.
+
+Feed ``TransitionAssembler.push`` the records of ``msgs.records`` in the order
+they were received (a bag's log time, or as a live subscription delivers
+them); it returns the transitions that became final, in stream order.
+``flush`` ends the stream. ``assemble`` does both for a finished sequence.
+
+A transition is the step from state s (a ``joint_states`` message) to the
+next state s' one control period later:
+
+- observation: joint positions and velocities of s, and (yaw, yaw rate, vx,
+  vy) rebuilt from the odometry carrying s's stamp exactly as the policy node
+  does (``msgs.joint_state.global_features``, yaw unwrapped along the stream,
+  unwrapping restarted at each announced episode and each new chain);
+- action: the sampled action of the ``policy_info`` stamped s (the behaviour
+  log-prob comes with it), else the effort command answering s;
+- reward: Swimmer-v5's, from the torso x of s and s' (their odometry), the
+  control period, and that action (the env is charged for the unclipped
+  sample; the sim applies its clip);
+- terminated: never (the swimmer task has no terminal states);
+  truncated: on the last transition before an episode boundary, a skipped
+  step or the end of the stream, with s' kept as ``next_*`` for the
+  bootstrap ``gamma * V(s')``.
+
+Pairing is by stamp: the odometry of s has s's stamp, an effort answers the
+state named by its answer tag (``msgs.stamps``), a policy_info carries the
+stamp of the state it answers. An untagged effort (another controller) is
+taken as the answer to the latest state received before it.
+
+Episode boundaries (no transition across them): an episode announcement for
+s' (``EpisodeStartRecord``), a change of joint names (a new robot), or s'
+not stamped one control period after s (a lost state, a restarted sim).
+
+Nothing is guessed: a step that cannot be rebuilt is skipped and counted
+under its reason (``SkipCounts``); a message that answers no state is
+counted too. A state that is re-sent unchanged (a lockstep sim re-publishes
+when an answer is late) is the same state, not a new one.
+
+Streaming: messages of one stamp arrive on several topics, in no fixed order
+and sometimes late. A state's step is judged once ``settle_states`` further
+states have arrived (or at ``flush``), and a transition is released once the
+next one is judged (that decides its ``truncated``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict, deque
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+
+from morph_core.env.model import MAX_JOINTS
+from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, swimmer_reward
+from morph_core.msgs.joint_state import JointStateError, YawUnwrapper, global_features, validate_joint_state
+from morph_core.msgs.records import (
+    EffortRecord,
+    EpisodeStartRecord,
+    JointStateRecord,
+    OdometryRecord,
+    PolicyInfoRecord,
+    Record,
+)
+from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.protocol.transition_batch import TransitionBatch
+
+
+@dataclass(frozen=True)
+class TransitionConfig:
+    """How records become transitions."""
+
+    control_period: float = 0.04
+    """the sim's control period [s] (Swimmer-v5: 4 physics steps of 0.01): consecutive states of an
+    episode are this far apart, and it is the reward's dt"""
+    stamp_tolerance_ns: int = 1000
+    """how far a stamp difference may be from the control period and still be consecutive"""
+    applied_atol: float = 0.0
+    """tolerance when checking clip(action) against the effort the sim reports as applied
+    (0: bit-exact, which the nodes give: both sides are the same float64 values)"""
+    settle_states: int = 10
+    """a state's messages (odometry, effort, policy_info, announcement) are awaited until this many
+    later states have arrived; later ones are counted as late and unused"""
+    max_joints: int = MAX_JOINTS
+    forward_reward_weight: float = FORWARD_REWARD_WEIGHT
+    ctrl_cost_weight: float = CTRL_COST_WEIGHT
+
+    def __post_init__(self):
+        if not (math.isfinite(self.control_period) and self.control_period > 0):
+            raise ValueError(f"control_period must be a finite number > 0, got {self.control_period}")
+        if self.stamp_tolerance_ns < 0 or self.applied_atol < 0 or self.settle_states < 0:
+            raise ValueError("stamp_tolerance_ns, applied_atol and settle_states must be >= 0")
+
+    @property
+    def control_period_ns(self) -> int:
+        return seconds_to_ns(self.control_period)
+
+
+@dataclass
+class SkipCounts:
+    """What could not be used, by reason.
+
+    Step reasons count transitions not produced (each under the first reason
+    that applies; a bad state costs both transitions it belongs to). Message
+    reasons count messages left unused.
+    """
+
+    # -- steps --
+    no_odometry: int = 0
+    """the state or the next state has no odometry with its stamp"""
+    no_answer: int = 0
+    """no effort and no policy_info answers the state"""
+    not_applied: int = 0
+    """clip(action) differs from the effort the next state reports as applied (a late answer in
+    free-running mode: the sim applied an older command), or from the answering effort command"""
+    no_applied_effort: int = 0
+    """the next state reports no applied effort and no effort command answers the state, so the
+    action cannot be checked against what the sim did"""
+    ambiguous_answer: int = 0
+    """several different answers to the state all fit the applied effort"""
+    names_mismatch: int = 0
+    """the policy_info's joint names are not the state's"""
+    malformed: int = 0
+    """lengths that do not fit the state's joints, empty or duplicate joint names, too many joints"""
+    non_finite: int = 0
+    """NaN or inf in a message the step needs"""
+    duplicate_stamp: int = 0
+    """two different states (or odometries) with one stamp: which is which cannot be told"""
+    # -- messages --
+    orphan_effort: int = 0
+    """an effort command whose answer tag names no recorded state"""
+    orphan_policy_info: int = 0
+    """a policy_info stamped with no recorded state's stamp"""
+    orphan_odometry: int = 0
+    """an odometry stamped with no recorded state's stamp"""
+    orphan_announcement: int = 0
+    """an episode announcement for a state that never arrived"""
+    late_message: int = 0
+    """a message that arrived after its state's step had been judged (``settle_states``)"""
+
+    STEP_REASONS = (
+        "no_odometry",
+        "no_answer",
+        "not_applied",
+        "no_applied_effort",
+        "ambiguous_answer",
+        "names_mismatch",
+        "malformed",
+        "non_finite",
+        "duplicate_stamp",
+    )
+    MESSAGE_REASONS = ("orphan_effort", "orphan_policy_info", "orphan_odometry", "orphan_announcement", "late_message")
+
+    def add(self, reason: str, count: int = 1) -> None:
+        setattr(self, reason, getattr(self, reason) + count)
+
+    @property
+    def steps_skipped(self) -> int:
+        return sum(getattr(self, r) for r in self.STEP_REASONS)
+
+    @property
+    def messages_unused(self) -> int:
+        return sum(getattr(self, r) for r in self.MESSAGE_REASONS)
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+    def merge(self, other: SkipCounts) -> None:
+        for f in fields(self):
+            self.add(f.name, getattr(other, f.name))
+
+
+@dataclass
+class StreamStats:
+    """What the stream held, beside the skips."""
+
+    states: int = 0
+    """distinct states received"""
+    resent_states: int = 0
+    """states received again unchanged (ignored)"""
+    boundaries_announced: int = 0
+    boundaries_new_chain: int = 0
+    boundaries_stamp_gap: int = 0
+    episodes: int = 0
+    """runs of consecutive transitions released (an episode with a skipped step counts twice)"""
+    transitions: int = 0
+    without_policy_info: int = 0
+    """transitions whose action is an effort command, with no behaviour log-prob"""
+    applied_unverified: int = 0
+    """transitions whose next state reports no applied effort: the answering command is trusted"""
+
+    BOUNDARY_CAUSES = ("announced", "new_chain", "stamp_gap")
+
+    def count_boundary(self, cause: str) -> None:
+        if cause not in self.BOUNDARY_CAUSES:
+            raise ValueError(f"unknown boundary cause {cause!r}")
+        name = f"boundaries_{cause}"
+        setattr(self, name, getattr(self, name) + 1)
+
+    @property
+    def boundaries(self) -> int:
+        return self.boundaries_announced + self.boundaries_new_chain + self.boundaries_stamp_gap
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+    def merge(self, other: StreamStats) -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One control period of one swimmer (arrays float64, the state's joint order)."""
+
+    episode: int
+    """run of consecutive transitions this one belongs to (0, 1, ... over the assembler's life)"""
+    stamp_ns: int
+    names: tuple[str, ...]
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    global_feats: np.ndarray
+    action: np.ndarray
+    log_prob: float
+    """behaviour log-prob of ``action``; NaN when ``has_policy_info`` is False"""
+    has_policy_info: bool
+    reward: float
+    terminated: bool
+    truncated: bool
+    next_joint_pos: np.ndarray
+    next_joint_vel: np.ndarray
+    next_global: np.ndarray
+
+
+@dataclass
+class _Observation:
+    pos: np.ndarray
+    vel: np.ndarray
+    glob: np.ndarray
+    x: float
+
+
+@dataclass
+class _Slot:
+    """Everything received for one stamp."""
+
+    stamp: int
+    born: int
+    """states received when the slot was opened (its age is counted in states)"""
+    state: JointStateRecord | None = None
+    odom: OdometryRecord | None = None
+    efforts: list[EffortRecord] = field(default_factory=list)
+    infos: list[PolicyInfoRecord] = field(default_factory=list)
+    announced: bool = False
+    conflict: bool = False
+    obs: _Observation | None = None
+    obs_error: str | None = None
+    observed: bool = False
+
+
+class TransitionAssembler:
+    """Records in, transitions out, for one stream (one robot); see the module docstring."""
+
+    def __init__(self, config: TransitionConfig | None = None):
+        self.config = config or TransitionConfig()
+        self.skips = SkipCounts()
+        self.stats = StreamStats()
+        self._period_ns = self.config.control_period_ns
+        # A message for a state judged at most this long before the latest state is late; one for an older
+        # stamp is taken as new (a restarted clock repeats stamps).
+        self._late_window_ns = (2 * self.config.settle_states + 4) * self._period_ns
+        self._next_episode = 0
+        self._start_stream()
+
+    def _start_stream(self) -> None:
+        self._slots: dict[int, _Slot] = {}
+        self._sequence: deque[int] = deque()  # stamps of received states not yet judged as a step's start
+        self._states_seen = 0
+        self._latest_state: int | None = None  # stamp, for untagged efforts
+        self._judged: OrderedDict[int, None] = OrderedDict()
+        self._unwrap = YawUnwrapper()
+        self._held: Transition | None = None
+        self._ready: list[Transition] = []
+
+    # -- input ------------------------------------------------------------------
+    def push(self, record: Record) -> list[Transition]:
+        """Take one record; return the transitions that became final (possibly none)."""
+        if isinstance(record, JointStateRecord):
+            self._on_state(record)
+        elif isinstance(record, OdometryRecord):
+            slot = self._slot_for(record.stamp_ns)
+            if slot is not None:
+                if slot.odom is None:
+                    slot.odom = record
+                elif not _same_odometry(slot.odom, record):
+                    slot.conflict = True
+        elif isinstance(record, EffortRecord):
+            stamp = record.answers_ns if record.answers_ns is not None else self._latest_state
+            if stamp is None:  # untagged, and no state yet to answer
+                self.skips.orphan_effort += 1
+            elif (slot := self._slot_for(stamp)) is not None:
+                slot.efforts.append(record)
+        elif isinstance(record, PolicyInfoRecord):
+            slot = self._slot_for(record.stamp_ns)
+            if slot is not None:
+                slot.infos.append(record)
+        elif isinstance(record, EpisodeStartRecord):
+            slot = self._slot_for(record.stamp_ns)
+            if slot is not None:
+                slot.announced = True
+        else:
+            raise TypeError(f"not a record: {type(record).__name__}")
+        self._judge_settled(final=False)
+        self._evict_orphans(final=False)
+        out, self._ready = self._ready, []
+        return out
+
+    def push_many(self, records: Iterable[Record]) -> list[Transition]:
+        out: list[Transition] = []
+        for r in records:
+            out += self.push(r)
+        return out
+
+    def flush(self) -> list[Transition]:
+        """End of the stream: judge what is left and release every transition.
+
+        The last state has no successor, so no transition starts at it; the
+        transition into it is truncated. The assembler then starts a new stream
+        (episode ids keep counting; counts accumulate).
+        """
+        self._judge_settled(final=True)
+        self._evict_orphans(final=True)
+        out = self._ready
+        self._start_stream()
+        return out
+
+    def _slot_for(self, stamp: int) -> _Slot | None:
+        """The slot for a non-state message's stamp; None (counted late) if that stamp was judged recently."""
+        slot = self._slots.get(stamp)
+        if slot is None:
+            if stamp in self._judged and self._latest_state - stamp <= self._late_window_ns:
+                self.skips.late_message += 1
+                return None
+            slot = self._slots[stamp] = _Slot(stamp, self._states_seen)
+        return slot
+
+    def _on_state(self, record: JointStateRecord) -> None:
+        stamp, latest = record.stamp_ns, self._latest_state
+        slot = self._slots.get(stamp)
+        if stamp == latest:
+            # A lockstep sim re-sends its latest state when the answer is late; anything else with that
+            # stamp leaves the stamp's messages ambiguous.
+            if _same_state(slot.state, record):
+                self.stats.resent_states += 1
+            else:
+                slot.conflict = True
+            return
+        if latest is not None and stamp < latest:
+            # The clock went back (a restarted sim): what is pending belongs to the old run.
+            self.stats.count_boundary("stamp_gap")
+            self._judge_settled(final=True)
+            self._judged.clear()
+            slot = self._slots.get(stamp)  # only a message that came before this state can be pending
+        if slot is None:
+            slot = self._slots[stamp] = _Slot(stamp, self._states_seen)
+        slot.state = record
+        self._sequence.append(stamp)
+        self._states_seen += 1
+        self.stats.states += 1
+        self._latest_state = stamp
+
+    # -- judging ----------------------------------------------------------------
+    def _judge_settled(self, final: bool) -> None:
+        """Judge every pair (s, s') that has settled (settle_states states arrived after s'), or all of them
+        when ``final``; releases transitions into ``_ready``."""
+        settle = self.config.settle_states
+        while len(self._sequence) >= 2 and (final or len(self._sequence) - 2 >= settle):
+            a, b = self._slots[self._sequence[0]], self._slots[self._sequence[1]]
+            step = self._judge(a, b)
+            if step is None:
+                if self._held is not None:
+                    self._ready.append(self._release(truncated=True))
+            else:
+                if self._held is not None:  # the run goes on
+                    step = replace(step, episode=self._held.episode)
+                    self._ready.append(self._release(truncated=False))
+                else:
+                    step = replace(step, episode=self._new_episode())
+                self._held = step
+            self._retire(self._sequence.popleft())
+        if final:
+            if self._sequence:  # the last state: no successor, no transition
+                self._observe(self._slots[self._sequence[0]])
+                self._retire(self._sequence.popleft())
+            if self._held is not None:
+                self._ready.append(self._release(truncated=True))
+            self._latest_state = None
+
+    def _evict_orphans(self, final: bool) -> None:
+        """Drop (and count) messages for stamps no state came for within the settle window."""
+        for slot in [s for s in self._slots.values() if s.state is None]:
+            if final or self._states_seen - slot.born > self.config.settle_states + 1:
+                self._evict(slot)
+
+    def _new_episode(self) -> int:
+        self._next_episode += 1
+        self.stats.episodes += 1
+        return self._next_episode - 1
+
+    def _release(self, truncated: bool) -> Transition:
+        t, self._held = replace(self._held, truncated=truncated), None
+        self.stats.transitions += 1
+        self.stats.without_policy_info += not t.has_policy_info
+        return t
+
+    def _retire(self, stamp: int) -> None:
+        del self._slots[stamp]
+        self._judged[stamp] = None
+        while next(iter(self._judged)) < stamp - self._late_window_ns:
+            self._judged.popitem(last=False)
+
+    def _evict(self, slot: _Slot) -> None:
+        del self._slots[slot.stamp]
+        self.skips.orphan_effort += len(slot.efforts)
+        self.skips.orphan_policy_info += len(slot.infos)
+        self.skips.orphan_odometry += slot.odom is not None
+        self.skips.orphan_announcement += slot.announced
+
+    def _judge(self, a: _Slot, b: _Slot) -> Transition | None:
+        """The transition a -> b, or None (a boundary, or a skip counted under its reason)."""
+        obs = self._observe(a)  # first, whatever follows: the unwrapper sees every state in order
+        boundary = self._boundary(a, b)
+        if boundary is not None:
+            self.stats.count_boundary(boundary)
+            if boundary != "stamp_gap":
+                # The policy node restarts its unwrapping for a new robot or a new episode; a gap (a lost
+                # message) it does not see, and neither do we.
+                self._unwrap.reset()
+            return None
+        obs_next = self._observe(b)
+        reason = a.obs_error or b.obs_error
+        if reason is not None:
+            self.skips.add(reason)
+            return None
+        answer = self._answer(a, b)
+        if isinstance(answer, str):
+            self.skips.add(answer)
+            return None
+        action, log_prob, has_info = answer
+        cfg = self.config
+        reward = swimmer_reward(
+            obs.x, obs_next.x, cfg.control_period, action, cfg.forward_reward_weight, cfg.ctrl_cost_weight
+        )
+        return Transition(
+            episode=-1,
+            stamp_ns=a.stamp,
+            names=a.state.names,
+            joint_pos=obs.pos,
+            joint_vel=obs.vel,
+            global_feats=obs.glob,
+            action=action,
+            log_prob=log_prob,
+            has_policy_info=has_info,
+            reward=float(reward),
+            terminated=False,
+            truncated=False,
+            next_joint_pos=obs_next.pos,
+            next_joint_vel=obs_next.vel,
+            next_global=obs_next.glob,
+        )
+
+    def _boundary(self, a: _Slot, b: _Slot) -> str | None:
+        if b.announced:
+            return "announced"
+        if b.state.names != a.state.names:
+            return "new_chain"
+        if abs(b.stamp - a.stamp - self._period_ns) > self.config.stamp_tolerance_ns:
+            return "stamp_gap"
+        return None
+
+    def _observe(self, slot: _Slot) -> _Observation | None:
+        """The state's observation, built once per state in stream order (the unwrapper has memory)."""
+        if slot.observed:
+            return slot.obs
+        slot.observed = True
+        s, odom = slot.state, slot.odom
+        if slot.conflict:
+            slot.obs_error = "duplicate_stamp"
+        elif not _finite(s.position, s.velocity, s.effort):
+            slot.obs_error = "non_finite"
+        else:
+            try:
+                pos, vel = validate_joint_state(s.names, s.position, s.velocity, self.config.max_joints)
+            except JointStateError:
+                slot.obs_error = "malformed"
+                return None
+            if s.effort.size not in (0, len(s.names)):
+                slot.obs_error = "malformed"
+            elif odom is None:
+                slot.obs_error = "no_odometry"
+            elif not _finite(odom.x, odom.y, odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z):
+                slot.obs_error = "non_finite"
+            else:
+                try:
+                    glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
+                except JointStateError:  # a zero quaternion
+                    slot.obs_error = "malformed"
+                    return None
+                slot.obs = _Observation(pos, vel, glob, float(odom.x))
+        return slot.obs
+
+    def _answer(self, a: _Slot, b: _Slot) -> tuple[np.ndarray, float, bool] | str:
+        """(action, behaviour log-prob, has policy_info) for state a, checked against what the sim
+        applied until b; or the skip reason."""
+        n = len(a.state.names)
+        infos, info_error = [], None
+        for info in a.infos:
+            if not _finite(info.action, info.mean, info.log_std, info.log_prob_per_joint):
+                info_error = "non_finite"
+            elif any(x.shape != (n,) for x in (info.action, info.mean, info.log_std, info.log_prob_per_joint)):
+                info_error = "malformed"
+            elif info.names != a.state.names:
+                info_error = "names_mismatch"
+            else:
+                infos.append(info)
+        efforts, effort_error = [], None
+        for e in a.efforts:
+            if not _finite(e.effort):
+                effort_error = "non_finite"
+            elif e.effort.shape != (n,):
+                effort_error = "malformed"
+            else:
+                efforts.append(e.effort)
+        if info_error and not infos:
+            return info_error  # a sampling policy answered, but unusably: the effort alone is no substitute
+        if not infos and not efforts:
+            return effort_error or "no_answer"
+
+        # What the sim applied over a -> b: the next state says; failing that, the command answering a.
+        if b.state.effort.size:
+            applied = [b.state.effort]
+        elif efforts:
+            applied = efforts
+        else:
+            return "no_applied_effort"
+
+        def fits(action: np.ndarray) -> bool:
+            return any(
+                np.allclose(np.clip(action, -1.0, 1.0), x, rtol=0.0, atol=self.config.applied_atol) for x in applied
+            )
+
+        if infos:
+            fitting = [i for i in infos if fits(i.action)]
+            if not fitting:
+                return "not_applied"
+            first = fitting[0]
+            if any(not np.array_equal(i.action, first.action) or i.log_prob != first.log_prob for i in fitting[1:]):
+                return "ambiguous_answer"
+            answer = first.action.copy(), first.log_prob, True
+        else:
+            fitting = [e for e in efforts if fits(e)]
+            if not fitting:
+                return "not_applied"
+            if any(not np.array_equal(e, fitting[0]) for e in fitting[1:]):
+                return "ambiguous_answer"
+            answer = fitting[0].copy(), math.nan, False
+        self.stats.applied_unverified += not b.state.effort.size
+        return answer
+
+
+@dataclass(frozen=True)
+class Assembled:
+    """``assemble``'s result: the transitions as arrays and what was skipped."""
+
+    batch: TransitionBatch
+    skips: SkipCounts
+    stats: StreamStats
+
+
+def assemble(records: Iterable[Record], config: TransitionConfig | None = None) -> Assembled:
+    """Transitions of one finished stream of records in receive order (e.g. one bag)."""
+    asm = TransitionAssembler(config)
+    transitions = asm.push_many(records) + asm.flush()
+    return Assembled(TransitionBatch.from_transitions(transitions), asm.skips, asm.stats)
+
+
+def _finite(*values) -> bool:
+    return all(np.isfinite(np.asarray(v, dtype=np.float64)).all() for v in values)
+
+
+def _same_state(a: JointStateRecord, b: JointStateRecord) -> bool:
+    return (
+        a.names == b.names
+        and np.array_equal(a.position, b.position)
+        and np.array_equal(a.velocity, b.velocity)
+        and np.array_equal(a.effort, b.effort)
+    )
+
+
+def _same_odometry(a: OdometryRecord, b: OdometryRecord) -> bool:
+    return (a.x, a.y, tuple(a.orientation_xyzw), tuple(a.body_linear_xy), a.angular_z) == (
+        b.x,
+        b.y,
+        tuple(b.orientation_xyzw),
+        tuple(b.body_linear_xy),
+        b.angular_z,
+    )

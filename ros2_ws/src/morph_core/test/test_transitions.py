@@ -1,0 +1,521 @@
+"""Transitions from records: a real swimmer and a real policy in one process, recorded as the nodes publish.
+
+The reference for every check is a replay: a fresh ``MorphSwimmerEnv`` with the
+sim's seed, reset where the recording reset and stepped with the actions the
+sim was stepped with. Perturbed recordings (a message dropped, changed,
+duplicated, or added) must lose exactly the steps they spoil, each counted
+under its reason, and give the rest unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from morph_core.env.sim import SwimmerSim
+from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.msgs.joint_state import chain_batch
+from morph_core.msgs.records import (
+    EffortRecord,
+    EpisodeStartRecord,
+    JointStateRecord,
+    OdometryRecord,
+    PolicyInfoRecord,
+)
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.loopback import (
+    GaussianController,
+    LoopbackRecording,
+    MeanController,
+    SamplingController,
+)
+from morph_core.protocol.transition_batch import (
+    EXPORT_KEYS,
+    MissingPolicyInfoError,
+    TransitionBatch,
+    TransitionBatchError,
+)
+from morph_core.protocol.transitions import (
+    SkipCounts,
+    TransitionAssembler,
+    TransitionConfig,
+    assemble,
+)
+
+SEED = 3
+PERIOD_NS = 40_000_000
+PER_JOINT = ("joint_pos", "joint_vel", "action", "next_joint_pos", "next_joint_vel")
+
+
+@pytest.fixture(scope="module")
+def policy():
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    return GraphActorCritic().eval()
+
+
+def record(controller, episodes=((3, 30), (5, 25), (5, 20)), seed=SEED, announce=True, late=None):
+    """Episodes of (chain length, steps) in one lockstep loop; ``late`` as in ``LoopbackRecording.run``."""
+    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
+    for i, (n, steps) in enumerate(episodes):
+        if i:
+            loop.new_episode(n, announce=announce)
+        loop.run(steps, late=late)
+    loop.finish()
+    return loop
+
+
+@pytest.fixture(scope="module")
+def sampled(policy):
+    return record(SamplingController(policy, seed=1))
+
+
+def replay(loop):
+    """stamp -> (observation, action stepped with, reward, next observation) from a fresh env."""
+    env = MorphSwimmerEnv(num_joints=loop.truth[0].observation["joint_pos"].size)
+    obs, _ = env.reset(seed=SEED)
+    out, episode = {}, 0
+    for truth in loop.truth:
+        if truth.episode != episode:
+            episode = truth.episode
+            obs, _ = env.reset(options={"num_joints": truth.observation["joint_pos"].size})
+        if truth.action is None:
+            continue
+        nxt, reward, _, _, _ = env.step(truth.action)
+        out[truth.stamp_ns] = (obs, truth.action, reward, nxt)
+        obs = nxt
+    return out
+
+
+def rows(batch: TransitionBatch) -> dict[int, dict]:
+    """stamp -> one transition's arrays, unpadded."""
+    a = batch.arrays()
+    out = {}
+    for i, stamp in enumerate(a["stamp_ns"]):
+        n = a["num_joints"][i]
+        out[int(stamp)] = {k: (v[i, :n] if k in PER_JOINT else v[i]) for k, v in a.items()}
+    return out
+
+
+def assert_matches_replay(batch, loop, joint_atol=0.0):
+    reference = replay(loop)
+    for stamp, row in rows(batch).items():
+        obs, action, reward, nxt = reference[stamp]
+        np.testing.assert_allclose(row["joint_pos"], obs["joint_pos"], rtol=0, atol=joint_atol)
+        np.testing.assert_allclose(row["joint_vel"], obs["joint_vel"], rtol=0, atol=joint_atol)
+        np.testing.assert_allclose(row["global"], obs["global"], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(row["action"], action)
+        assert row["reward"] == pytest.approx(reward, abs=1e-9)
+        np.testing.assert_allclose(row["next_joint_pos"], nxt["joint_pos"], rtol=0, atol=joint_atol)
+        np.testing.assert_allclose(row["next_global"], nxt["global"], rtol=0, atol=1e-12)
+    return reference
+
+
+def without(records, predicate):
+    return [r for r in records if not predicate(r)]
+
+
+def state_stamps(loop):
+    return [t.stamp_ns for t in loop.truth]
+
+
+# -- the clean recording -----------------------------------------------------------------------
+
+
+def test_lockstep_recording_gives_the_replayed_transitions(sampled, policy):
+    result = assemble(sampled.records)
+    batch = result.batch
+    assert result.skips == SkipCounts()
+    assert result.stats.boundaries_announced == 2 and result.stats.boundaries == 2
+    # one run per episode, every stepped state a transition, the last of each truncated
+    assert np.bincount(batch.episode).tolist() == [30, 25, 20]
+    ends = np.flatnonzero(np.diff(batch.episode)).tolist() + [len(batch) - 1]
+    assert np.flatnonzero(batch.truncated).tolist() == ends
+    assert not batch.terminated.any()
+    assert batch.num_joints.tolist() == [3] * 30 + [5] * 45
+    assert batch.ppo_ready
+    batch.require_policy_info()
+
+    reference = assert_matches_replay(batch, sampled)
+    assert set(reference) == set(batch.stamp_ns.tolist())
+    assert (np.abs(batch.action) > 1).any(), "some sampled actions beyond the motors' range (charged unclipped)"
+    # padding is zero, next observation is the next row inside a run
+    assert not batch.joint_pos[:30, 3:].any() and not batch.action[:30, 3:].any()
+    inside = ~batch.truncated
+    np.testing.assert_array_equal(batch.next_joint_pos[inside], batch.joint_pos[1:][inside[:-1]])
+    np.testing.assert_array_equal(batch.next_global[inside], batch.global_feats[1:][inside[:-1]])
+
+    # log-probs: the ones published, and the policy's own on the replayed observations (float32)
+    infos = {r.stamp_ns: r for r in sampled.records if isinstance(r, PolicyInfoRecord)}
+    for i, stamp in enumerate(batch.stamp_ns.tolist()):
+        assert batch.log_prob[i] == infos[stamp].log_prob
+        n = batch.num_joints[i]
+        obs = reference[stamp][0]
+        lp = policy.log_prob(
+            chain_batch(obs["joint_pos"], obs["joint_vel"], obs["global"]),
+            torch.as_tensor(batch.action[i, :n], dtype=torch.float32)[None],
+        )
+        assert lp.item() == pytest.approx(batch.log_prob[i], abs=2e-4)
+
+
+def test_streaming_gives_the_batch_result_with_bounded_delay(sampled):
+    config = TransitionConfig(settle_states=2)
+    asm = TransitionAssembler(config)
+    released, latest_state = [], None
+    for r in sampled.records:
+        out = asm.push(r)
+        if isinstance(r, JointStateRecord):
+            latest_state = r.stamp_ns
+        for t in out:
+            # released at most settle + 2 periods after its state (judged once settle states follow s')
+            assert latest_state - t.stamp_ns <= (config.settle_states + 2) * PERIOD_NS
+        released += out
+    before_flush = len(released)
+    released += asm.flush()
+    assert 0 < before_flush < len(released)
+    streamed = TransitionBatch.from_transitions(released)
+    batch = assemble(sampled.records).batch
+    for k, v in batch.arrays().items():
+        np.testing.assert_array_equal(streamed.arrays()[k], v, err_msg=k)
+
+
+# -- episode boundaries ------------------------------------------------------------------------
+
+
+def test_a_new_chain_is_a_boundary_without_announcement(policy):
+    loop = record(SamplingController(policy, seed=2), episodes=((2, 12), (4, 10)), announce=False)
+    result = assemble(loop.records)
+    assert result.stats.boundaries_new_chain == 1 and result.stats.boundaries_announced == 0
+    assert np.bincount(result.batch.episode).tolist() == [12, 10]
+    assert_matches_replay(result.batch, loop)
+
+
+def test_announcement_arriving_after_its_state_still_splits(sampled):
+    records = list(sampled.records)
+    ann = [i for i, r in enumerate(records) if isinstance(r, EpisodeStartRecord)][1]
+    moved = records.pop(ann)
+    records.insert(ann + 8, moved)  # after its odometry, state, effort, policy_info and the next state
+    result = assemble(records)
+    assert result.stats.boundaries_announced == 2
+    assert np.bincount(result.batch.episode).tolist() == [30, 25, 20]
+
+    # The reset to the same chain length, announced after the settle window: the announcement is counted
+    # as late. Stamps and names cannot tell the step across the reset from a real one; here it is refused
+    # only because the rebuilt sim applied zero effort, not the answer to the last state.
+    records = list(sampled.records)
+    ann = [i for i, r in enumerate(records) if isinstance(r, EpisodeStartRecord)][2]
+    records.insert(ann + 4 * 4, records.pop(ann))  # 4 states later
+    result = assemble(records, TransitionConfig(settle_states=1))
+    assert result.skips.late_message == 1
+    assert result.stats.boundaries == 1  # the 3 -> 5 joints reset, announced in time
+    assert result.skips.not_applied == 1 and result.skips.steps_skipped == 1
+    assert np.bincount(result.batch.episode).tolist() == [30, 25, 20]
+
+
+def test_a_lost_state_is_a_stamp_gap_and_the_rest_is_unchanged(sampled):
+    lost = state_stamps(sampled)[10]
+    records = without(sampled.records, lambda r: isinstance(r, JointStateRecord) and r.stamp_ns == lost)
+    result = assemble(records)
+    assert result.stats.boundaries_stamp_gap == 1
+    # its odometry, effort and policy_info answer no recorded state
+    assert (result.skips.orphan_odometry, result.skips.orphan_effort, result.skips.orphan_policy_info) == (1, 1, 1)
+    assert result.skips.steps_skipped == 0
+    # the steps into and out of the lost state are gone with it
+    assert np.bincount(result.batch.episode).tolist() == [9, 19, 25, 20]
+    assert_matches_replay(result.batch, sampled)  # the yaw unwrapping carries on across the gap
+
+
+def test_a_restarted_clock_is_a_boundary(policy):
+    first = record(SamplingController(policy, seed=4), episodes=((3, 40),))
+    second = record(SamplingController(policy, seed=5), episodes=((3, 6),))
+    shift = first.records[-1].log_ns
+    records = first.records + [
+        dataclasses.replace(r, log_ns=r.log_ns + shift)
+        for r in second.records
+        if not isinstance(r, EpisodeStartRecord)  # a sim that does not announce
+    ]
+    result = assemble(records)
+    assert result.stats.boundaries_stamp_gap == 1
+    assert np.bincount(result.batch.episode).tolist() == [40, 6]
+    assert result.skips == SkipCounts()
+
+
+def test_stamps_must_be_one_control_period_apart(sampled):
+    result = assemble(sampled.records, TransitionConfig(control_period=0.05))
+    assert len(result.batch) == 0
+    assert result.stats.boundaries_stamp_gap == 75 and result.stats.boundaries_announced == 2
+
+
+# -- skipped steps, by reason ------------------------------------------------------------------
+
+
+def _stamp(loop, k):
+    return state_stamps(loop)[k]
+
+
+def _perturb_drop_odometry(loop):
+    s = _stamp(loop, 10)
+    return without(loop.records, lambda r: isinstance(r, OdometryRecord) and r.stamp_ns == s), {9, 10}
+
+
+def _perturb_nan_velocity(loop):
+    s = _stamp(loop, 10)
+
+    def bad(r):
+        if isinstance(r, JointStateRecord) and r.stamp_ns == s:
+            v = r.velocity.copy()
+            v[1] = math.nan
+            return dataclasses.replace(r, velocity=v)
+        return r
+
+    return [bad(r) for r in loop.records], {9, 10}
+
+
+def _perturb_not_applied(loop):
+    s = _stamp(loop, 11)  # the state after step 10 says what was applied over it
+
+    def bad(r):
+        if isinstance(r, JointStateRecord) and r.stamp_ns == s:
+            return dataclasses.replace(r, effort=r.effort + 0.01)
+        return r
+
+    return [bad(r) for r in loop.records], {10}
+
+
+def _perturb_policy_info(field, value):
+    def perturb(loop):
+        s = _stamp(loop, 10)
+
+        def bad(r):
+            if isinstance(r, PolicyInfoRecord) and r.stamp_ns == s:
+                return dataclasses.replace(r, **{field: value(r)})
+            return r
+
+        return [bad(r) for r in loop.records], {10}
+
+    return perturb
+
+
+def _perturb_orphan_effort(loop):
+    i = next(i for i, r in enumerate(loop.records) if isinstance(r, EffortRecord)) + 5
+    never = _stamp(loop, 10) + PERIOD_NS // 2
+    e = EffortRecord(loop.records[i].log_ns, never, np.zeros(3))
+    return loop.records[:i] + [e] + loop.records[i:], set()
+
+
+def _perturb_orphan_policy_info(loop):
+    i = next(i for i, r in enumerate(loop.records) if isinstance(r, PolicyInfoRecord) and r.stamp_ns == _stamp(loop, 5))
+    info = dataclasses.replace(loop.records[i], stamp_ns=_stamp(loop, 5) + 7)
+    return loop.records[: i + 1] + [info] + loop.records[i + 1 :], set()
+
+
+def _perturb_no_answer(loop):
+    s = _stamp(loop, 10)
+
+    def answers(r):
+        return (isinstance(r, EffortRecord) and r.answers_ns == s) or (
+            isinstance(r, PolicyInfoRecord) and r.stamp_ns == s
+        )
+
+    return without(loop.records, answers), {10}
+
+
+def _perturb_resent_state(loop):
+    i = next(i for i, r in enumerate(loop.records) if isinstance(r, JointStateRecord) and r.stamp_ns == _stamp(loop, 7))
+    return loop.records[: i + 3] + [loop.records[i - 1], loop.records[i]] + loop.records[i + 3 :], set()
+
+
+def _perturb_conflicting_state(loop):
+    i = next(i for i, r in enumerate(loop.records) if isinstance(r, JointStateRecord) and r.stamp_ns == _stamp(loop, 7))
+    other = dataclasses.replace(loop.records[i], position=loop.records[i].position + 1e-3)
+    return loop.records[: i + 3] + [other] + loop.records[i + 3 :], {6, 7}
+
+
+def _saturated_step(loop):
+    """Index of a stepped state (not an episode's first or last) whose sampled action leaves [-1, 1]."""
+    return next(
+        k for k, t in enumerate(loop.truth[:29]) if k > 1 and t.action is not None and (np.abs(t.action) > 1).any()
+    )
+
+
+def _second_answer(loop, k, change):
+    """The state k re-sent and answered again with another sample (as a lockstep re-send is), changed by
+    ``change``; the first answer is the one the sim applied."""
+    s = _stamp(loop, k)
+    i = next(i for i, r in enumerate(loop.records) if isinstance(r, PolicyInfoRecord) and r.stamp_ns == s)
+    info = loop.records[i]
+    action = change(info.action)
+    again = [
+        next(r for r in loop.records if isinstance(r, JointStateRecord) and r.stamp_ns == s),
+        EffortRecord(0, s, np.clip(action, -1.0, 1.0)),
+        dataclasses.replace(info, action=action, log_prob_per_joint=info.log_prob_per_joint - 0.5),
+    ]
+    return loop.records[: i + 1] + again + loop.records[i + 1 :]
+
+
+def _perturb_answered_twice(loop):
+    return _second_answer(loop, 7, np.negative), set()
+
+
+def _perturb_ambiguous(loop):
+    k = _saturated_step(loop)
+
+    def beyond(a):  # another sample that the motors' clip cannot tell from the first
+        b = a.copy()
+        out = np.abs(b) > 1
+        b[out] *= 1.5
+        return b
+
+    return _second_answer(loop, k, beyond), {k}
+
+
+def _perturb_malformed_state(loop):
+    s = _stamp(loop, 10)
+
+    def bad(r):
+        if isinstance(r, JointStateRecord) and r.stamp_ns == s:
+            return dataclasses.replace(r, position=r.position[:2])
+        return r
+
+    return [bad(r) for r in loop.records], {9, 10}
+
+
+@pytest.mark.parametrize(
+    ("perturb", "reason", "count"),
+    [
+        (_perturb_drop_odometry, "no_odometry", 2),
+        (_perturb_nan_velocity, "non_finite", 2),
+        (_perturb_not_applied, "not_applied", 1),
+        (_perturb_policy_info("log_prob_per_joint", lambda r: r.log_prob_per_joint * math.inf), "non_finite", 1),
+        (_perturb_policy_info("names", lambda r: ("a", "b", "c")), "names_mismatch", 1),
+        (_perturb_policy_info("mean", lambda r: r.mean[:2]), "malformed", 1),
+        (_perturb_orphan_effort, "orphan_effort", 1),
+        (_perturb_orphan_policy_info, "orphan_policy_info", 1),
+        (_perturb_no_answer, "no_answer", 1),
+        (_perturb_resent_state, None, 0),
+        (_perturb_conflicting_state, "duplicate_stamp", 2),
+        (_perturb_answered_twice, None, 0),
+        (_perturb_malformed_state, "malformed", 2),
+        (_perturb_ambiguous, "ambiguous_answer", 1),
+    ],
+)
+def test_each_spoiled_step_is_counted_and_the_rest_used(sampled, perturb, reason, count):
+    clean = rows(assemble(sampled.records).batch)
+    records, lost = perturb(sampled)
+    result = assemble(records)
+    counts = result.skips.as_dict()
+    if reason is not None:
+        assert counts.pop(reason) == count
+    assert not any(counts.values()), counts
+    lost_stamps = {_stamp(sampled, k) for k in lost}
+    got = rows(result.batch)
+    assert set(got) == set(clean) - lost_stamps
+    for stamp, row in got.items():
+        for k, v in row.items():
+            if k not in ("episode", "truncated"):
+                np.testing.assert_array_equal(v, clean[stamp][k], err_msg=k)
+    # the run ends (truncated, bootstrapped on its next state) right before the lost steps
+    if lost:
+        assert got[_stamp(sampled, min(lost) - 1)]["truncated"]
+    assert result.batch.num_episodes == 3 + (1 if lost else 0)
+
+
+def test_a_late_answer_in_free_running_mode_is_not_the_action_applied(policy):
+    late_steps = {4, 11}
+    loop = record(SamplingController(policy, seed=6), episodes=((4, 20),), late=lambda i: i in late_steps)
+    result = assemble(loop.records)
+    assert result.skips.not_applied == len(late_steps) and result.skips.steps_skipped == len(late_steps)
+    assert result.skips.late_message == 0  # within the settle window: used to judge, found not applied
+    stepped = {t.stamp_ns for t in loop.truth if t.action is not None}
+    assert set(result.batch.stamp_ns.tolist()) == stepped - {_stamp(loop, k) for k in late_steps}
+    assert_matches_replay(result.batch, loop)
+
+
+# -- without policy_info -----------------------------------------------------------------------
+
+
+def test_a_deterministic_recording_gives_no_log_probs_and_ppo_refuses(policy):
+    loop = record(MeanController(policy), episodes=((3, 15), (6, 12)))
+    assert all(np.all(np.abs(t.action) < 1) for t in loop.truth if t.action is not None)  # effort == action
+    result = assemble(loop.records)
+    batch = result.batch
+    assert len(batch) == 27 and result.skips.steps_skipped == 0
+    assert not batch.has_policy_info.any() and np.isnan(batch.log_prob).all()
+    assert result.stats.without_policy_info == 27 and not batch.ppo_ready
+    with pytest.raises(MissingPolicyInfoError, match="27 of 27 steps have no policy_info"):
+        batch.require_policy_info()
+    assert_matches_replay(batch, loop)
+
+    # untagged efforts (another controller) pair with the latest state before them: same transitions
+    untagged = [dataclasses.replace(r, answers_ns=None) if isinstance(r, EffortRecord) else r for r in loop.records]
+    again = assemble(untagged).batch
+    for k, v in batch.arrays().items():
+        np.testing.assert_array_equal(again.arrays()[k], v, err_msg=k)
+
+
+def test_no_applied_effort_reported_trusts_the_answer_and_says_so():
+    loop = record(GaussianController(log_std=-1.0, seed=7), episodes=((2, 10),))
+    blank = [dataclasses.replace(r, effort=np.zeros(0)) if isinstance(r, JointStateRecord) else r for r in loop.records]
+    result = assemble(blank)
+    assert len(result.batch) == 10 and result.stats.applied_unverified == 10
+    no_effort = [r for r in blank if not isinstance(r, EffortRecord)]
+    result = assemble(no_effort)
+    assert len(result.batch) == 0 and result.skips.no_applied_effort == 10
+
+
+# -- the export layout -------------------------------------------------------------------------
+
+
+def test_npz_round_trip_is_exact_and_has_the_layout(sampled, tmp_path):
+    batch = assemble(sampled.records).batch
+    path = tmp_path / "out" / "transitions.npz"
+    batch.to_npz(path)
+    assert [p.name for p in path.parent.iterdir()] == ["transitions.npz"]  # no temp file left
+    with np.load(path) as data:
+        assert tuple(data.files) == EXPORT_KEYS
+        assert data["joint_pos"].shape == (75, 5) and data["global"].shape == (75, 4)
+        assert data["episode"].dtype == np.int64 and data["truncated"].dtype == np.bool_
+    back = TransitionBatch.from_npz(path)
+    for k, v in batch.arrays().items():
+        np.testing.assert_array_equal(back.arrays()[k], v, err_msg=k)
+
+    empty = TransitionBatch.empty()
+    empty.to_npz(tmp_path / "empty.npz")
+    assert len(TransitionBatch.from_npz(tmp_path / "empty.npz")) == 0
+
+
+def test_npz_that_is_not_a_batch_is_refused(sampled, tmp_path):
+    arrays = assemble(sampled.records).batch.arrays()
+    np.savez(tmp_path / "missing.npz", **{k: v for k, v in arrays.items() if k != "reward"})
+    with pytest.raises(TransitionBatchError, match="missing keys \\['reward'\\]"):
+        TransitionBatch.from_npz(tmp_path / "missing.npz")
+    np.savez(tmp_path / "short.npz", **{**arrays, "reward": arrays["reward"][:-1]})
+    with pytest.raises(TransitionBatchError, match="reward: expected float64 \\(75,\\)"):
+        TransitionBatch.from_npz(tmp_path / "short.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(TransitionBatchError, match="not an .npz"):
+        TransitionBatch.from_npz(tmp_path / "junk.npz")
+
+
+def test_concatenate_pads_and_keeps_episodes_apart(sampled, policy):
+    a = assemble(sampled.records).batch
+    b = assemble(record(SamplingController(policy, seed=8), episodes=((7, 6),)).records).batch
+    both = TransitionBatch.concatenate([a, b])
+    assert len(both) == len(a) + len(b) and both.max_joints == 7
+    assert both.num_episodes == a.num_episodes + b.num_episodes
+    np.testing.assert_array_equal(both.joint_pos[: len(a), :5], a.joint_pos)
+    assert not both.joint_pos[: len(a), 5:].any()
+    np.testing.assert_array_equal(both.action[len(a) :], b.action)
+
+
+def test_config_is_checked():
+    with pytest.raises(ValueError, match="control_period"):
+        TransitionConfig(control_period=0.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        TransitionConfig(settle_states=-1)
+    with pytest.raises(TypeError, match="not a record"):
+        TransitionAssembler().push("joint_states")
