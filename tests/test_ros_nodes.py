@@ -17,10 +17,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
-from morph_core.env.sim import SwimmerSim
+from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.msgs.policy_info import unpack_policy_info
+from morph_core.msgs.stamps import to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
-from morph_policy_node.policy_node import SHIPPED_MODEL, unpack_policy_info
+from morph_policy_node.policy_node import SHIPPED_MODEL
 
 STARTUP = 60.0  # seconds for processes to start and match (torch import on a loaded 2-core machine)
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -100,20 +102,19 @@ def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, name
 
 
 def _rollout(policy: GraphActorCritic, joints: int, seed: int, steps: int) -> list[tuple[float, float]]:
-    """The same closed loop in-process: torso (x, y) after each control step, index 0 = reset.
+    """The same closed loop in-process, in the training env: torso (x, y) after each control step, index 0 = reset.
 
     Actions come from the node's own deterministic path (the NumPy batch-1 forward, equal to the
     torch policy to ~1e-6): over hundreds of steps the swimmer's dynamics would amplify even
     that difference."""
     mean_of = NumpyPolicy(policy)
-    sim = SwimmerSim(num_joints=joints, seed=seed, effort_timeout=None)
-    xy = [(sim.torso().x, sim.torso().y)]
-    for k in range(steps):
-        obs = sim.observation()
+    env = MorphSwimmerEnv(num_joints=joints)
+    obs, _ = env.reset(seed=seed)
+    xy = [(env.data.qpos[0], env.data.qpos[1])]
+    for _ in range(steps):
         action = mean_of.mean(obs["joint_pos"], obs["joint_vel"], obs["global"])
-        sim.command(np.clip(action, -1, 1).astype(np.float64), now=k)
-        sim.step(now=k)
-        xy.append((sim.torso().x, sim.torso().y))
+        obs, *_ = env.step(np.clip(action, -1, 1).astype(np.float64))
+        xy.append((env.data.qpos[0], env.data.qpos[1]))
     return xy
 
 
@@ -236,15 +237,20 @@ def test_sampling_publishes_policy_info(probe, launch, untrained_checkpoint):
     good = _state(["x", "y", "z", "w"], [0.3, -0.2, 0.1, 0.0], [0.1] * 4, sec=42)
     answer = _answer(probe, pub, efforts, good, 4)
     probe.spin_until(lambda: infos, 10.0, "policy_info")
-    info = unpack_policy_info(infos[0])
-    assert info["names"] == ["x", "y", "z", "w"] and info["stamp_ns"] == 42 * 10**9
+    msg, point = infos[0], infos[0].points[0]
+    stamp_ns = to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+    fields = (point.positions, point.velocities, point.accelerations, point.effort)
+    info = unpack_policy_info(0, stamp_ns, msg.joint_names, *fields)
+    assert info.names == ("x", "y", "z", "w") and info.stamp_ns == 42 * 10**9
     assert answer.layout.dim[0].label == "joints@42.000000000"  # the answer names the state it answers
-    np.testing.assert_allclose(np.clip(info["action"], -1, 1), answer.data, atol=1e-12)
+    np.testing.assert_allclose(np.clip(info.action, -1, 1), answer.data, atol=1e-12)
     # The log-prob is the Gaussian's, recomputed here from the published mean and log-std.
-    z = (info["action"] - info["mean"]) / math.exp(info["log_std"])
-    want = float(np.sum(-0.5 * z**2 - info["log_std"] - 0.5 * math.log(2 * math.pi)))
-    assert info["log_prob"] == pytest.approx(want, abs=1e-4)
-    assert not np.allclose(info["action"], info["mean"])  # it sampled
+    log_std = float(GraphActorCritic.load(untrained_checkpoint).log_std)
+    np.testing.assert_allclose(info.log_std, log_std, atol=1e-7)
+    z = (info.action - info.mean) / math.exp(log_std)
+    want = float(np.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)))
+    assert info.log_prob == pytest.approx(want, abs=1e-6)
+    assert not np.allclose(info.action, info.mean)  # it sampled
 
 
 # -- sim node alone ------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from morph_core.env.sim import SwimmerSim
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
@@ -78,18 +79,21 @@ def test_global_features_refuse_bad_odometry():
 
 
 def test_wire_round_trip_equals_env_observation():
-    """What the sim node puts on the wire, decoded here, is the env's graph observation."""
+    """What the sim node puts on the wire, decoded here, is the training env's graph observation."""
     sim = SwimmerSim(num_joints=5, seed=3, effort_timeout=None)
+    env = MorphSwimmerEnv(num_joints=5)
+    env.reset(seed=3)
     rng = np.random.default_rng(0)
     unwrap = YawUnwrapper()
     for t in range(60):
-        sim.command(rng.uniform(-1, 1, 5), now=t)
+        a = rng.uniform(-1, 1, 5)
+        sim.command(a, now=t)
         sim.step(now=t)
+        obs, *_ = env.step(a)
         torso = sim.torso()
         quat = quaternion_from_yaw(torso.yaw)
         body = world_to_body(torso.yaw, torso.vx, torso.vy)
         glob = global_features(quat, body, torso.yaw_rate, unwrap)
-        obs = sim.observation()
         np.testing.assert_allclose(glob, obs["global"], rtol=1e-12, atol=1e-12)
         pos, vel = validate_joint_state(sim.joint_names(), sim.joint_positions, sim.joint_velocities)
         got = chain_batch(pos, vel, glob)

@@ -8,14 +8,15 @@ for how they are turned back into the training features (yaw unwrapped,
 body-frame twist rotated to the world frame). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
 publishes both at once; a state must not be paired with the previous
-odometry, or a lockstep loop would not be deterministic).
+odometry, or a lockstep loop would not be deterministic; the rule is
+``morph_core.protocol.pairing``).
 
 Outputs
 - ``effort_commands`` (std_msgs/Float64MultiArray): one effort per joint, in
   the message's joint order, clipped to [-1, 1]; ``layout.dim[0]`` is
   labelled ``joints@<sec>.<nanosec>`` with the stamp of the state answered.
 - ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
-  a trainer needs, stamped with the state's stamp; see ``unpack_policy_info``.
+  a trainer needs, stamped with the state's stamp; layout in ``morph_core.msgs.policy_info``.
 
 No valid ``joint_states`` for ``input_timeout`` -> zero efforts at 25 Hz for
 the last chain seen. Malformed messages are rejected, counted and logged
@@ -49,14 +50,15 @@ from morph_core.msgs.joint_state import (
     global_features,
     validate_joint_state,
 )
+from morph_core.msgs.policy_info import pack_policy_info
+from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.protocol.pairing import StatePairing
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
-_ODOM_WAIT = 0.02  # longest a state waits for its odometry before using the latest one
 _LOG_THROTTLE = 5.0
-_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 
 def default_checkpoint() -> str:
@@ -72,31 +74,6 @@ def load_policy(checkpoint: str) -> GraphActorCritic:
         torch.manual_seed(0)
         policy = GraphActorCritic()
     return policy.eval()
-
-
-def _stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def unpack_policy_info(msg: JointTrajectory) -> dict:
-    """Decode ``policy_info``: joint names, state stamp [ns], and per-joint float64 arrays.
-
-    Layout of the single trajectory point: positions = sampled action (before
-    clipping), velocities = Gaussian mean, accelerations = log-std of each
-    joint's Gaussian (one shared value), effort = each joint's term of the
-    log-density; ``log_prob`` = their sum, the action's log-probability.
-    """
-    p = msg.points[0]
-    effort = np.asarray(p.effort, dtype=np.float64)
-    return {
-        "names": list(msg.joint_names),
-        "stamp_ns": _stamp_ns(msg.header.stamp),
-        "action": np.asarray(p.positions, dtype=np.float64),
-        "mean": np.asarray(p.velocities, dtype=np.float64),
-        "log_std": float(p.accelerations[0]) if len(p.accelerations) else math.nan,
-        "log_prob_per_joint": effort,
-        "log_prob": float(effort.sum()),
-    }
 
 
 class MorphPolicyNode(Node):
@@ -145,9 +122,9 @@ class MorphPolicyNode(Node):
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
 
         self.rejected = 0
-        self._odom = None  # (stamp_ns, quaternion, body linear xy, angular z) of the latest valid odometry
+        self._odom = None  # (quaternion, body linear xy, angular z) of the latest valid odometry
         self._unwrap = YawUnwrapper()
-        self._pending = None  # (msg, names, pos, vel, received_at) waiting for its odometry
+        self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
         self._names: list[str] = []  # joints of the last chain answered
         self._last_input = time.monotonic()
         self._silent = False
@@ -206,9 +183,10 @@ class MorphPolicyNode(Node):
         except JointStateError as err:
             self._reject("odom", err)
             return
-        self._odom = (_stamp_ns(msg.header.stamp), quat, body, ang.z)
-        if self._pending is not None and self._odom[0] >= _stamp_ns(self._pending[0].header.stamp):
-            self._act(*self._pending[:4])
+        self._odom = (quat, body, ang.z)
+        ready = self._pairing.odometry(to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        if ready is not None:
+            self._act(*ready)
 
     def _on_joint_states(self, msg: JointState) -> None:
         try:
@@ -217,21 +195,18 @@ class MorphPolicyNode(Node):
             self._reject("joint_states", err)
             return
         self._last_input = time.monotonic()
-        if self._pending is not None:  # a newer state: the older one goes with what odometry there is
-            self._act(*self._pending[:4])
-        names = list(msg.name)
-        if self._odom is None or self._odom[0] >= _stamp_ns(msg.header.stamp):
-            self._act(msg, names, pos, vel)
-        else:
-            self._pending = (msg, names, pos, vel, self._last_input)
+        stamp_ns = to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        for ready in self._pairing.state(stamp_ns, (msg, list(msg.name), pos, vel), self._last_input):
+            self._act(*ready)
 
     def _on_watchdog(self) -> None:
         now = time.monotonic()
-        if self._pending is not None and now - self._pending[4] > _ODOM_WAIT:
+        late = self._pairing.expired(now)
+        if late is not None:
             self.get_logger().warn(
                 "no odometry with the joint state's stamp: using the latest one", throttle_duration_sec=_LOG_THROTTLE
             )
-            self._act(*self._pending[:4])
+            self._act(*late)
         if now - self._last_input > self._input_timeout and self._names:
             if not self._silent:
                 self.get_logger().warn(f"no joint_states for {self._input_timeout} s: publishing zero efforts")
@@ -240,7 +215,6 @@ class MorphPolicyNode(Node):
 
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
-        self._pending = None
         self._silent = False
         if names != self._names:
             self._names = names
@@ -248,7 +222,7 @@ class MorphPolicyNode(Node):
         if self._odom is None:
             glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
         else:
-            _, quat, body, wz = self._odom
+            quat, body, wz = self._odom
             glob = global_features(quat, body, wz, self._unwrap)
         if self._deterministic:
             efforts = np.clip(self._mean_of.mean(pos, vel, glob), -1.0, 1.0).astype(np.float64)
@@ -260,21 +234,17 @@ class MorphPolicyNode(Node):
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
         stamp = msg.header.stamp
         out.layout.dim = [
-            MultiArrayDimension(label=f"joints@{stamp.sec}.{stamp.nanosec:09d}", size=len(names), stride=len(names))
+            MultiArrayDimension(label=answer_tag(stamp.sec, stamp.nanosec), size=len(names), stride=len(names))
         ]
         self._effort_pub.publish(out)
         if not self._deterministic:
             self._publish_info(msg, names, action[0], mean[0])
 
     def _publish_info(self, msg: JointState, names: list[str], action: torch.Tensor, mean: torch.Tensor) -> None:
-        log_std = self.policy.log_std.detach()
-        z = (action - mean) * torch.exp(-log_std)
-        per_joint = (-0.5 * z.pow(2) - log_std - _HALF_LOG_2PI).double().numpy()
+        fields = pack_policy_info(action.double().numpy(), mean.double().numpy(), float(self.policy.log_std))
         point = JointTrajectoryPoint()
-        point.positions = array.array("d", action.double().numpy().tobytes())
-        point.velocities = array.array("d", mean.double().numpy().tobytes())
-        point.accelerations = array.array("d", [float(log_std)] * len(names))
-        point.effort = array.array("d", per_joint.tobytes())
+        for field, values in fields.items():
+            setattr(point, field, array.array("d", values.tobytes()))
         info = JointTrajectory()
         info.header.stamp = msg.header.stamp
         info.header.frame_id = msg.header.frame_id

@@ -17,16 +17,18 @@ Wire conventions
 Odometry is published before the joint state of the same stamp, so a
 controller that acts on joint states finds the matching odometry first.
 
-Pacing: free-running steps track ``real_time_factor`` x wall time (0: as fast
-as possible). With ``lockstep`` the sim steps only once efforts have arrived
-for the latest published state (a deterministic closed loop with a
+Pacing (``morph_core.protocol.pacing``): free-running steps track
+``real_time_factor`` x wall time (0: as fast as possible). With ``lockstep``
+(``morph_core.protocol.lockstep``) the sim steps only once efforts have
+arrived for the latest published state (a deterministic closed loop with a
 deterministic controller); if none arrive within ``effort_timeout`` the state
 is published again, so a lost message or a late-starting controller cannot
 stall the loop for good. A controller may tag its efforts with the state they
-answer (``layout.dim[0].label = "joints@<sec>.<nanosec>"``, as
-morph_policy_node does); in lockstep, tagged efforts for any other state are
-dropped, so a re-sent state answered twice cannot shift the loop by a step.
-Untagged efforts (any other controller) are taken as the answer.
+answer (``layout.dim[0].label = "joints@<sec>.<nanosec>"``, see
+``morph_core.msgs.stamps``; morph_policy_node does); in lockstep, tagged
+efforts for any other state are dropped, so a re-sent state answered twice
+cannot shift the loop by a step. Untagged efforts (any other controller) are
+taken as the answer.
 """
 
 from __future__ import annotations
@@ -54,27 +56,19 @@ from std_msgs.msg import Float64MultiArray
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
 from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
+from morph_core.msgs.stamps import from_ns, parse_answer_tag, seconds_to_ns
+from morph_core.protocol.lockstep import Action, LockstepGate
+from morph_core.protocol.pacing import RealTimePacer, tick_period
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.
 _TICK_BUDGET = 0.02
-# Behind schedule by more than this much sim time (a stall), pacing restarts
-# from now instead of bursting to catch up.
-_MAX_LAG = 0.5
 _LOG_THROTTLE = 5.0
-# Until a controller has answered once, the state is re-sent this often: a reader
-# that matched a moment after the first publication missed it.
-_FIRST_RESEND = 0.2
 
 
-def _stamp(seconds: float) -> Time:
-    ns = int(round(seconds * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def answer_tag(stamp: Time) -> str:
-    """Label of ``layout.dim[0]`` by which a controller says which state its efforts answer."""
-    return f"joints@{stamp.sec}.{stamp.nanosec:09d}"
+def _time(ns: int) -> Time:
+    sec, nanosec = from_ns(ns)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 def _doubles(values) -> array.array:
@@ -135,13 +129,8 @@ class SwimmerSimNode(Node):
         self._clock_pub = self.create_publisher(Clock, "/clock", 10)
         self.create_subscription(Float64MultiArray, "effort_commands", self._on_efforts, 10)
 
-        self._awaiting_answer = False  # lockstep: the latest state has no efforts yet
-        self._answered = False  # lockstep: efforts for the latest state are in, step when due
-        self._published_at = -math.inf
-        self.resends = 0
-        self.stale_answers = 0
-        self._answer_tag = ""
-        self._ever_answered = False
+        self._pacer = RealTimePacer(self._rtf)
+        self._gate = LockstepGate(resend_after=p("effort_timeout").value)
         self._timer = None
         self._restart_pacing()
         self.get_logger().info(
@@ -171,61 +160,43 @@ class SwimmerSimNode(Node):
                 self._names = self.sim.joint_names(self._prefix)
                 self.get_logger().info(f"rebuilt the swimmer with {param.value} joints")
                 if self._lockstep:
-                    self._answered = False
+                    self._gate.restart()
                     self._publish(time.monotonic())  # the new chain asks for its own efforts
             elif param.name == "joint_prefix":
                 self._prefix = param.value
                 self._names = self.sim.joint_names(self._prefix)
             elif param.name == "real_time_factor":
-                self._rtf = param.value
+                self._rtf = self._pacer.real_time_factor = param.value
                 self._restart_pacing()
             elif param.name == "lockstep":
                 self._lockstep = param.value
-                self._answered = False
-                self._awaiting_answer = False
+                self._gate.restart()
                 self._restart_pacing()
             elif param.name == "effort_timeout":
-                self.sim.effort_timeout = param.value
+                self.sim.effort_timeout = self._gate.resend_after = param.value
 
     # -- pacing -----------------------------------------------------------------
     def _restart_pacing(self) -> None:
-        self._anchor_wall = time.monotonic()
-        self._anchor_sim = self.sim.time
+        self._pacer.restart(time.monotonic(), self.sim.time)
         if self._timer is not None:
             self.destroy_timer(self._timer)
-        if self._lockstep and self._rtf == 0:
-            period = 0.01  # only re-publishing to do; steps happen on arriving efforts
-        elif self._rtf == 0:
-            period = 0.0  # a tick runs a budget of steps
-        else:
-            period = max(self.sim.dt / self._rtf, 0.001)
-        self._timer = self.create_timer(period, self._on_timer)
+        self._timer = self.create_timer(tick_period(self.sim.dt, self._rtf, self._lockstep), self._on_timer)
 
     def _due(self, now: float) -> bool:
-        """Whether the next step is due under the real-time factor (always, at 0)."""
-        if self._rtf == 0:
-            return True
-        target = self._anchor_sim + self._rtf * (now - self._anchor_wall)
-        if target - self.sim.time > _MAX_LAG:
-            self._anchor_wall, self._anchor_sim = now, self.sim.time
-            return True
-        return self.sim.time + self.sim.dt <= target + 1e-9
+        return self._pacer.due(now, self.sim.time, self.sim.time + self.sim.dt)
 
     def _on_timer(self) -> None:
         now = time.monotonic()
         if self._lockstep:
-            if self._answered:
+            action = self._gate.poll(now, lambda: self._state_pub.get_subscription_count() > 0)
+            if action is Action.STEP:
                 self._lockstep_step(now)
-            elif not self._awaiting_answer:
-                # The first state waits for a listener, so it is not lost before anyone can answer.
-                if self._state_pub.get_subscription_count() > 0:
-                    self._publish(now)
-                return
-            elif now - self._published_at > (self.sim.effort_timeout if self._ever_answered else _FIRST_RESEND):
-                self.resends += 1
+            elif action is Action.PUBLISH:
+                self._publish(now)  # the first state waited for a listener, so it is not lost unheard
+            elif action is Action.RESEND:
                 self.get_logger().warn(
                     f"no efforts for the state at t={self.sim.time:.2f} s within the effort timeout: "
-                    f"publishing it again ({self.resends} so far)",
+                    f"publishing it again ({self._gate.resends} so far)",
                     throttle_duration_sec=_LOG_THROTTLE,
                 )
                 self._publish(now)
@@ -241,7 +212,7 @@ class SwimmerSimNode(Node):
     def _lockstep_step(self, now: float) -> None:
         if self._due(now):
             self._step(now)
-            self._answered = False
+            self._gate.stepped()
             self._publish(now)
 
     def _step(self, now: float) -> None:
@@ -254,11 +225,10 @@ class SwimmerSimNode(Node):
     # -- messages ---------------------------------------------------------------
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
-        if self._lockstep and msg.layout.dim and "@" in msg.layout.dim[0].label:
-            if msg.layout.dim[0].label != self._answer_tag:
-                # An answer to an earlier (re-sent) state: taking it for the current one would
-                # shift the whole loop by a step.
-                self.stale_answers += 1
+        if self._lockstep and msg.layout.dim:
+            # An answer to an earlier (re-sent) state: taking it for the current one would
+            # shift the whole loop by a step.
+            if self._gate.is_stale(parse_answer_tag(msg.layout.dim[0].label)):
                 return
         try:
             self.sim.command(msg.data, now)
@@ -267,14 +237,12 @@ class SwimmerSimNode(Node):
                 f"rejected effort command ({self.sim.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE
             )
             return
-        if self._lockstep and self._awaiting_answer:
-            self._ever_answered = True
-            self._awaiting_answer = False
-            self._answered = True
+        if self._lockstep and self._gate.answer():
             self._lockstep_step(now)
 
     def _publish(self, now: float) -> None:
-        stamp = _stamp(self.sim.time)
+        stamp_ns = seconds_to_ns(self.sim.time)
+        stamp = _time(stamp_ns)
         torso = self.sim.torso()
 
         self._clock_pub.publish(Clock(clock=stamp))
@@ -299,10 +267,7 @@ class SwimmerSimNode(Node):
         state.effort = _doubles(self.sim.applied)
         self._state_pub.publish(state)
 
-        self._published_at = now
-        self._answer_tag = answer_tag(stamp)
-        if self._lockstep:
-            self._awaiting_answer = True
+        self._gate.published(stamp_ns, now)
 
 
 def main(args=None):

@@ -154,12 +154,3 @@ class SwimmerSim:
             vy=float(qvel[1]),
             yaw_rate=float(qvel[2]),
         )
-
-    def observation(self) -> dict:
-        """The graph observation ``MorphSwimmerEnv`` gives for the current state (the policy's training input)."""
-        qpos, qvel = self._env.data.qpos, self._env.data.qvel
-        return {
-            "joint_pos": qpos[3:].copy(),
-            "joint_vel": qvel[3:].copy(),
-            "global": np.array([qpos[2], qvel[2], qvel[0], qvel[1]]),
-        }
