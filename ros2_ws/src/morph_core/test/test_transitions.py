@@ -58,12 +58,12 @@ def policy():
     return GraphActorCritic().eval()
 
 
-def record(controller, episodes=((3, 30), (5, 25), (5, 20)), seed=SEED, announce=True, late=None):
-    """Episodes of (chain length, steps) in one lockstep loop; ``late`` as in ``LoopbackRecording.run``."""
+def record(controller, episodes=((3, 30), (5, 25), (5, 20)), seed=SEED, announce=True, same_stamp=False, late=None):
+    """Episodes of (chain length, steps) in one lockstep loop; options as in ``LoopbackRecording``."""
     loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
     for i, (n, steps) in enumerate(episodes):
         if i:
-            loop.new_episode(n, announce=announce)
+            loop.new_episode(n, announce=announce, same_stamp=same_stamp)
         loop.run(steps, late=late)
     loop.finish()
     return loop
@@ -74,11 +74,12 @@ def sampled(policy):
     return record(SamplingController(policy, seed=1))
 
 
-def replay(loop):
-    """stamp -> (observation, action stepped with, reward, next observation) from a fresh env."""
+def replay_by_order(loop):
+    """(stamp, observation, action stepped with, reward, next observation) per stepped state, from a fresh env
+    with the sim's seed, reset where the recording reset."""
     env = MorphSwimmerEnv(num_joints=loop.truth[0].observation["joint_pos"].size)
     obs, _ = env.reset(seed=SEED)
-    out, episode = {}, 0
+    episode = 0
     for truth in loop.truth:
         if truth.episode != episode:
             episode = truth.episode
@@ -86,9 +87,14 @@ def replay(loop):
         if truth.action is None:
             continue
         nxt, reward, _, _, _ = env.step(truth.action)
-        out[truth.stamp_ns] = (obs, truth.action, reward, nxt)
+        yield obs, truth.action, reward, nxt
         obs = nxt
-    return out
+
+
+def replay(loop):
+    """stamp -> (observation, action stepped with, reward, next observation)."""
+    stepped = [t.stamp_ns for t in loop.truth if t.action is not None]
+    return dict(zip(stepped, replay_by_order(loop), strict=True))
 
 
 def rows(batch: TransitionBatch) -> dict[int, dict]:
@@ -192,6 +198,33 @@ def test_a_new_chain_is_a_boundary_without_announcement(policy):
     assert result.stats.boundaries_new_chain == 1 and result.stats.boundaries_announced == 0
     assert np.bincount(result.batch.episode).tolist() == [12, 10]
     assert_matches_replay(result.batch, loop)
+
+
+@pytest.mark.parametrize("announce", [True, False])
+def test_a_reset_that_keeps_the_stamp_starts_a_new_episode(policy, announce):
+    """A sim that rebuilds without stepping its clock publishes the new first state with the last one's stamp;
+    the odometry (and announcement) after the old state are the new state's."""
+    loop = record(
+        SamplingController(policy, seed=9), episodes=((3, 12), (5, 10), (5, 8)), announce=announce, same_stamp=True
+    )
+    stamps = [t.stamp_ns for t in loop.truth]
+    assert len(stamps) - len(set(stamps)) == 2
+    result = assemble(loop.records)
+    assert result.skips == SkipCounts()
+    assert np.bincount(result.batch.episode).tolist() == [12, 10, 8]
+    stats = result.stats
+    if announce:
+        assert stats.boundaries_announced == 2 and stats.boundaries == 2
+    else:  # 3 -> 5 joints is a new chain; 5 -> 5 only the repeated stamp tells
+        assert stats.boundaries_new_chain == 1 and stats.boundaries_stamp_gap == 1
+    # a replay keyed by stamp cannot tell the two states apart: compare episode by episode
+    reference = list(replay_by_order(loop))
+    assert len(reference) == len(result.batch)
+    for i, (obs, action, reward, _) in enumerate(reference):
+        np.testing.assert_array_equal(result.batch.joint_pos[i, : len(action)], obs["joint_pos"])
+        np.testing.assert_allclose(result.batch.global_feats[i], obs["global"], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(result.batch.action[i, : len(action)], action)
+        assert result.batch.reward[i] == pytest.approx(reward, abs=1e-9)
 
 
 def test_announcement_arriving_after_its_state_still_splits(sampled):
@@ -330,9 +363,11 @@ def _perturb_resent_state(loop):
 
 
 def _perturb_conflicting_state(loop):
+    """Another state with state 7's stamp and no odometry of its own: taken as a new start (the sim rebuilt
+    without its clock moving on) whose observation cannot be told; the steps up to the first 7 stay."""
     i = next(i for i, r in enumerate(loop.records) if isinstance(r, JointStateRecord) and r.stamp_ns == _stamp(loop, 7))
     other = dataclasses.replace(loop.records[i], position=loop.records[i].position + 1e-3)
-    return loop.records[: i + 3] + [other] + loop.records[i + 3 :], {6, 7}
+    return loop.records[: i + 3] + [other] + loop.records[i + 3 :], {7}
 
 
 def _saturated_step(loop):
@@ -397,7 +432,7 @@ def _perturb_malformed_state(loop):
         (_perturb_orphan_policy_info, "orphan_policy_info", 1),
         (_perturb_no_answer, "no_answer", 1),
         (_perturb_resent_state, None, 0),
-        (_perturb_conflicting_state, "duplicate_stamp", 2),
+        (_perturb_conflicting_state, "duplicate_stamp", 1),
         (_perturb_answered_twice, None, 0),
         (_perturb_malformed_state, "malformed", 2),
         (_perturb_ambiguous, "ambiguous_answer", 1),

@@ -156,12 +156,13 @@ class LoopbackRecording:
             action, info = self._answer()
             self.records += self._answer_records(self.stamp_ns, np.clip(action, -1.0, 1.0), info)
 
-    def new_episode(self, num_joints: int | None = None, announce: bool = True) -> None:
-        """End the episode (``finish``) and reset the swimmer, optionally to another chain length; the new first
-        state is stamped one period after the last one, and announced unless ``announce`` is False."""
+    def new_episode(self, num_joints: int | None = None, announce: bool = True, same_stamp: bool = False) -> None:
+        """End the episode (``finish``) and reset the swimmer, optionally to another chain length. The new first
+        state is stamped one period after the last one (``same_stamp``: with the last one's stamp, as a sim
+        that rebuilds without stepping its clock), and announced unless ``announce`` is False."""
         self.finish()
         self.sim.rebuild(self.sim.num_joints if num_joints is None else num_joints)
-        self._ticks += 1
+        self._ticks += not same_stamp
         self._episode += 1
         self._announce_next = announce
         self._state_published = False

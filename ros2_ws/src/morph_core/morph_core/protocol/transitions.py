@@ -29,7 +29,11 @@ taken as the answer to the latest state received before it.
 
 Episode boundaries (no transition across them): an episode announcement for
 s' (``EpisodeStartRecord``), a change of joint names (a new robot), or s'
-not stamped one control period after s (a lost state, a restarted sim).
+not stamped one control period after s (a lost state, a restarted sim whose
+clock went back). A different state with the latest state's own stamp is a
+robot rebuilt or reset without the clock moving on (the sim node's runtime
+rebuild does this): the odometry and announcement received after the old
+state are the new one's, and a new episode starts with it.
 
 Nothing is guessed: a step that cannot be rebuilt is skipped and counted
 under its reason (``SkipCounts``); a message that answers no state is
@@ -253,6 +257,10 @@ class _Slot:
     infos: list[PolicyInfoRecord] = field(default_factory=list)
     announced: bool = False
     conflict: bool = False
+    # Received after the state, while it was the latest: they may be for a rebuilt robot whose state is
+    # about to come with the same stamp (see _restamp); else they are the state's own.
+    later_odom: OdometryRecord | None = None
+    announced_later: bool = False
     obs: _Observation | None = None
     obs_error: str | None = None
     observed: bool = False
@@ -292,7 +300,11 @@ class TransitionAssembler:
             if slot is not None:
                 if slot.odom is None:
                     slot.odom = record
-                elif not _same_odometry(slot.odom, record):
+                elif _same_odometry(slot.odom, record):
+                    pass  # re-sent with its state
+                elif slot.state is not None and slot.stamp == self._latest_state and slot.later_odom is None:
+                    slot.later_odom = record
+                else:
                     slot.conflict = True
         elif isinstance(record, EffortRecord):
             stamp = record.answers_ns if record.answers_ns is not None else self._latest_state
@@ -307,7 +319,10 @@ class TransitionAssembler:
         elif isinstance(record, EpisodeStartRecord):
             slot = self._slot_for(record.stamp_ns)
             if slot is not None:
-                slot.announced = True
+                if slot.state is None:
+                    slot.announced = True
+                else:
+                    slot.announced_later = True
         else:
             raise TypeError(f"not a record: {type(record).__name__}")
         self._judge_settled(final=False)
@@ -348,26 +363,47 @@ class TransitionAssembler:
         stamp, latest = record.stamp_ns, self._latest_state
         slot = self._slots.get(stamp)
         if stamp == latest:
-            # A lockstep sim re-sends its latest state when the answer is late; anything else with that
-            # stamp leaves the stamp's messages ambiguous.
             if _same_state(slot.state, record):
-                self.stats.resent_states += 1
+                self.stats.resent_states += 1  # a lockstep sim re-sends its latest state when the answer is late
             else:
-                slot.conflict = True
+                self._restamp(slot, record)
             return
         if latest is not None and stamp < latest:
             # The clock went back (a restarted sim): what is pending belongs to the old run.
             self.stats.count_boundary("stamp_gap")
-            self._judge_settled(final=True)
+            self._cut()
             self._judged.clear()
-            slot = self._slots.get(stamp)  # only a message that came before this state can be pending
+            slot = self._slots.get(stamp)  # only messages that came before this state can be pending
+        self._add_state(record, slot)
+
+    def _restamp(self, old: _Slot, record: JointStateRecord) -> None:
+        """A different state with the latest state's stamp: a robot rebuilt or reset without the clock moving
+        on. The odometry and announcement received since the old state are the new state's."""
+        odom, announced = old.later_odom, old.announced_later
+        old.later_odom, old.announced_later = None, False
+        cause = "announced" if announced else "new_chain" if record.names != old.state.names else "stamp_gap"
+        self.stats.count_boundary(cause)
+        self._cut()
+        self._judged.pop(old.stamp, None)
+        if cause != "stamp_gap":
+            self._unwrap.reset()
+        # Without an odometry of its own, which state the stamp's odometry belongs to cannot be told.
+        new = _Slot(record.stamp_ns, self._states_seen, odom=odom, announced=announced, conflict=odom is None)
+        self._add_state(record, new)
+
+    def _add_state(self, record: JointStateRecord, slot: _Slot | None) -> None:
         if slot is None:
-            slot = self._slots[stamp] = _Slot(stamp, self._states_seen)
+            slot = _Slot(record.stamp_ns, self._states_seen)
+        self._slots[record.stamp_ns] = slot
         slot.state = record
-        self._sequence.append(stamp)
+        self._sequence.append(record.stamp_ns)
         self._states_seen += 1
         self.stats.states += 1
-        self._latest_state = stamp
+        self._latest_state = record.stamp_ns
+
+    def _cut(self) -> None:
+        """Judge everything pending now: nothing that follows continues it."""
+        self._judge_settled(final=True)
 
     # -- judging ----------------------------------------------------------------
     def _judge_settled(self, final: bool) -> None:
@@ -424,7 +460,7 @@ class TransitionAssembler:
         self.skips.orphan_effort += len(slot.efforts)
         self.skips.orphan_policy_info += len(slot.infos)
         self.skips.orphan_odometry += slot.odom is not None
-        self.skips.orphan_announcement += slot.announced
+        self.skips.orphan_announcement += slot.announced or slot.announced_later
 
     def _judge(self, a: _Slot, b: _Slot) -> Transition | None:
         """The transition a -> b, or None (a boundary, or a skip counted under its reason)."""
@@ -470,7 +506,7 @@ class TransitionAssembler:
         )
 
     def _boundary(self, a: _Slot, b: _Slot) -> str | None:
-        if b.announced:
+        if b.announced or b.announced_later:
             return "announced"
         if b.state.names != a.state.names:
             return "new_chain"
@@ -484,7 +520,7 @@ class TransitionAssembler:
             return slot.obs
         slot.observed = True
         s, odom = slot.state, slot.odom
-        if slot.conflict:
+        if slot.conflict or slot.later_odom is not None:  # two odometries, one state
             slot.obs_error = "duplicate_stamp"
         elif not _finite(s.position, s.velocity, s.effort):
             slot.obs_error = "non_finite"
