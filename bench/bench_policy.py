@@ -35,8 +35,8 @@ def main() -> None:
     env = gymnasium.make("MorphSwimmer-v0", num_joints=(2, 10))
     batch = ChainBatch.from_observations([env.reset(seed=s)[0] for s in range(256)])
     actions = torch.randn(256, batch.max_joints)
-    dense = GraphActorCritic(PolicyConfig(backend="dense"))
-    pyg = GraphActorCritic(PolicyConfig(backend="pyg"))
+    dense = GraphActorCritic(PolicyConfig(), backend="dense")
+    pyg = GraphActorCritic(PolicyConfig(), backend="pyg")
     pyg.load_state_dict(dense.state_dict())
 
     def loss_of(net, batch, actions):

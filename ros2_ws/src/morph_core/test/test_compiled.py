@@ -1,35 +1,43 @@
 """The compiled minibatch loss (forward and backward by Inductor) equals eager PyTorch."""
 
+import functools
+
 import numpy as np
 import pytest
 import torch
 
 from morph_core.algo.compiled import compiled
-from morph_core.algo.ppo import clip_range, ppo_loss
+from morph_core.algo.ppo import ppo_loss
+from morph_core.algo.trust_region import get_rule
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
 
-def _minibatch(rng, size, max_joints):
+def _minibatch(rng, size, max_joints, weighted):
     n = rng.integers(2, max_joints + 1, size)
     pos = rng.normal(0, 1, (size, max_joints)) * (np.arange(max_joints) < n[:, None])
     batch = ChainBatch.from_padded(pos, rng.normal(0, 3, (size, max_joints)), rng.normal(0, 1, (size, 4)), n)
     actions = rng.normal(0, 0.5, (size, batch.max_joints))
     old_log_prob, advantages, returns = rng.normal(-5, 1, size), rng.normal(0, 1, size), rng.normal(0, 1, size)
     tensors = [torch.as_tensor(x, dtype=torch.float32) for x in (actions, old_log_prob, advantages, returns)]
-    return batch, *tensors, clip_range(0.111, batch.num_joints, "compensated")
+    clip_range = get_rule("compensated").clip_range(0.111, batch.num_joints.to(torch.float32))
+    weight = torch.as_tensor(rng.uniform(0.2, 1.0, size), dtype=torch.float32) if weighted else None
+    return batch, *tensors, clip_range, weight
 
 
-def test_compiled_loss_and_gradients_equal_eager():
+@pytest.mark.parametrize("weighted", [False, True])
+def test_compiled_loss_and_gradients_equal_eager(weighted):
     # Two minibatches with different chain mixes (and sizes): one compiled graph serves both.
+    # Weighted: the off-policy loss, each sample's policy term weighted (algo.update).
     torch.manual_seed(0)
     policy = GraphActorCritic()
     rng = np.random.default_rng(0)
-    fast = compiled(ppo_loss)
+    eager_fn = functools.partial(ppo_loss, rule=get_rule("compensated"))
+    fast = compiled(eager_fn)
     for size, max_joints in ((64, 10), (48, 7)):
-        args = _minibatch(rng, size, max_joints)
+        args = _minibatch(rng, size, max_joints, weighted)
         results = []
-        for fn in (ppo_loss, fast):
+        for fn in (eager_fn, fast):
             policy.zero_grad()
             out = fn(policy, *args, 0.5, 0.01)
             out[0].backward()

@@ -1,10 +1,12 @@
-"""Flat parameter buffer: same network, gradients land in one vector, updates reach the module."""
+"""Flat parameter buffer: same network, gradients land in one vector, updates reach the module,
+and a zero_grad() that would cut the gradients loose fails loudly instead of training on nothing."""
 
 import copy
 
+import pytest
 import torch
 
-from morph_core.algo.param_buffer import flatten_parameters
+from morph_core.algo.param_buffer import FlatGradientError, FlatParameters
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
@@ -14,19 +16,24 @@ def _loss(policy, batch):
     return (mean**2).sum() + value.sum() + policy.log_std
 
 
+def _batch():
+    return ChainBatch.from_padded(torch.randn(5, 7), torch.randn(5, 7), torch.randn(5, 4), [7, 2, 3, 7, 1])
+
+
 def test_flat_gradients_equal_per_tensor_gradients_over_steps():
     torch.manual_seed(0)
-    batch = ChainBatch.from_padded(torch.randn(5, 7), torch.randn(5, 7), torch.randn(5, 4), [7, 2, 3, 7, 1])
+    batch = _batch()
     plain = GraphActorCritic()
     flat_policy = copy.deepcopy(plain)
-    theta = flatten_parameters(flat_policy)
+    flat = FlatParameters(flat_policy)
+    theta = flat.theta
     assert theta.numel() == sum(p.numel() for p in plain.parameters())
     opt_plain = torch.optim.Adam(plain.parameters(), lr=0.01)
-    opt_flat = torch.optim.Adam([theta], lr=0.01)
+    opt_flat = flat.guard(torch.optim.Adam([theta], lr=0.01))
     for _ in range(3):
         opt_plain.zero_grad()
         _loss(plain, batch).backward()
-        theta.grad.zero_()
+        flat.zero_grad()
         _loss(flat_policy, batch).backward()
         torch.testing.assert_close(theta.grad, torch.cat([p.grad.flatten() for p in plain.parameters()]))
         opt_plain.step()
@@ -37,3 +44,17 @@ def test_flat_gradients_equal_per_tensor_gradients_over_steps():
     fresh = GraphActorCritic()
     flat_policy.load_state_dict(fresh.state_dict())
     torch.testing.assert_close(theta.detach(), torch.cat([p.detach().flatten() for p in fresh.parameters()]))
+
+
+@pytest.mark.parametrize("who", ["optimizer", "module"])
+def test_zero_grad_that_sets_gradients_to_none_fails_loudly_at_the_next_step(who):
+    torch.manual_seed(0)
+    policy = GraphActorCritic()
+    flat = FlatParameters(policy)
+    optimizer = flat.guard(torch.optim.Adam([flat.theta], lr=0.01))
+    before = flat.theta.detach().clone()
+    (optimizer if who == "optimizer" else policy).zero_grad()  # set_to_none=True by default
+    _loss(policy, _batch()).backward()
+    with pytest.raises(FlatGradientError, match="flat parameter buffer"):
+        optimizer.step()
+    assert torch.equal(flat.theta.detach(), before)  # nothing was stepped

@@ -1,5 +1,6 @@
 """Graph actor-critic: shapes for any chain length, PyG equivalence, log-probs, persistence."""
 
+import json
 import os
 
 import gymnasium
@@ -62,8 +63,8 @@ def test_dense_chain_conv_equals_pytorch_geometric(bidirectional, seed):
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     lengths = rng.integers(1, 21, size=32)
-    dense = GraphActorCritic(PolicyConfig(bidirectional=bidirectional, backend="dense"))
-    pyg = GraphActorCritic(PolicyConfig(bidirectional=bidirectional, backend="pyg"))
+    dense = GraphActorCritic(PolicyConfig(bidirectional=bidirectional), backend="dense")
+    pyg = GraphActorCritic(PolicyConfig(bidirectional=bidirectional), backend="pyg")
     pyg.load_state_dict(dense.state_dict())
     # random joint states, larger than the env's, to stress every weight
     j = int(lengths.max())
@@ -124,12 +125,30 @@ def test_save_load_roundtrip_without_pickle(tmp_path):
     batch = ChainBatch.from_observations(_observations([4, 11]))
     for a, b in zip(policy(batch), loaded(batch), strict=True):
         torch.testing.assert_close(a, b)
-    assert GraphActorCritic.load(path, backend="pyg").config.backend == "pyg"
+    assert GraphActorCritic.load(path, backend="pyg").backend == "pyg"
+    # The backend is how the network executes, not what it is: the file does not record it.
+    assert "backend" not in json.loads(path.with_suffix(".json").read_text())["policy"]
+
+
+def test_model_files_that_record_a_backend_still_load(tmp_path):
+    # Files written before the backend left PolicyConfig (the shipped model, docs/results_data) carry it.
+    policy = GraphActorCritic(PolicyConfig(bidirectional=False))
+    path = tmp_path / "old.safetensors"
+    policy.save(path)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["policy"]["backend"] = "dense"
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    loaded = GraphActorCritic.load(path)
+    assert loaded.config == policy.config and loaded.backend == "dense"
+    meta["policy"]["backend"] = "onnx"
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="backend"):
+        GraphActorCritic.load(path)
 
 
 def test_bad_config_and_files_give_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="backend"):
-        PolicyConfig(backend="onnx")
+        GraphActorCritic(backend="onnx")
     with pytest.raises(ValueError, match="safetensors"):
         GraphActorCritic.load(tmp_path / "policy.pt")
     with pytest.raises(FileNotFoundError, match="json"):

@@ -5,7 +5,19 @@ import math
 import pytest
 import torch
 
-from morph_core.algo.ppo import PerDimensionStats, clip_range, clipped_policy_loss, compute_gae
+from morph_core.algo.ppo import PerDimensionStats, compute_gae
+from morph_core.algo.trust_region import LossContext, get_rule
+
+
+def clip_range(eps, num_joints, rule):
+    return get_rule(rule).clip_range(eps, num_joints.to(torch.float32))
+
+
+def clipped_policy_loss(ratio, adv, eps, rule="fixed"):
+    """The update's policy loss for on-policy data: minus the rule's mean surrogate."""
+    n = torch.ones_like(adv, dtype=torch.int64)
+    ctx = LossContext(ratio.log(), adv, eps, n, None, None, None, None)
+    return -get_rule(rule).surrogate(ctx).mean()
 
 
 def test_fixed_clip_range_ignores_dimension():
@@ -19,7 +31,7 @@ def test_compensated_clip_range_grows_with_sqrt_dimension():
 
 
 def test_unknown_clip_mode_is_refused():
-    with pytest.raises(ValueError, match="clip mode"):
+    with pytest.raises(ValueError, match="unknown trust-region rule 'adaptive'"):
         clip_range(0.2, torch.tensor([2]), "adaptive")
 
 
@@ -49,15 +61,23 @@ def test_clipped_samples_give_no_gradient_and_the_pessimistic_side_does():
 
 def test_gae_on_a_hand_computed_case():
     gamma, lam = 0.9, 0.8
-    rewards = torch.tensor([[1.0], [0.0], [2.0]])
-    values = torch.tensor([[0.5], [1.0], [0.2]])
-    dones = torch.tensor([[0.0], [0.0], [1.0]])  # obs at t=2 starts a new episode
-    next_value, next_done = torch.tensor([0.7]), torch.tensor([0.0])
-    adv, ret = compute_gae(rewards, values, dones, next_value, next_done, gamma, lam)
-    # t=2: delta = 2 + 0.9*0.7 - 0.2 = 2.43
-    # t=1: next obs starts an episode, so no bootstrap: delta = 0 - 1.0 = -1.0, A = -1.0
+    # Two envs. Env 0: step 1 terminates. Env 1: a time limit truncates step 0, whose final
+    # observation is worth 3.0; a new episode starts at step 1.
+    rewards = torch.tensor([[1.0, 1.0], [0.0, 0.5], [2.0, 0.0]])
+    values = torch.tensor([[0.5, 0.4], [1.0, 0.3], [0.2, 0.1]])
+    terminated = torch.tensor([[False, False], [True, False], [False, False]])
+    truncated = torch.tensor([[False, True], [False, False], [False, False]])
+    final_values = torch.tensor([[0.0, 3.0], [0.0, 0.0], [0.0, 0.0]])
+    last_value = torch.tensor([0.7, -1.0])
+    adv, ret = compute_gae(rewards, values, terminated, truncated, final_values, last_value, gamma, lam)
+    # env 0, t=2: delta = 2 + 0.9*0.7 - 0.2 = 2.43
+    # t=1: terminated, no bootstrap: delta = 0 - 1.0 = -1.0, A = -1.0
     # t=0: delta = 1 + 0.9*1.0 - 0.5 = 1.4; A = 1.4 + 0.9*0.8*(-1.0) = 0.68
     torch.testing.assert_close(adv[:, 0], torch.tensor([0.68, -1.0, 2.43]))
+    # env 1, t=2: delta = 0 + 0.9*(-1.0) - 0.1 = -1.0
+    # t=1: delta = 0.5 + 0.9*0.1 - 0.3 = 0.29; A = 0.29 + 0.72*(-1.0) = -0.43
+    # t=0: truncated: delta = 1 + 0.9*3.0 - 0.4 = 3.3, and the trace stops there (not -0.43 carried)
+    torch.testing.assert_close(adv[:, 1], torch.tensor([3.3, -0.43, -1.0]))
     torch.testing.assert_close(ret, adv + values)
 
 
@@ -66,7 +86,8 @@ def test_per_dimension_stats():
     log_r = torch.tensor([0.0, 0.3, -0.3, 0.05])
     d = torch.tensor([2, 2, 4, 4])
     eps_i = torch.tensor([0.2, 0.2, 0.4, 0.4])
-    stats.add(d, log_r, log_r.exp(), eps_i, base_eps=0.2)
+    clipped = get_rule("compensated").clipped(log_r.exp(), eps_i)
+    stats.add(d, log_r, clipped, base_eps=0.2)
     s = stats.summary(range(2, 5))
     assert "clip_frac_d3" not in s  # no samples of dimension 3
     assert s["in_eps_frac_d2"] == 0.5 and s["in_eps_frac_d4"] == 0.5

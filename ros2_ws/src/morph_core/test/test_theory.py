@@ -44,9 +44,9 @@ def test_probability_decreases_with_dimension_and_compensation_equals_scaled_eps
     dims = np.arange(1, 21)
     p = theory.clip_probability(dims, 0.1, 0.2)
     assert np.all(np.diff(p) < 0)
-    comp = theory.clip_probability(dims, 0.1, 0.2, compensated=True)
+    comp = theory.clip_probability(dims, 0.1, 0.2, "compensated")
     np.testing.assert_allclose(comp, theory.clip_probability(dims, 0.1, 0.2 * np.sqrt(dims)), rtol=0, atol=1e-15)
-    approx_comp = theory.clip_probability_approx(dims, 0.1, 0.2, compensated=True)
+    approx_comp = theory.clip_probability_approx(dims, 0.1, 0.2, rule="compensated")
     np.testing.assert_allclose(approx_comp, theory.clip_probability_approx(dims, 0.1, 0.2 * np.sqrt(dims)))
     # Compensation makes the approximation exactly dimension-free (eps sqrt(d) / (nu0 sqrt(d))).
     assert np.ptp(approx_comp) == 0.0
@@ -104,14 +104,13 @@ def test_max_approximation_error_on_fig1_grid_is_at_the_cap_kink():
 
 
 @pytest.mark.parametrize(
-    ("dim", "nu0", "eps", "compensated"),
-    [(1, 0.1, 0.2, False), (2, 0.05, 0.111, False), (5, 0.2, 0.2, False), (12, 0.1, 0.2, True), (20, 0.3, 0.1, False)],
-)
-def test_closed_form_matches_monte_carlo_at_eta_one(dim, nu0, eps, compensated):
-    p_mc, se = theory.monte_carlo_clip_probability(
-        dim, nu0, eps, eta=1.0, n_samples=40_000, rng=dim, compensated=compensated
-    )
-    exact = theory.clip_probability(dim, nu0, eps, compensated)
+    ("dim", "nu0", "eps", "rule"),
+    [(1, 0.1, 0.2, "fixed"), (2, 0.05, 0.111, "fixed"), (5, 0.2, 0.2, "fixed"), (12, 0.1, 0.2, "compensated"),
+     (20, 0.3, 0.1, "fixed")],
+)  # fmt: skip
+def test_closed_form_matches_monte_carlo_at_eta_one(dim, nu0, eps, rule):
+    p_mc, se = theory.monte_carlo_clip_probability(dim, nu0, eps, eta=1.0, n_samples=40_000, rng=dim, rule=rule)
+    exact = theory.clip_probability(dim, nu0, eps, rule)
     assert se > 0
     assert abs(float(p_mc) - float(exact)) < 4 * float(se)
 

@@ -7,7 +7,8 @@ Figures (PNG, with the CSV they are drawn from):
 
 1. ``fig1_clip_probability``: exact ``P(|log r| <= eps)`` over (dim, nu0), contours of approx - exact.
 2. ``fig2_compensated``: the same at ``eps sqrt(dim)``, contours of the deviation from dim = 1.
-3. ``fig3_monte_carlo``: Monte Carlo from sampled Gaussian policies vs the closed forms, eta != 1 included.
+3. ``fig3_monte_carlo``: Monte Carlo from sampled Gaussian policies vs the closed forms, eta != 1 included,
+   one row per trust-region rule that clips the joint ratio (``algo.trust_region``).
 4. ``fig4_update_scaling``: TRPO and beta-PPO update norms vs dim on the GNN policy (log-log, fitted slopes).
 5. ``fig5_run_overlay`` (with ``--run-csv``): measured in-eps fraction per dim vs the closed form.
 
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo import trust_region
 from morph_core.theory import clip_analysis as theory
 from morph_core.theory import fisher_scaling
 
@@ -165,15 +167,15 @@ class ProbabilityGrid:
         return self.approx - self.exact
 
 
-def probability_grid(cfg: TheoryConfig, compensated: bool, dims: np.ndarray | None = None) -> ProbabilityGrid:
+def probability_grid(cfg: TheoryConfig, rule: str, dims: np.ndarray | None = None) -> ProbabilityGrid:
     dims = np.arange(1, cfg.max_dim + 1) if dims is None else dims
     nu0 = nu0_axis(cfg)
     d, n = dims[None, :], nu0[:, None]
     return ProbabilityGrid(
         dims,
         nu0,
-        theory.clip_probability(d, n, cfg.eps, compensated),
-        theory.clip_probability_approx(d, n, cfg.eps, compensated),
+        theory.clip_probability(d, n, cfg.eps, rule),
+        theory.clip_probability_approx(d, n, cfg.eps, rule),
     )
 
 
@@ -192,8 +194,8 @@ def _heatmap(ax, grid: ProbabilityGrid):
 
 
 def figure1(cfg: TheoryConfig, plt) -> dict[str, float]:
-    grid = probability_grid(cfg, compensated=False)
-    fine = probability_grid(cfg, compensated=False, dims=np.linspace(1.0, cfg.max_dim, 400))
+    grid = probability_grid(cfg, "fixed")
+    fine = probability_grid(cfg, "fixed", dims=np.linspace(1.0, cfg.max_dim, 400))
     err = grid.error
     i = np.unravel_index(int(np.argmax(err)), err.shape)
     sup, nu_star = theory.approx_error_supremum(cfg.eps)
@@ -234,8 +236,8 @@ def figure1(cfg: TheoryConfig, plt) -> dict[str, float]:
 
 
 def figure2(cfg: TheoryConfig, plt) -> dict[str, float]:
-    grid = probability_grid(cfg, compensated=True)
-    fine = probability_grid(cfg, compensated=True, dims=np.linspace(1.0, cfg.max_dim, 400))
+    grid = probability_grid(cfg, "compensated")
+    fine = probability_grid(cfg, "compensated", dims=np.linspace(1.0, cfg.max_dim, 400))
     # Deviation from the dim = 1 reference: what compensation leaves of the dimension dependence.
     deviation = grid.exact - grid.exact[:, :1]
     fine_dev = fine.exact - theory.clip_probability(1, fine.nu0, cfg.eps)[:, None]
@@ -271,20 +273,23 @@ def figure2(cfg: TheoryConfig, plt) -> dict[str, float]:
 
 
 def monte_carlo_table(cfg: TheoryConfig) -> list[dict[str, float]]:
-    """Monte Carlo vs Gaussian closed form vs exact non-central chi2 law, per (compensated, nu0, eta, dim)."""
+    """Monte Carlo vs Gaussian closed form vs exact non-central chi2 law, per (rule, nu0, eta, dim).
+
+    The rules are the table's rules that clip the joint ratio, in the table's order.
+    """
     rng = np.random.default_rng(cfg.seed)
     rows = []
-    for compensated in (False, True):
+    for rule in trust_region.clip_rules():
         for nu0 in cfg.mc_nu0:
             for eta in cfg.mc_eta:
                 for dim in range(1, cfg.max_dim + 1):
-                    est = theory.monte_carlo_point(dim, nu0, cfg.eps, eta, cfg.mc_samples, rng, compensated)
-                    gauss = float(theory.clip_probability(dim, nu0, cfg.eps, compensated))
-                    exact_eta = float(theory.clip_probability_eta(dim, nu0, cfg.eps, eta, compensated))
+                    est = theory.monte_carlo_point(dim, nu0, cfg.eps, eta, cfg.mc_samples, rng, rule)
+                    gauss = float(theory.clip_probability(dim, nu0, cfg.eps, rule))
+                    exact_eta = float(theory.clip_probability_eta(dim, nu0, cfg.eps, eta, rule))
                     m_th, s_th = theory.log_ratio_moments(dim, nu0, eta)
                     rows.append(
                         {
-                            "compensated": int(compensated),
+                            "rule": rule.name,
                             "nu0": nu0,
                             "eta": eta,
                             "dim": dim,
@@ -306,11 +311,14 @@ def figure3(cfg: TheoryConfig, plt) -> dict[str, float]:
     rows = monte_carlo_table(cfg)
     write_csv(cfg.out / "fig3_monte_carlo.csv", list(rows[0]), (list(r.values()) for r in rows))
     colors = {eta: f"C{k}" for k, eta in enumerate(cfg.mc_eta)}
-    fig, axes = plt.subplots(2, len(cfg.mc_nu0), figsize=(5.0 * len(cfg.mc_nu0), 7.0), squeeze=False)
-    for r_i, compensated in enumerate((0, 1)):
+    rules = list(dict.fromkeys(r["rule"] for r in rows))
+    fig, axes = plt.subplots(
+        len(rules), len(cfg.mc_nu0), figsize=(5.0 * len(cfg.mc_nu0), 3.5 * len(rules)), squeeze=False
+    )
+    for r_i, rule in enumerate(rules):
         for c_i, nu0 in enumerate(cfg.mc_nu0):
             ax = axes[r_i, c_i]
-            sel = [r for r in rows if r["compensated"] == compensated and r["nu0"] == nu0]
+            sel = [r for r in rows if r["rule"] == rule and r["nu0"] == nu0]
             dims = np.array([r["dim"] for r in sel if r["eta"] == cfg.mc_eta[0]])
             ax.plot(dims, [r["closed_form_eta1"] for r in sel if r["eta"] == cfg.mc_eta[0]], "k-", lw=2,
                     label=r"closed form ($\eta$=1)")  # fmt: skip
@@ -321,8 +329,7 @@ def figure3(cfg: TheoryConfig, plt) -> dict[str, float]:
                 if eta != 1.0:
                     ax.plot(dims, [p["exact_eta"] for p in pts], "--", color=colors[eta], lw=1,
                             label=rf"exact $\chi'^2$ law $\eta$={eta}")  # fmt: skip
-            mode = r"$\epsilon\sqrt{\dim}$" if compensated else r"$\epsilon$"
-            ax.set_title(rf"$\nu_0$={nu0}, clip range {mode}, $\epsilon$={cfg.eps}", fontsize=10)
+            ax.set_title(rf"$\nu_0$={nu0}, rule {rule}, $\epsilon$={cfg.eps}", fontsize=10)
             ax.set_xlabel("action dimension")
             ax.set_ylabel(r"$P[|\log r| \leq$ clip range$]$")
             ax.set_ylim(-0.02, 1.02)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 import torch
 
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.env.vec_env import MAX_EPISODE_STEPS
+from morph_core.env.vec_env import MAX_EPISODE_STEPS, EnvThreads
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
@@ -32,27 +32,24 @@ def evaluate_policy(
     obs = [env.reset(seed=seed + k % episodes)[0] for k, env in enumerate(envs)]
     returns = np.zeros(len(envs))
     alive = np.ones(len(envs), dtype=bool)
-    pool = ThreadPoolExecutor(num_threads) if num_threads > 1 else None
+    threads = EnvThreads(num_threads)
 
-    def step(i: int, action: np.ndarray) -> None:
-        o, r, terminated, _, _ = envs[i].step(np.clip(action, -1.0, 1.0))
+    def step(actions: dict[int, np.ndarray], i: int) -> None:
+        o, r, terminated, _, _ = envs[i].step(np.clip(actions[i], -1.0, 1.0))
         obs[i] = o
         returns[i] += r
         alive[i] = not terminated
 
-    with torch.inference_mode():
-        for _ in range(max_steps):
-            idx = np.flatnonzero(alive)
-            if idx.size == 0:
-                break
-            mean = policy(ChainBatch.from_observations([obs[i] for i in idx]))[0].numpy()
-            jobs = [(i, mean[row, : envs[i].num_joints]) for row, i in enumerate(idx)]
-            if pool is None:
-                for job in jobs:
-                    step(*job)
-            else:
-                list(pool.map(lambda job: step(*job), jobs))
-    if pool is not None:
-        pool.shutdown()
+    try:
+        with torch.inference_mode():
+            for _ in range(max_steps):
+                idx = np.flatnonzero(alive)
+                if idx.size == 0:
+                    break
+                mean = policy(ChainBatch.from_observations([obs[i] for i in idx]))[0].numpy()
+                actions = {i: mean[row, : envs[i].num_joints] for row, i in enumerate(idx)}
+                threads.map(partial(step, actions), idx)
+    finally:
+        threads.close()
     keys_arr = np.array(keys)
     return {n: returns[keys_arr == n] for n in lengths}

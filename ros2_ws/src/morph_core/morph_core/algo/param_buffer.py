@@ -4,8 +4,13 @@ The optimizer and the gradient-norm clip then see one parameter vector
 theta, as PPO is written, and cost a few operations per step instead of a few
 per parameter tensor (30 of them here); for a network this small that
 per-tensor overhead was about a tenth of a minibatch step. Autograd adds
-into an existing ``.grad`` in place, so gradients land in the flat buffer:
-clear it with ``theta.grad.zero_()``, never by setting grads to None.
+into an existing ``.grad`` in place, so gradients land in the flat buffer.
+
+The trap: ``optimizer.zero_grad()`` and ``module.zero_grad()`` set gradients
+to None by default. Backward would then write into fresh tensors outside the
+buffer, and the optimizer would step on a stale or missing gradient without a
+word. ``FlatParameters.zero_grad`` clears the buffer in place, and
+``guard`` makes an optimizer's step fail loudly if the buffer was cut loose.
 """
 
 from __future__ import annotations
@@ -14,15 +19,42 @@ import torch
 from torch import nn
 
 
-def flatten_parameters(module: nn.Module) -> nn.Parameter:
-    """Move ``module``'s parameters into one flat Parameter (returned); they become views of it."""
-    params = list(module.parameters())
-    theta = nn.Parameter(torch.cat([p.detach().flatten() for p in params]))
-    theta.grad = torch.zeros_like(theta)
-    offset = 0
-    for p in params:
-        n = p.numel()
-        p.data = theta.data[offset : offset + n].view_as(p)
-        p.grad = theta.grad[offset : offset + n].view_as(p)
-        offset += n
-    return theta
+class FlatGradientError(RuntimeError):
+    """The gradients no longer live in the flat buffer (e.g. set to None by a ``zero_grad()``)."""
+
+
+class FlatParameters:
+    """``module``'s parameters moved into one flat Parameter ``theta``; they become views of it."""
+
+    def __init__(self, module: nn.Module):
+        self.params = list(module.parameters())
+        self.theta = nn.Parameter(torch.cat([p.detach().flatten() for p in self.params]))
+        self.grad = torch.zeros_like(self.theta)
+        self.theta.grad = self.grad
+        offset = 0
+        for p in self.params:
+            n = p.numel()
+            p.data = self.theta.data[offset : offset + n].view_as(p)
+            p.grad = self.grad[offset : offset + n].view_as(p)
+            offset += n
+        self._grad_views = [p.grad for p in self.params]
+
+    def zero_grad(self) -> None:
+        """Clear every gradient in place (the only safe way to clear them)."""
+        self.grad.zero_()
+
+    def check(self) -> None:
+        """Raise ``FlatGradientError`` unless every gradient is still its view into the buffer."""
+        cut = self.theta.grad is not self.grad or any(
+            p.grad is not view for p, view in zip(self.params, self._grad_views, strict=True)
+        )
+        if cut:
+            raise FlatGradientError(
+                "gradients were detached from the flat parameter buffer (a zero_grad() that sets them to "
+                "None?): clear them with FlatParameters.zero_grad(), which zeroes the buffer in place"
+            )
+
+    def guard(self, optimizer: torch.optim.Optimizer) -> torch.optim.Optimizer:
+        """Check the buffer before each of ``optimizer``'s steps; returns the optimizer."""
+        optimizer.register_step_pre_hook(lambda _opt, _args, _kwargs: self.check())
+        return optimizer

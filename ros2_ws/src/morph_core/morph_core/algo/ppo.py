@@ -1,11 +1,9 @@
-"""PPO on mixed action dimensions: advantages, the clip rule, and the clipped losses.
+"""PPO's pieces on mixed action dimensions: the minibatch loss, GAE, per-dimension statistics.
 
 Every sample carries its own action dimension d (its chain's joint count).
 The importance ratio is over the sample's joint action, r = exp(sum_j log
-pi_new - log pi_old). The paper's only change to PPO is the clip range:
-
-    fixed:        r in [1 - eps, 1 + eps]
-    compensated:  r in [1 - eps sqrt(d), 1 + eps sqrt(d)]
+pi_new - log pi_old); how far it may move is the trust-region rule's
+business (``algo.trust_region``), the rest of PPO is the same for every rule.
 """
 
 from __future__ import annotations
@@ -14,36 +12,36 @@ import math
 
 import torch
 
-CLIP_MODES = ("fixed", "compensated")
+from morph_core.algo.trust_region import LossContext, TrustRegionRule
 
 
-def clip_range(eps: float, num_joints: torch.Tensor, mode: str) -> torch.Tensor:
-    """Per-sample clip range eps_i: eps, or eps * sqrt(d_i) when compensated."""
-    if mode == "fixed":
-        return torch.full(num_joints.shape, eps, dtype=torch.float32)
-    if mode == "compensated":
-        return eps * torch.sqrt(num_joints.to(torch.float32))
-    raise ValueError(f"clip mode must be one of {CLIP_MODES}, got {mode!r}")
-
-
-def clipped_policy_loss(ratio: torch.Tensor, advantages: torch.Tensor, eps: torch.Tensor) -> torch.Tensor:
-    """PPO's pessimistic surrogate with a per-sample clip range; returns the loss to minimise."""
-    unclipped = ratio * advantages
-    clipped = torch.clamp(ratio, 1.0 - eps, 1.0 + eps) * advantages
-    return -torch.min(unclipped, clipped).mean()
-
-
-def ppo_loss(policy, batch, actions, old_log_prob, advantages, returns, eps, vf_coef: float, ent_coef: float):
+def ppo_loss(
+    policy,
+    batch,
+    actions,
+    old_log_prob,
+    advantages,
+    returns,
+    clip_range,
+    weight,
+    vf_coef: float,
+    ent_coef: float,
+    rule: TrustRegionRule,
+):
     """PPO's loss on one minibatch, with advantages normalised within it.
 
-    ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``eps`` the per-sample
-    clip ranges. Returns (loss, policy loss, value loss, entropy, log ratio per sample).
+    ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``old_log_prob`` the
+    log-probs the ratio is taken against (the proximal policy's, see ``algo.update``), ``clip_range``
+    the rule's per-sample clip ranges, ``weight`` each sample's importance weight on the policy term
+    or None (on-policy data: no weight at all, not a weight of one). Returns (loss, policy loss,
+    value loss, entropy, log ratio per sample).
     """
-    mean, _, value = policy(batch)
+    mean, log_std, value = policy(batch)
     log_ratio = policy.log_prob(batch, actions, mean) - old_log_prob
-    ratio = log_ratio.exp()
     adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    pg_loss = clipped_policy_loss(ratio, adv, eps)
+    ctx = LossContext(log_ratio, adv, clip_range, batch.num_joints, mean, log_std, actions, batch.mask)
+    surrogate = rule.surrogate(ctx)
+    pg_loss = -surrogate.mean() if weight is None else -(weight * surrogate).mean()
     v_loss = torch.nn.functional.mse_loss(value, returns)
     entropy = policy.entropy(batch).mean()
     return pg_loss + vf_coef * v_loss - ent_coef * entropy, pg_loss, v_loss, entropy, log_ratio
@@ -52,30 +50,30 @@ def ppo_loss(policy, batch, actions, old_log_prob, advantages, returns, eps, vf_
 def compute_gae(
     rewards: torch.Tensor,
     values: torch.Tensor,
-    dones: torch.Tensor,
-    next_value: torch.Tensor,
-    next_done: torch.Tensor,
+    terminated: torch.Tensor,
+    truncated: torch.Tensor,
+    final_values: torch.Tensor,
+    last_value: torch.Tensor,
     gamma: float,
     gae_lambda: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Generalised advantage estimation over a [T, E] rollout.
+    """Generalised advantage estimation over a [T, E] rollout; returns (advantages, returns), both [T, E].
 
-    ``dones[t]`` marks that the observation at step t starts a new episode
-    (CleanRL's convention), ``next_value`` / ``next_done`` describe the
-    observation after the last step. Time-limit truncations are not dones
-    here: their rewards already hold gamma * V(final obs). Returns
-    (advantages, returns), both [T, E].
+    Step t goes from observation t (value ``values[t]``) with reward ``rewards[t]`` to the next one.
+    ``terminated[t]`` (bool): the episode ended there in a terminal state, nothing follows.
+    ``truncated[t]`` (bool): a time limit cut it; it would have gone on, worth ``gamma *
+    final_values[t]`` (the value of its final observation, unused elsewhere). Either way the trace
+    ends there; otherwise it continues into ``values[t + 1]``, or ``last_value`` [E] after the last step.
     """
     steps = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
-    last = torch.zeros_like(next_value)
+    last = torch.zeros_like(last_value)
+    continues = 1.0 - (terminated | truncated).to(rewards.dtype)
     for t in reversed(range(steps)):
-        if t == steps - 1:
-            not_done, v_next = 1.0 - next_done, next_value
-        else:
-            not_done, v_next = 1.0 - dones[t + 1], values[t + 1]
-        delta = rewards[t] + gamma * v_next * not_done - values[t]
-        last = delta + gamma * gae_lambda * not_done * last
+        v_next = last_value if t == steps - 1 else values[t + 1]
+        reward = torch.where(truncated[t], rewards[t] + gamma * final_values[t], rewards[t])
+        delta = reward + gamma * v_next * continues[t] - values[t]
+        last = delta + gamma * gae_lambda * continues[t] * last
         advantages[t] = last
     return advantages, advantages + values
 
@@ -88,8 +86,8 @@ def explained_variance(pred: torch.Tensor, target: torch.Tensor) -> float:
 class PerDimensionStats:
     """Sums over an update's minibatches, kept per action dimension d.
 
-    Clip fraction: share of samples whose ratio left the clip range (their own
-    eps_i). In-eps fraction: share with |log r| <= eps (the base eps), the
+    Clip fraction: share of samples whose ratio left the trust region (the
+    rule's ``clipped``, e.g. outside their own eps_i). In-eps fraction: share with |log r| <= eps (the base eps), the
     quantity the paper's theory predicts. Mean and std of log r estimate
     -|nu|^2/2 and |nu|.
     """
@@ -103,12 +101,14 @@ class PerDimensionStats:
         self.kl = torch.zeros_like(self.n)
 
     @torch.no_grad()
-    def add(self, num_joints, log_ratio, ratio, eps_i, base_eps: float) -> None:
+    def add(self, num_joints, log_ratio, clipped, base_eps: float) -> None:
+        """``clipped``: [B] bool, the sample left the trust region; ``base_eps`` the rule's base eps."""
         d = num_joints
         w = log_ratio.double()
+        ratio = log_ratio.exp()
         size = self.n.shape[0]
         self.n += torch.bincount(d, minlength=size)
-        self.clipped += torch.bincount(d, weights=((ratio - 1).abs() > eps_i).double(), minlength=size)
+        self.clipped += torch.bincount(d, weights=clipped.double(), minlength=size)
         self.in_eps += torch.bincount(d, weights=(w.abs() <= base_eps).double(), minlength=size)
         self.logr += torch.bincount(d, weights=w, minlength=size)
         self.logr_sq += torch.bincount(d, weights=w * w, minlength=size)

@@ -1,4 +1,9 @@
-"""Per-iteration metrics to a CSV (fixed columns) and TensorBoard, resumable."""
+"""Per-iteration metrics to a CSV (fixed columns) and TensorBoard, resumable.
+
+A row with a column the log was not opened with is refused (ValueError), not
+dropped: a metric that silently never reaches the CSV is worse than a crash.
+Columns a row leaves out are written empty, like NaN.
+"""
 
 from __future__ import annotations
 
@@ -13,10 +18,13 @@ class RunLog:
     def __init__(self, run_dir: Path, columns: list[str], resume_step: int | None = None, tensorboard: bool = True):
         self.path = run_dir / "progress.csv"
         self.columns = columns
+        self._known = set(columns)
         if resume_step is not None and self.path.exists():
             # Drop rows logged after the checkpoint we resume from: they will be produced again.
             with self.path.open() as f:
-                rows = [r for r in csv.DictReader(f) if int(r["global_step"]) <= resume_step]
+                reader = csv.DictReader(f)
+                self._check(reader.fieldnames or [], f"{self.path}, the run resumed,")
+                rows = [r for r in reader if int(r["global_step"]) <= resume_step]
             with atomic_writer(self.path) as f:
                 self._write(f, rows, header=True)
         else:
@@ -28,13 +36,19 @@ class RunLog:
 
             self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step)
 
+    def _check(self, names, where: str) -> None:
+        unknown = [k for k in names if k not in self._known]
+        if unknown:
+            raise ValueError(f"{where} has columns {unknown} that are not among the log's columns")
+
     def _write(self, f, rows, header: bool) -> None:
-        w = csv.DictWriter(f, fieldnames=self.columns, extrasaction="ignore")
+        w = csv.DictWriter(f, fieldnames=self.columns, extrasaction="raise")
         if header:
             w.writeheader()
         w.writerows(rows)
 
     def log(self, row: dict) -> None:
+        self._check(row, "RunLog.log")
         clean = {k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
         with self.path.open("a", newline="") as f:
             self._write(f, [clean], header=False)

@@ -1,8 +1,8 @@
-"""PPO for graph policies on swimmers of mixed chain lengths: the training loop.
+"""PPO for graph policies on swimmers of mixed chain lengths: the simulator training loop.
 
-One loop, in the order a reader thinks: collect a rollout from the
-vectorised swimmers, bootstrap and compute GAE, then epochs of minibatch
-updates with the per-sample clip range, then log and checkpoint.
+One loop, in the order a reader thinks (and as CleanRL writes it): collect a
+rollout from the vectorised swimmers, compute advantages, ``update`` (the
+one PPO update every data source uses, ``algo.update``), log and checkpoint.
 """
 
 from __future__ import annotations
@@ -18,20 +18,13 @@ import numpy as np
 import torch
 
 from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
-from morph_core.algo.compiled import compiled
-from morph_core.algo.param_buffer import flatten_parameters
-from morph_core.algo.ppo import (
-    CLIP_MODES,
-    PerDimensionStats,
-    clip_range,
-    compute_gae,
-    explained_variance,
-    ppo_loss,
-)
+from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
+from morph_core.algo.trust_region import rule_names
+from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, update
 from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
-from morph_core.policy.chains import ChainBatch, pad_observations
+from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import replace_nested
@@ -42,7 +35,8 @@ class TrainConfig:
     """PPO with per-sample clip ranges; defaults are the paper's configuration."""
 
     clip_mode: str = "compensated"
-    """'fixed': clip r to 1 +- eps; 'compensated': 1 +- eps*sqrt(dim A) per sample"""
+    """trust-region rule, a name from algo.trust_region.RULES: 'fixed' clips r to 1 +- eps,
+    'compensated' to 1 +- eps*sqrt(dim A) per sample"""
     clip_eps: float = 0.111
     """base clip range eps"""
     total_timesteps: int = 1_000_000
@@ -95,8 +89,8 @@ class TrainConfig:
     def __post_init__(self):
         if isinstance(self.policy, dict):
             self.policy = PolicyConfig.from_dict(self.policy)
-        if self.clip_mode not in CLIP_MODES:
-            raise ValueError(f"clip_mode must be one of {CLIP_MODES}, got {self.clip_mode!r}")
+        if self.clip_mode not in rule_names():
+            raise ValueError(f"clip_mode must be one of {rule_names()}, got {self.clip_mode!r}")
         if not 1 <= self.min_joints <= self.max_joints <= 64:
             raise ValueError(f"need 1 <= min_joints <= max_joints <= 64, got {self.min_joints}, {self.max_joints}")
         for name in ("num_envs", "num_steps", "minibatch_size", "update_epochs", "total_timesteps"):
@@ -114,6 +108,17 @@ class TrainConfig:
     @property
     def dims(self) -> range:
         return range(self.min_joints, self.max_joints + 1)
+
+    def update_config(self) -> UpdateConfig:
+        return UpdateConfig(
+            rule=self.clip_mode,
+            clip_eps=self.clip_eps,
+            update_epochs=self.update_epochs,
+            minibatch_size=self.minibatch_size,
+            vf_coef=self.vf_coef,
+            ent_coef=self.ent_coef,
+            max_grad_norm=self.max_grad_norm,
+        )
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -142,6 +147,63 @@ def _arrays(obs: PaddedObs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     return obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints
 
 
+class Rollout:
+    """[T, E] storage of one rollout, padded to the longest chain the range allows; NumPy while
+    collecting, shared with torch (no copy) for the update."""
+
+    def __init__(self, steps: int, envs: int, max_joints: int):
+        T, E, J = steps, envs, max_joints
+        self.joint_pos, self.joint_vel = np.zeros((T, E, J), np.float32), np.zeros((T, E, J), np.float32)
+        self.global_feats, self.num_joints = np.zeros((T, E, 4), np.float32), np.zeros((T, E), np.int64)
+        self.actions, self.log_prob = np.zeros((T, E, J), np.float32), np.zeros((T, E), np.float32)
+        self.rewards, self.values = np.zeros((T, E), np.float32), np.zeros((T, E), np.float32)
+        self.terminated, self.truncated = np.zeros((T, E), bool), np.zeros((T, E), bool)
+        self.final_values = np.zeros((T, E), np.float32)
+        """V(final observation) where a time limit truncated the episode, zero elsewhere"""
+
+    def batch(self, advantages: torch.Tensor, returns: torch.Tensor) -> RolloutBatch:
+        def flat(x: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(x).flatten(0, 1)
+
+        return RolloutBatch(
+            num_joints=flat(self.num_joints),
+            joint_pos=flat(self.joint_pos),
+            joint_vel=flat(self.joint_vel),
+            global_feats=flat(self.global_feats),
+            actions=flat(self.actions),
+            log_prob=flat(self.log_prob),
+            values=flat(self.values),
+            advantages=advantages.flatten(),
+            returns=returns.flatten(),
+        )
+
+
+def collect(
+    envs: SwimmerVecEnv, actor: NumpyPolicy, rollout: Rollout, obs: PaddedObs, generator: torch.Generator
+) -> tuple[PaddedObs, list[tuple[int, float, int]]]:
+    """Fill ``rollout`` by acting from ``obs``; returns the observation after it and the finished episodes.
+
+    The action noise comes from the run's torch generator, so a resumed run draws the same noise.
+    """
+    steps, num_envs, max_joints = rollout.actions.shape
+    episodes: list[tuple[int, float, int]] = []
+    for t in range(steps):
+        rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t], rollout.num_joints[t] = _arrays(obs)
+        noise = torch.randn((num_envs, max_joints), generator=generator).numpy()
+        rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(*_arrays(obs), noise)
+        step = envs.step(rollout.actions[t])
+        rollout.rewards[t], rollout.terminated[t], rollout.truncated[t] = step.reward, step.terminated, step.truncated
+        # A truncated episode would have gone on: GAE bootstraps it from the value of its final observation.
+        rollout.final_values[t] = 0.0
+        trunc = [i for i in step.final_obs if step.truncated[i]]
+        if trunc:
+            final = pad_observations([step.final_obs[i] for i in trunc], max_joints)
+            rollout.final_values[t, trunc] = actor.forward(*final)[1]
+        obs = step.obs
+        episodes += step.episodes
+    return obs, episodes
+
+
 def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors)."""
     run_dir = Path(run_dir)
@@ -153,9 +215,8 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     torch.set_num_threads(1)
     torch.manual_seed(cfg.seed)
     policy = GraphActorCritic(cfg.policy)
-    theta = flatten_parameters(policy)  # all parameters as one vector: optimizer and clip are a few ops
-    optimizer = torch.optim.Adam([theta], lr=cfg.learning_rate, eps=cfg.adam_eps, fused=True)
-    loss_fn = compiled(ppo_loss, cfg.compile)
+    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
+    optimizer = learner.optimizer
     gen = torch.Generator().manual_seed(cfg.seed)
     global_step, iteration, last_ckpt = 0, 0, 0
     if resume and state_path.exists():
@@ -171,90 +232,38 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             json.dump(cfg.to_dict(), f, indent=2)
     log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
 
-    # Rollout storage, padded to the longest chain the range allows; NumPy during the rollout,
-    # shared with torch (no copy) for the update.
-    T, E, J = cfg.num_steps, cfg.num_envs, cfg.max_joints
-    obs_pos, obs_vel = np.zeros((T, E, J), np.float32), np.zeros((T, E, J), np.float32)
-    obs_glob, obs_n = np.zeros((T, E, 4), np.float32), np.zeros((T, E), np.int64)
-    actions, logprobs = np.zeros((T, E, J), np.float32), np.zeros((T, E), np.float32)
-    rewards, dones, values = np.zeros((T, E), np.float32), np.zeros((T, E), np.float32), np.zeros((T, E), np.float32)
-
+    T, E = cfg.num_steps, cfg.num_envs
+    rollout = Rollout(T, E, cfg.max_joints)
+    update_cfg = cfg.update_config()
     obs = envs.observations()
-    next_done = np.zeros(E, np.float32)
     recent: list[tuple[int, float, int]] = []
     bar = _progress(cfg, global_step)
     while global_step < cfg.total_timesteps:
         iteration += 1
-        t0 = time.perf_counter()
-        episodes: list[tuple[int, float, int]] = []
 
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
-        # is mostly per-operation overhead (policy_numpy, tested equal to torch).
+        # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
+        t0 = time.perf_counter()
         actor = NumpyPolicy(policy)
-        for t in range(T):
-            obs_pos[t], obs_vel[t], obs_glob[t], obs_n[t] = _arrays(obs)
-            dones[t] = next_done
-            noise = torch.randn((E, J), generator=gen).numpy()
-            actions[t], logprobs[t], values[t], _ = actor.act(*_arrays(obs), noise)
-            step = envs.step(actions[t])
-            rewards[t] = step.reward
-            # Time-limit bootstrapping: a truncated episode would have gone on, worth gamma * V(final obs).
-            trunc = [i for i in step.final_obs if step.truncated[i]]
-            if trunc:
-                final = pad_observations([step.final_obs[i] for i in trunc], J)
-                rewards[t, trunc] += cfg.gamma * actor.forward(*final)[1]
-            next_done = (step.terminated | step.truncated).astype(np.float32)
-            obs = step.obs
-            episodes += step.episodes
-            global_step += E
+        obs, episodes = collect(envs, actor, rollout, obs, gen)
+        global_step += T * E
         rollout_s = time.perf_counter() - t0
 
         # 2. Advantages.
-        next_value = torch.from_numpy(actor.forward(*_arrays(obs))[1])
-        # A truncation was bootstrapped above; for GAE it cuts the trace like a termination.
+        last_value = torch.from_numpy(actor.forward(*_arrays(obs))[1])
         advantages, returns = compute_gae(
-            *map(torch.from_numpy, (rewards, values, dones)), next_value, torch.from_numpy(next_done),
-            cfg.gamma, cfg.gae_lambda,
+            *map(torch.from_numpy, (rollout.rewards, rollout.values, rollout.terminated, rollout.truncated,
+                                    rollout.final_values)),
+            last_value, cfg.gamma, cfg.gae_lambda,
         )  # fmt: skip
+        batch = rollout.batch(advantages, returns)
 
-        # 3. Update: epochs of shuffled minibatches, each sample clipped at its own eps_i.
+        # 3. Update.
         t1 = time.perf_counter()
         if cfg.anneal_lr:  # a function of the step count alone, so a resumed run gets the same rate
             optimizer.param_groups[0]["lr"] = cfg.learning_rate * (1.0 - (global_step - T * E) / cfg.total_timesteps)
         torch.set_num_threads(cfg.torch_threads)
-        b_pos, b_vel, b_glob, b_n = (torch.from_numpy(x).flatten(0, 1) for x in (obs_pos, obs_vel, obs_glob, obs_n))
-        b_actions, b_logprobs = torch.from_numpy(actions).flatten(0, 1), torch.from_numpy(logprobs).flatten()
-        b_adv, b_returns, b_values = advantages.flatten(), returns.flatten(), torch.from_numpy(values).flatten()
-        b_eps = clip_range(cfg.clip_eps, b_n, cfg.clip_mode)
-        mb_losses, mb_index, mb_log_ratio = [], [], []
-        for _ in range(cfg.update_epochs):
-            perm = torch.randperm(cfg.batch_size, generator=gen)
-            for start in range(0, cfg.batch_size, cfg.minibatch_size):
-                mb = perm[start : start + cfg.minibatch_size]
-                batch = ChainBatch.from_padded(b_pos[mb], b_vel[mb], b_glob[mb], b_n[mb])
-                loss, pg_loss, v_loss, entropy, log_ratio = loss_fn(
-                    policy,
-                    batch,
-                    b_actions[mb, : batch.max_joints],
-                    b_logprobs[mb],
-                    b_adv[mb],
-                    b_returns[mb],
-                    b_eps[mb],
-                    cfg.vf_coef,
-                    cfg.ent_coef,
-                )
-                theta.grad.zero_()
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(theta, cfg.max_grad_norm)
-                optimizer.step()
-                # Statistics are reduced once per update, not per minibatch.
-                mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
-                mb_index.append(mb)
-                mb_log_ratio.append(log_ratio.detach())
-        index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
-        stats = PerDimensionStats(cfg.max_joints)
-        stats.add(b_n[index], log_ratio, log_ratio.exp(), b_eps[index], cfg.clip_eps)
-        pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
+        stats = update(learner, batch, update_cfg, gen)
         update_s = time.perf_counter() - t1
 
         # 4. Log and checkpoint.
@@ -269,13 +278,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             "learning_rate": optimizer.param_groups[0]["lr"],
             "episodes": len(episodes),
             "return_mean": float(np.mean([r for _, r, _ in episodes])) if episodes else math.nan,
-            "policy_loss": pg_loss,
-            "value_loss": v_loss,
-            "entropy": entropy,
-            **stats.overall(),
-            "explained_variance": explained_variance(b_values, b_returns),
+            **stats.row(cfg.dims),
+            "explained_variance": explained_variance(batch.values, batch.returns),
             "log_std": float(policy.log_std.detach()),
-            **stats.summary(cfg.dims),
         }
         for d in cfg.dims:
             rs = [r for n, r, _ in episodes if n == d]

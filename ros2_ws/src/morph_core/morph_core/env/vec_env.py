@@ -8,8 +8,10 @@ the final observation kept for bootstrapping) or when the physics diverges
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import mujoco
 import numpy as np
@@ -18,6 +20,42 @@ from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.chains import pad_observations
 
 MAX_EPISODE_STEPS = 1000
+R = TypeVar("R")
+
+
+class EnvThreads:
+    """Runs a per-swimmer function over swimmer indices on up to ``num_threads`` threads.
+
+    MuJoCo releases the GIL inside mj_step, so swimmers step in parallel; the
+    caller's thread takes one share. Results come back in the order of the
+    indices asked for, whatever the thread count.
+    """
+
+    def __init__(self, num_threads: int = 1):
+        if num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
+        self.num_threads = num_threads
+        self._pool = ThreadPoolExecutor(num_threads - 1) if num_threads > 1 else None
+
+    def map(self, fn: Callable[[int], R], indices: Sequence[int]) -> list[R]:
+        indices = list(indices)
+        if self._pool is None or len(indices) < 2:
+            return [fn(i) for i in indices]
+        shares = min(self.num_threads, len(indices))
+        positions = [range(k, len(indices), shares) for k in range(shares)]
+        futures = [self._pool.submit(lambda ps: [fn(indices[p]) for p in ps], ps) for ps in positions[1:]]
+        results: list = [None] * len(indices)
+        for p in positions[0]:
+            results[p] = fn(indices[p])
+        for ps, future in zip(positions[1:], futures, strict=True):
+            for p, r in zip(ps, future.result(), strict=True):
+                results[p] = r
+        return results
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
 
 @dataclass
@@ -58,25 +96,14 @@ class SwimmerVecEnv:
         self._obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]
         self.episode_steps = np.zeros(num_envs, dtype=np.int64)
         self.episode_returns = np.zeros(num_envs, dtype=np.float64)
-        if num_threads < 1:
-            raise ValueError(f"num_threads must be >= 1, got {num_threads}")
-        threads = min(num_threads, num_envs)
-        self._chunks = [list(range(k, num_envs, threads)) for k in range(threads)]
-        self._pool = ThreadPoolExecutor(threads - 1) if threads > 1 else None
+        self._threads = EnvThreads(min(num_threads, num_envs))
 
     def observations(self) -> PaddedObs:
         return PaddedObs(*pad_observations(self._obs, self.max_joints))
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
-        if self._pool is None:
-            outcomes = [self._step_one(i, actions[i]) for i in range(self.num_envs)]
-        else:
-            # MuJoCo releases the GIL inside mj_step, so swimmers step in parallel threads.
-            futures = [self._pool.submit(self._step_chunk, c, actions) for c in self._chunks[1:]]
-            outcomes = self._step_chunk(self._chunks[0], actions)
-            for f in futures:
-                outcomes += f.result()
+        outcomes = self._threads.map(lambda i: self._step_one(i, actions[i]), range(self.num_envs))
         result = StepResult(
             obs=None,  # type: ignore[arg-type]
             reward=np.array([o[0] for o in outcomes]),
@@ -89,9 +116,6 @@ class SwimmerVecEnv:
                 result.episodes.append(episode)
         result.obs = self.observations()
         return result
-
-    def _step_chunk(self, indices: list[int], actions: np.ndarray) -> list:
-        return [self._step_one(i, actions[i]) for i in indices]
 
     def _step_one(self, i: int, action: np.ndarray):
         env = self.envs[i]
@@ -109,9 +133,7 @@ class SwimmerVecEnv:
         return r, term, trunc, final_obs, episode
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        self._threads.close()
 
     # -- exact save/restore, for checkpoints that resume bit for bit ---------
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:

@@ -53,18 +53,19 @@ class PolicyConfig:
     ortho_init: bool = True
     """orthogonal init as in Stable-Baselines3 (the reference's base): gain sqrt(2) for hidden
     linear layers, 0.01 for the action output (initial means ~0), 1 for the value output"""
-    backend: str = "dense"
-    """'dense': batched chain NNConv; 'pyg': PyTorch Geometric's NNConv (reference, same parameters)"""
 
     def __post_init__(self):
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
             if getattr(self, f) < 1:
                 raise ValueError(f"{f} must be >= 1, got {getattr(self, f)}")
 
     @classmethod
     def from_dict(cls, d: dict) -> PolicyConfig:
+        d = dict(d)
+        # Files written before the execution backend left the architecture carry it: accept and drop it.
+        legacy_backend = d.pop("backend", "dense")
+        if legacy_backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {legacy_backend!r}")
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -112,10 +113,10 @@ class TanhMLP(nn.Sequential):
 class GraphFeatureExtractor(nn.Module):
     """Joint graph + global state -> one embedding per joint."""
 
-    def __init__(self, config: PolicyConfig):
+    def __init__(self, config: PolicyConfig, backend: str = "dense"):
         super().__init__()
         self.config = config
-        bi, backend = config.bidirectional, config.backend
+        bi = config.bidirectional
         self.conv1 = ChainConv(1, config.conv1_channels, bi, backend)
         self.conv2 = ChainConv(config.conv1_channels, config.embed_channels, bi, backend)
         self.global_mlp = _mlp([NUM_GLOBAL_FEATURES, config.global_hidden, config.embed_channels], nn.ReLU, True)
@@ -132,13 +133,20 @@ class GraphFeatureExtractor(nn.Module):
 
 
 class GraphActorCritic(nn.Module):
-    """pi(a | s) = prod_j N(a_j; mu_j(s), sigma^2) over the chain's joints, and V(s)."""
+    """pi(a | s) = prod_j N(a_j; mu_j(s), sigma^2) over the chain's joints, and V(s).
 
-    def __init__(self, config: PolicyConfig | None = None):
+    ``backend`` is how the chain convolutions execute, not part of the network: 'dense' (batched
+    chain NNConv) or 'pyg' (PyTorch Geometric's NNConv, the reference), same parameters either way.
+    """
+
+    def __init__(self, config: PolicyConfig | None = None, backend: str = "dense"):
         super().__init__()
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.config = config or PolicyConfig()
+        self.backend = backend
         h = self.config.head_hidden
-        self.features = GraphFeatureExtractor(self.config)
+        self.features = GraphFeatureExtractor(self.config, backend)
         self.actor_head = TanhMLP([self.config.embed_channels, h, h, 1])
         self.critic_head = TanhMLP([self.config.embed_channels, h, h, 1])
         self.log_std = nn.Parameter(torch.tensor(float(self.config.log_std_init)))
@@ -167,9 +175,6 @@ class GraphActorCritic(nn.Module):
         pooled = z.new_zeros(batch.batch_size, z.shape[1]).index_add(0, chains.joint_chain, z)
         value = self.critic_head(pooled / batch.num_joints.unsqueeze(1)).squeeze(1)
         return mean.view(batch.mask.shape), self.log_std, value
-
-    def value(self, batch: ChainBatch) -> torch.Tensor:
-        return self.forward(batch)[2]
 
     def log_prob(self, batch: ChainBatch, actions: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
         """[B] log-density of padded actions [B, J] over each sample's own joints."""
@@ -207,7 +212,7 @@ class GraphActorCritic(nn.Module):
             json.dump({"policy": asdict(self.config), "metadata": metadata or {}}, f, indent=2)
 
     @classmethod
-    def load(cls, path: str | Path, backend: str | None = None) -> GraphActorCritic:
+    def load(cls, path: str | Path, backend: str = "dense") -> GraphActorCritic:
         path = Path(path)
         if path.suffix != ".safetensors":
             raise ValueError(f"expected a .safetensors file, got {path}")
@@ -216,11 +221,7 @@ class GraphActorCritic(nn.Module):
             meta = json.loads(meta_path.read_text())
         except FileNotFoundError:
             raise FileNotFoundError(f"policy config {meta_path} missing beside {path}") from None
-        config = PolicyConfig.from_dict(meta["policy"])
-        if backend is not None:
-            config.backend = backend
-            config.__post_init__()
-        model = cls(config)
+        model = cls(PolicyConfig.from_dict(meta["policy"]), backend)
         model.load_state_dict(load_file(str(path)))
         return model
 

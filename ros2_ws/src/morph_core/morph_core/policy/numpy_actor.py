@@ -4,7 +4,7 @@ A node answers one chain at a time and a rollout steps six swimmers at a
 time; for a network this small torch spends most of such a forward pass on
 per-operation overhead (about 0.45 ms against 0.1 ms here). This is the
 same computation as the torch policy (``chain_conv``'s form on the chains
-laid end to end, ``graph.PackedChains``) on NumPy copies of its weights,
+laid end to end, ``chains.PackedChains``) on NumPy copies of its weights,
 tested equal to it to 1e-5. Gradients and updates stay in torch.
 """
 

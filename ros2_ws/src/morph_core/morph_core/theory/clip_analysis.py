@@ -11,7 +11,9 @@ For ``eta = 1`` it is linear in ``z`` and ``log r = sum_i log r_i ~ Normal(-|nu|
 With a homogeneous drift ``nu_0`` per joint, ``|nu| = nu_0 sqrt(dim)``.
 
 All public functions broadcast over numpy arrays of ``dim``, ``nu0`` and ``eps`` (and ``eta``
-where present). ``compensated=True`` means the PPO clip range is ``eps * sqrt(dim)``.
+where present). ``rule`` is a trust-region rule that clips the joint ratio, by name or as the
+object from ``algo.trust_region.RULES``: ``"fixed"`` clips at ``eps``, ``"compensated"`` at
+``eps * sqrt(dim)``; the clip range is the rule's own ``clip_range``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,10 @@ from numpy.typing import ArrayLike
 from scipy import stats
 from scipy.special import ndtr
 
+from morph_core.algo.trust_region import TrustRegionRule, get_rule
 from morph_core.policy.gaussian import log_density_per_joint
+
+Rule = str | TrustRegionRule
 
 SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 
@@ -33,11 +38,9 @@ def drift_norm(dim: ArrayLike, nu0: ArrayLike) -> np.ndarray:
     return np.asarray(nu0, dtype=float) * np.sqrt(np.asarray(dim, dtype=float))
 
 
-def effective_eps(dim: ArrayLike, eps: ArrayLike, compensated: bool = False) -> np.ndarray:
-    """Clip range used for a sample of dimension ``dim``: ``eps``, or ``eps * sqrt(dim)`` when compensated."""
-    dim = np.asarray(dim, dtype=float)
-    scale = np.sqrt(dim) if compensated else np.ones_like(dim)
-    return np.asarray(eps, dtype=float) * scale
+def effective_eps(dim: ArrayLike, eps: ArrayLike, rule: Rule = "fixed") -> np.ndarray:
+    """Clip range ``rule`` uses for a sample of dimension ``dim`` (``eps``, ``eps * sqrt(dim)``, ...)."""
+    return get_rule(rule).clip_range(np.asarray(eps, dtype=float), np.asarray(dim, dtype=float))
 
 
 def _interval_probability(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -50,16 +53,16 @@ def _interval_probability(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(upper, ndtr(-lo) - ndtr(-hi), ndtr(hi) - ndtr(lo))
 
 
-def clip_probability(dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, compensated: bool = False) -> np.ndarray:
+def clip_probability(dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, rule: Rule = "fixed") -> np.ndarray:
     """Exact ``P(-e <= log r <= e)`` for ``log r ~ Normal(-|nu|^2/2, |nu|)`` (paper eq. "true_prob").
 
         P = Phi(e / |nu| + |nu| / 2) - Phi(-e / |nu| + |nu| / 2),   |nu| = nu0 sqrt(dim),
 
-    with ``e = eps`` or, if ``compensated``, ``e = eps sqrt(dim)``. For ``|nu| -> 0`` the ratio is
+    with ``e`` the rule's clip range (``effective_eps``). For ``|nu| -> 0`` the ratio is
     identically 1 (``log r = 0``), so the probability is 1; that limit is returned without NaN.
     """
     nu = drift_norm(dim, nu0)
-    e = effective_eps(dim, eps, compensated)
+    e = effective_eps(dim, eps, rule)
     nu, e = np.broadcast_arrays(nu, e)
     still = nu <= 0.0
     safe_nu = np.where(still, 1.0, nu)  # placeholder where nu == 0; those entries are overwritten below
@@ -68,10 +71,10 @@ def clip_probability(dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, compensated
     return np.where(still, 1.0, _interval_probability(lo, hi))
 
 
-def clip_probability_approx(dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, compensated: bool = False) -> np.ndarray:
+def clip_probability_approx(dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, rule: Rule = "fixed") -> np.ndarray:
     """The paper's approximation ``min(sqrt(2/pi) e / |nu|, 1)`` (first-order cdf, ``exp(-|nu|^2/8)`` dropped)."""
     nu = drift_norm(dim, nu0)
-    e = effective_eps(dim, eps, compensated)
+    e = effective_eps(dim, eps, rule)
     nu, e = np.broadcast_arrays(nu, e)
     with np.errstate(divide="ignore", invalid="ignore"):
         raw = SQRT_2_OVER_PI * e / nu
@@ -122,7 +125,7 @@ def log_ratio_moments(dim: ArrayLike, nu0: ArrayLike, eta: ArrayLike = 1.0) -> t
 
 
 def clip_probability_eta(
-    dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, eta: ArrayLike, compensated: bool = False
+    dim: ArrayLike, nu0: ArrayLike, eps: ArrayLike, eta: ArrayLike, rule: Rule = "fixed"
 ) -> np.ndarray:
     """Exact ``P(-e <= log r <= e)`` without the ``eta ~ 1`` assumption.
 
@@ -133,11 +136,11 @@ def clip_probability_eta(
     within ~2.5 standard errors) for ``|eta - 1|`` down to 0.0065 at dim <= 20.
     """
     dim, nu0, eps, eta = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (dim, nu0, eps, eta)))
-    out = np.asarray(clip_probability(dim, nu0, eps, compensated), dtype=float).copy()
+    out = np.asarray(clip_probability(dim, nu0, eps, rule), dtype=float).copy()
     curved = np.abs(eta - 1.0) >= 1e-6
     if not np.any(curved):
         return out
-    d, n0, e, et = dim[curved], nu0[curved], effective_eps(dim, eps, compensated)[curved], eta[curved]
+    d, n0, e, et = dim[curved], nu0[curved], effective_eps(dim, eps, rule)[curved], eta[curved]
     q = LogRatioQuadratic.from_drift(n0, et)
     shift = q.b / (2.0 * q.a)
     offset = d * (q.c - q.a * shift**2)
@@ -200,7 +203,7 @@ def monte_carlo_clip_probability(
     eta: ArrayLike = 1.0,
     n_samples: int = 20_000,
     rng: np.random.Generator | int | None = 0,
-    compensated: bool = False,
+    rule: Rule = "fixed",
     chunk: int = 50_000,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Monte Carlo estimate of ``P(|log r| <= e)`` from sampled factorised Gaussian policy pairs.
@@ -208,14 +211,14 @@ def monte_carlo_clip_probability(
     Per sample and joint: ``pi_old = N(mu_old, sigma_old^2)`` with random ``mu_old`` and
     ``sigma_old``, ``pi_new = N(mu_old + nu0 sigma_new, sigma_new^2)`` with ``sigma_new = eta sigma_old``.
     Actions ``a ~ pi_old``; ``log r = sum_j [log pi_new(a_j) - log pi_old(a_j)]`` from the densities.
-    ``e = eps`` or ``eps sqrt(dim)`` when ``compensated``.
+    ``e`` is the rule's clip range (``effective_eps``).
 
     Returns ``(probability, stderr)`` arrays of the broadcast shape of the inputs; the standard error
     is the binomial ``sqrt(p (1 - p) / n)`` (0 when every sample lands inside or outside).
     """
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     dim_b, nu0_b, eps_b, eta_b = np.broadcast_arrays(*(np.asarray(x) for x in (dim, nu0, eps, eta)))
-    e_b = effective_eps(dim_b, eps_b, compensated)
+    e_b = effective_eps(dim_b, eps_b, rule)
     prob = np.empty(dim_b.shape)
     err = np.empty(dim_b.shape)
     for idx in np.ndindex(dim_b.shape):
@@ -233,9 +236,9 @@ def monte_carlo_point(
     eta: float = 1.0,
     n_samples: int = 20_000,
     rng: np.random.Generator | int | None = 0,
-    compensated: bool = False,
+    rule: Rule = "fixed",
 ) -> MonteCarloEstimate:
     """Scalar Monte Carlo with the log-ratio moments as well (see :func:`monte_carlo_clip_probability`)."""
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    e = float(effective_eps(dim, eps, compensated))
+    e = float(effective_eps(dim, eps, rule))
     return _monte_carlo_point(int(dim), float(nu0), e, float(eta), int(n_samples), gen, 50_000)

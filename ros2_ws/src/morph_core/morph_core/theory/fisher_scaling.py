@@ -347,7 +347,8 @@ class ScalingResult:
         }
 
 
-def load_policy(cfg: ScalingConfig) -> GraphActorCritic:
+def load_or_init_policy(cfg: ScalingConfig) -> GraphActorCritic:
+    """The checkpoint named by ``cfg`` or, without one, a fresh policy seeded with ``cfg.seed``; in eval mode."""
     if cfg.checkpoint:
         policy = GraphActorCritic.load(cfg.checkpoint)
     else:
@@ -358,7 +359,7 @@ def load_policy(cfg: ScalingConfig) -> GraphActorCritic:
 
 def update_norm_scaling(cfg: ScalingConfig, policy: GraphActorCritic | None = None) -> ScalingResult:
     """Fisher per chain length, fixed ``g``, both update norms and their fitted log-log slopes."""
-    policy = policy if policy is not None else load_policy(cfg)
+    policy = policy if policy is not None else load_or_init_policy(cfg)
     params = mean_parameters(policy)
     subspace = make_subspace(params, cfg.subspace, cfg.subspace_dim, cfg.seed)
     log_std = float(policy.log_std.detach())

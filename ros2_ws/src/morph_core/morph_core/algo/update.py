@@ -1,0 +1,251 @@
+"""One PPO update, the same for every data source: a batch of samples in, statistics out.
+
+The simulator trainer (``algo.train``) hands it each rollout; a trainer that
+reads recorded (rosbag2) or live ROS topics builds the same ``RolloutBatch``
+from its records. The update runs epochs of shuffled minibatches under the
+chosen trust-region rule (``algo.trust_region``) and returns per-dimension
+statistics.
+
+Off-policy data (a bag recorded by an older policy) uses the decoupled
+objective of Hilton et al. 2022, "Batch size-invariance for policy
+optimization": the ratio is taken against the proximal policy pi_prox (the
+policy as the update starts, ``proximal_log_prob``), r = pi_theta / pi_prox,
+and each sample's policy term is weighted by the truncated importance weight
+min(pi_prox / pi_behav, c) (c = ``proximal_weight_cap``, as V-trace's
+rho-bar). Without proximal log-probs (on-policy: pi_prox = pi_behav) there
+is no weight at all, and the loss is PPO's own, bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from morph_core.algo.compiled import compiled
+from morph_core.algo.param_buffer import FlatParameters
+from morph_core.algo.ppo import PerDimensionStats, ppo_loss
+from morph_core.algo.trust_region import TrustRegionRule, get_rule
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+
+
+@dataclass(frozen=True)
+class RolloutBatch:
+    """N samples of chains of mixed length, padded to J joints; everything the update needs.
+
+    Beyond each chain's end, joint states and actions must be zero (checked): minibatches are cut
+    to their own longest chain, and only padding may be cut.
+    """
+
+    num_joints: torch.Tensor
+    """[N] int64 chain length (action dimension) of each sample"""
+    joint_pos: torch.Tensor
+    """[N, J] float32 joint angles"""
+    joint_vel: torch.Tensor
+    """[N, J] float32 joint angular velocities"""
+    global_feats: torch.Tensor
+    """[N, 4] float32 torso yaw, yaw rate, vx, vy"""
+    actions: torch.Tensor
+    """[N, J] float32 actions taken (before any clip to the motors' range)"""
+    log_prob: torch.Tensor
+    """[N] log-probability of the action under the behaviour policy (the one that acted)"""
+    values: torch.Tensor
+    """[N] value estimates of the states (for explained variance)"""
+    advantages: torch.Tensor
+    """[N] advantage estimates"""
+    returns: torch.Tensor
+    """[N] value targets"""
+    proximal_log_prob: torch.Tensor | None = None
+    """[N] log-probability under the proximal policy (``proximal_log_probs``), for off-policy data;
+    None for on-policy data, where it equals ``log_prob``"""
+
+    def __post_init__(self):
+        n, j = self.joint_pos.shape if self.joint_pos.ndim == 2 else (None, None)
+        if n is None:
+            raise ValueError(f"joint_pos must be [N, J], got {tuple(self.joint_pos.shape)}")
+        shapes = {
+            "num_joints": (n,), "joint_vel": (n, j), "global_feats": (n, NUM_GLOBAL_FEATURES), "actions": (n, j),
+            "log_prob": (n,), "values": (n,), "advantages": (n,), "returns": (n,),
+        }  # fmt: skip
+        if self.proximal_log_prob is not None:
+            shapes["proximal_log_prob"] = (n,)
+        for name, shape in shapes.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"RolloutBatch.{name} must be {list(shape)} for N={n}, J={j}, got {list(got)}")
+        if self.num_joints.dtype != torch.int64:
+            raise ValueError(f"RolloutBatch.num_joints must be int64, got {self.num_joints.dtype}")
+        if n and (int(self.num_joints.min()) < 1 or int(self.num_joints.max()) > j):
+            raise ValueError(f"RolloutBatch.num_joints must be in 1..{j}")
+        for name in [*shapes][1:]:
+            if not torch.isfinite(getattr(self, name)).all():
+                raise ValueError(f"RolloutBatch.{name} holds NaN or inf")
+        padding = torch.arange(j) >= self.num_joints.unsqueeze(1)
+        for name in ("joint_pos", "joint_vel", "actions"):
+            if (getattr(self, name)[padding] != 0).any():
+                raise ValueError(f"RolloutBatch.{name} is not zero beyond each chain's end")
+
+    @property
+    def size(self) -> int:
+        return self.num_joints.shape[0]
+
+    @property
+    def max_joints(self) -> int:
+        return self.joint_pos.shape[1]
+
+    def minibatch(self, index: torch.Tensor) -> tuple[ChainBatch, torch.Tensor]:
+        """The chains at ``index`` (padding trimmed to their longest chain) and their actions, cut alike."""
+        chains = ChainBatch.from_padded(
+            self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
+        )
+        actions = self.actions[index, : chains.max_joints]
+        # The cut relies on from_padded trimming to exactly the minibatch's longest chain (the padding
+        # beyond it is zero, checked at construction); were it to pad wider, the widths would differ.
+        if actions.shape != chains.mask.shape:
+            raise AssertionError(f"actions {tuple(actions.shape)} do not match the chains {tuple(chains.mask.shape)}")
+        return chains, actions
+
+
+@dataclass(frozen=True)
+class UpdateConfig:
+    """Settings of one update (the trainer's config supplies them, with its defaults)."""
+
+    rule: str
+    """trust-region rule, a name from ``trust_region.RULES``"""
+    clip_eps: float
+    """base clip range eps"""
+    update_epochs: int
+    """passes over the batch"""
+    minibatch_size: int
+    """samples per gradient step"""
+    vf_coef: float
+    """value loss weight"""
+    ent_coef: float
+    """entropy bonus weight"""
+    max_grad_norm: float
+    """global gradient-norm clip"""
+    proximal_weight_cap: float = 1.0
+    """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples"""
+
+    def __post_init__(self):
+        get_rule(self.rule)  # a clear error for an unknown name
+        if self.update_epochs < 1 or self.minibatch_size < 1:
+            raise ValueError(f"update_epochs and minibatch_size must be >= 1, got {self.update_epochs}, "
+                             f"{self.minibatch_size}")  # fmt: skip
+        if self.proximal_weight_cap <= 0:
+            raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
+
+
+@dataclass
+class Learner:
+    """The policy being trained, its flat parameter buffer and optimizer, and the (compiled) losses."""
+
+    policy: GraphActorCritic
+    params: FlatParameters
+    optimizer: torch.optim.Optimizer
+    compile: bool = True
+    _losses: dict[str, Callable] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def create(cls, policy: GraphActorCritic, learning_rate: float, adam_eps: float, compile: bool) -> Learner:
+        params = FlatParameters(policy)  # one vector: the optimizer and the norm clip are a few ops
+        optimizer = torch.optim.Adam([params.theta], lr=learning_rate, eps=adam_eps, fused=True)
+        return cls(policy, params, params.guard(optimizer), compile)
+
+    def minibatch_loss(self, rule: TrustRegionRule) -> Callable:
+        """``ppo_loss`` under ``rule``, compiled once per rule (``algo.compiled``)."""
+        if rule.name not in self._losses:
+            self._losses[rule.name] = compiled(functools.partial(ppo_loss, rule=rule), self.compile)
+        return self._losses[rule.name]
+
+
+@dataclass
+class UpdateStats:
+    """What one update measured: mean losses over its minibatches and per-dimension ratio statistics."""
+
+    policy_loss: float
+    value_loss: float
+    entropy: float
+    per_dim: PerDimensionStats
+    epochs: int
+    """epochs run (fewer than configured if the rule stopped early)"""
+
+    def row(self, dims) -> dict[str, float]:
+        """Log columns: the losses, overall and per-dimension (``dims``) statistics."""
+        return {
+            "policy_loss": self.policy_loss,
+            "value_loss": self.value_loss,
+            "entropy": self.entropy,
+            **self.per_dim.overall(),
+            **self.per_dim.summary(dims),
+        }
+
+
+def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: torch.Generator) -> UpdateStats:
+    """Epochs of shuffled minibatch steps on ``batch`` under ``cfg.rule``; ``generator`` shuffles."""
+    rule = get_rule(cfg.rule)
+    loss_fn = learner.minibatch_loss(rule)
+    flat, optimizer = learner.params, learner.optimizer
+    dims = batch.num_joints.to(torch.float32)
+    clip_range = rule.clip_range(cfg.clip_eps, dims) if rule.clips_joint_ratio else torch.full_like(dims, cfg.clip_eps)
+    if batch.proximal_log_prob is None:
+        old_log_prob, weight = batch.log_prob, None
+    else:
+        old_log_prob = batch.proximal_log_prob
+        weight = torch.clamp(torch.exp(batch.proximal_log_prob - batch.log_prob), max=cfg.proximal_weight_cap)
+    mb_losses, mb_index, mb_log_ratio = [], [], []
+    epochs = 0
+    for _ in range(cfg.update_epochs):
+        epochs += 1
+        perm = torch.randperm(batch.size, generator=generator)
+        epoch_log_ratio = []
+        for start in range(0, batch.size, cfg.minibatch_size):
+            mb = perm[start : start + cfg.minibatch_size]
+            chains, actions = batch.minibatch(mb)
+            loss, pg_loss, v_loss, entropy, log_ratio = loss_fn(
+                learner.policy,
+                chains,
+                actions,
+                old_log_prob[mb],
+                batch.advantages[mb],
+                batch.returns[mb],
+                clip_range[mb],
+                None if weight is None else weight[mb],
+                cfg.vf_coef,
+                cfg.ent_coef,
+            )
+            flat.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(flat.theta, cfg.max_grad_norm)
+            optimizer.step()
+            # Statistics are reduced once per update, not per minibatch.
+            mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
+            mb_index.append(mb)
+            epoch_log_ratio.append(log_ratio.detach())
+        mb_log_ratio += epoch_log_ratio
+        if rule.stop_after_epoch(epoch_log_ratio):
+            break
+    index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
+    stats = PerDimensionStats(batch.max_joints)
+    stats.add(batch.num_joints[index], log_ratio, rule.clipped(log_ratio.exp(), clip_range[index]), cfg.clip_eps)
+    pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
+    return UpdateStats(pg_loss, v_loss, entropy, stats, epochs)
+
+
+@torch.no_grad()
+def proximal_log_probs(policy: GraphActorCritic, batch: RolloutBatch, chunk: int = 1024) -> torch.Tensor:
+    """[N] log-probability of each sample's action under ``policy`` as it is now (the proximal policy)."""
+    out = []
+    for start in range(0, batch.size, chunk):
+        chains, actions = batch.minibatch(torch.arange(start, min(start + chunk, batch.size)))
+        out.append(policy.log_prob(chains, actions))
+    return torch.cat(out) if out else torch.zeros(0)
+
+
+def with_proximal(policy: GraphActorCritic, batch: RolloutBatch) -> RolloutBatch:
+    """``batch`` with its proximal log-probs computed by ``policy``: call it as the update starts."""
+    return dataclasses.replace(batch, proximal_log_prob=proximal_log_probs(policy, batch))
