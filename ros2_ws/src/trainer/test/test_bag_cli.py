@@ -1,0 +1,247 @@
+"""``morph-bag`` on real bags: a swimmer and a real policy stepped in lockstep in this process, every
+message serialized with the Jazzy type store and written by rosbags (MCAP and sqlite3), then read back
+through trainer.bag_io. The export must equal the transitions of the records that were written."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.records import (
+    EffortRecord,
+    EpisodeStartRecord,
+    JointStateRecord,
+    OdometryRecord,
+    PolicyInfoRecord,
+)
+from morph_core.msgs.stamps import answer_tag, from_ns
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.loopback import LoopbackRecording, MeanController, SamplingController
+from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
+from morph_core.protocol.transitions import assemble
+from trainer.bag_cli import main
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+T = TS.types
+NS = "/swimmer"
+TOPICS = {
+    "episode_start": "std_msgs/msg/Header",
+    "joint_states": "sensor_msgs/msg/JointState",
+    "odom": "nav_msgs/msg/Odometry",
+    "effort_commands": "std_msgs/msg/Float64MultiArray",
+    "policy_info": "trajectory_msgs/msg/JointTrajectory",
+}
+
+
+@pytest.fixture(scope="module")
+def policy():
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    return GraphActorCritic().eval()
+
+
+def loop_records(controller, episodes, seed=0):
+    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
+    for i, (n, steps) in enumerate(episodes):
+        if i:
+            loop.new_episode(n)
+        loop.run(steps)
+    loop.finish()
+    return loop.records
+
+
+# -- records as the nodes' messages --------------------------------------------------------------
+def _time(ns):
+    sec, nanosec = from_ns(ns)
+    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+
+
+def _header(ns, frame_id=""):
+    return T["std_msgs/msg/Header"](stamp=_time(ns), frame_id=frame_id)
+
+
+def _vector(x=0.0, y=0.0, z=0.0):
+    return T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+
+def message(r):
+    """(topic, message) a node publishes for a record."""
+    if isinstance(r, JointStateRecord):
+        msg = T["sensor_msgs/msg/JointState"](
+            header=_header(r.stamp_ns), name=list(r.names), position=r.position, velocity=r.velocity, effort=r.effort
+        )
+        return "joint_states", msg
+    if isinstance(r, OdometryRecord):
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](*r.orientation_xyzw),
+        )
+        twist = T["geometry_msgs/msg/Twist"](linear=_vector(*r.body_linear_xy), angular=_vector(z=r.angular_z))
+        msg = T["nav_msgs/msg/Odometry"](
+            header=_header(r.stamp_ns, "odom"),
+            child_frame_id="torso",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+        return "odom", msg
+    if isinstance(r, EffortRecord):
+        n = r.effort.size
+        dims = (
+            []
+            if r.answers_ns is None
+            else [T["std_msgs/msg/MultiArrayDimension"](label=answer_tag(*from_ns(r.answers_ns)), size=n, stride=n)]
+        )
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+        return "effort_commands", T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
+    if isinstance(r, PolicyInfoRecord):
+        point = T["trajectory_msgs/msg/JointTrajectoryPoint"](
+            positions=r.action,
+            velocities=r.mean,
+            accelerations=r.log_std,
+            effort=r.log_prob_per_joint,
+            time_from_start=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        )
+        msg = T["trajectory_msgs/msg/JointTrajectory"](
+            header=_header(r.stamp_ns), joint_names=list(r.names), points=[point]
+        )
+        return "policy_info", msg
+    if isinstance(r, EpisodeStartRecord):
+        return "episode_start", _header(r.stamp_ns, f"episode={r.episode} num_joints={r.num_joints}")
+    raise TypeError(r)
+
+
+def write_bag(path, records, storage="mcap", with_clock=True):
+    """A bag as rosbag2 would record the nodes (plus /clock, which the reader skips)."""
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        conns = {name: w.add_connection(f"{NS}/{name}", ty, typestore=TS) for name, ty in TOPICS.items()}
+        clock = w.add_connection("/clock", "rosgraph_msgs/msg/Clock", typestore=TS)
+        for r in records:
+            name, msg = message(r)
+            if with_clock and name == "joint_states":
+                tick = T["rosgraph_msgs/msg/Clock"](clock=_time(r.stamp_ns))
+                w.write(clock, r.log_ns - 1, TS.serialize_cdr(tick, "rosgraph_msgs/msg/Clock"))
+            w.write(conns[name], r.log_ns, TS.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+@pytest.fixture(scope="module")
+def sampled_records(policy):
+    return loop_records(SamplingController(policy, seed=1), ((3, 20), (6, 15)))
+
+
+# -- export --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_export_equals_the_transitions_of_the_recorded_messages(tmp_path, sampled_records, storage, capsys):
+    bag = write_bag(tmp_path / "run", sampled_records, storage)
+    out = tmp_path / "transitions.npz"
+    assert main(["export", str(bag), "--out", str(out), "--require-policy-info"]) == 0
+    text = capsys.readouterr().out
+    assert "wrote 35 steps (2 episodes, chains of 3..6 joints, 35 with policy_info)" in text
+
+    expected = assemble(sampled_records).batch
+    with np.load(out) as data:
+        assert tuple(data.files) == EXPORT_KEYS
+    got = TransitionBatch.from_npz(out)
+    for k, v in expected.arrays().items():
+        np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
+    assert np.bincount(got.episode).tolist() == [20, 15] and got.ppo_ready
+
+
+def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, policy):
+    other = loop_records(SamplingController(policy, seed=2), ((4, 12),), seed=5)
+    a = write_bag(tmp_path / "a", sampled_records)
+    b = write_bag(tmp_path / "b", other, "sqlite3")
+    out = tmp_path / "both.npz"
+    assert main(["export", str(a), str(b), "--out", str(out)]) == 0
+    got = TransitionBatch.from_npz(out)
+    expected = TransitionBatch.concatenate([assemble(sampled_records).batch, assemble(other).batch])
+    for k, v in expected.arrays().items():
+        np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
+    assert got.num_episodes == 3
+
+
+def test_without_policy_info_export_says_so_and_can_refuse(tmp_path, policy, capsys):
+    records = loop_records(MeanController(policy), ((3, 10),))
+    bag = write_bag(tmp_path / "deterministic", records)
+    out = tmp_path / "t.npz"
+    assert main(["export", str(bag), "--out", str(out), "--require-policy-info"]) == 1
+    assert "10 of 10 steps have no policy_info" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["export", str(bag), "--out", str(out)]) == 0
+    assert "usable for PPO: 0 (10 without policy_info" in capsys.readouterr().out
+    got = TransitionBatch.from_npz(out)
+    assert len(got) == 10 and not got.has_policy_info.any() and np.isnan(got.log_prob).all()
+
+
+# -- info ----------------------------------------------------------------------------------------
+def test_info_counts_topics_episodes_chains_and_skips(tmp_path, sampled_records, capsys):
+    # spoil two things: an odometry dropped (two steps lost) and an effort for a stamp that never was
+    states = [r.stamp_ns for r in sampled_records if isinstance(r, JointStateRecord)]
+    records = [r for r in sampled_records if not (isinstance(r, OdometryRecord) and r.stamp_ns == states[5])]
+    stray = EffortRecord(records[40].log_ns, states[7] + 1, np.zeros(3))
+    records = records[:40] + [stray] + records[40:]
+    records = [dataclasses.replace(r, log_ns=i * 1000 + 1000) for i, r in enumerate(records)]
+    bag = write_bag(tmp_path / "spoiled", records)
+
+    assert main(["info", str(bag), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    info = doc["bags"][0]
+    assert info == doc["total"]
+    topics = {t["topic"]: t["messages"] for t in info["topics"]}
+    count = {kind: sum(isinstance(r, kind) for r in records) for kind in (JointStateRecord, OdometryRecord)}
+    assert topics[f"{NS}/joint_states"] == count[JointStateRecord] == topics["/clock"] == 37
+    assert topics[f"{NS}/odom"] == count[OdometryRecord] == 36
+    assert topics[f"{NS}/effort_commands"] == 38 and topics[f"{NS}/policy_info"] == 37
+    assert topics[f"{NS}/episode_start"] == 2
+    assert info["episodes"] == 3 and info["boundaries"] == {"announced": 1, "new_chain": 0, "stamp_gap": 0}
+    assert info["steps"] == info["steps_usable_for_ppo"] == 33
+    assert info["steps_per_chain"] == {"3": 18, "6": 15}
+    assert info["skipped_steps"]["no_odometry"] == 2 and sum(info["skipped_steps"].values()) == 2
+    assert info["unused_messages"]["orphan_effort"] == 1 and sum(info["unused_messages"].values()) == 1
+
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    assert "skipped steps: no_odometry 2" in text and "unused messages: orphan_effort 1" in text
+    assert "steps: 33 (3 joints: 18, 6 joints: 15)" in text and "usable for PPO: 33" in text
+
+
+def test_options_reach_the_assembly(tmp_path, sampled_records, capsys):
+    bag = write_bag(tmp_path / "run", sampled_records)
+    # a control period the stamps do not have: every pair is a gap, no steps
+    assert main(["info", str(bag), "--json", "--control-period", "0.05"]) == 0
+    info = json.loads(capsys.readouterr().out)["total"]
+    assert info["steps"] == 0 and info["boundaries"]["stamp_gap"] == 37 - 1 - 1  # 37 states, 1 announced
+    assert main(["export", str(bag), "--out", str(tmp_path / "x.npz"), "--control-period", "0.05"]) == 1
+    assert "no usable steps" in capsys.readouterr().err
+    assert main(["info", str(bag), "--settle-states", "-1"]) == 1
+    assert ">= 0" in capsys.readouterr().err
+
+
+def test_bad_bags_give_clear_errors(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "nothing")]) == 1
+    assert "no such file or directory" in capsys.readouterr().err
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "x.txt").write_text("hello")
+    assert main(["info", str(tmp_path / "junk")]) == 1
+    assert "not a rosbag2 bag" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["export", str(tmp_path / "junk")])  # --out missing: argparse usage error
+
+
+def test_runs_as_a_module(tmp_path, sampled_records):
+    bag = write_bag(tmp_path / "run", sampled_records)
+    done = subprocess.run(
+        [sys.executable, "-m", "trainer.bag_cli", "info", str(bag)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"{NS}/joint_states" in done.stdout and "usable for PPO: 35" in done.stdout
