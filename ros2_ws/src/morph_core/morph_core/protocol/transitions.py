@@ -13,11 +13,16 @@ next state s' one control period later:
   does (``msgs.joint_state.global_features``, yaw unwrapped along the stream,
   unwrapping restarted at each announced episode and each new chain);
 - action: the sampled action of the ``policy_info`` stamped s (the behaviour
-  log-prob comes with it), else the effort command answering s;
+  log-prob comes with it), else the effort command answering s (then
+  ``has_policy_info`` is False and the log-prob NaN: PPO cannot use the
+  step); either way clip(action) must be the effort the sim reports as
+  applied over the period (s'.effort), or the step is skipped;
 - reward: Swimmer-v5's, from the torso x of s and s' (their odometry), the
   control period, and that action (the env is charged for the unclipped
   sample; the sim applies its clip);
-- terminated: never (the swimmer task has no terminal states);
+- terminated: never (the swimmer task has no terminal states; the one the
+  env has, a physics divergence, leaves no next state on the wire: the sim
+  resets and announces a new episode, so that step is not there to keep);
   truncated: on the last transition before an episode boundary, a skipped
   step or the end of the stream, with s' kept as ``next_*`` for the
   bootstrap ``gamma * V(s')``.
