@@ -1,0 +1,170 @@
+"""The one PPO update on hand-made batches: clip statistics, losses and gradients against hand-computed
+values for each rule, and the decoupled objective for off-policy data."""
+
+import copy
+import math
+
+import pytest
+import torch
+
+from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update, with_proximal
+from morph_core.policy.actor_critic import GraphActorCritic
+
+EPS = 0.1
+
+
+def _policy(seed=0):
+    torch.manual_seed(seed)
+    return GraphActorCritic()
+
+
+def _batch(policy, num_joints, ratios, advantages, seed=0):
+    """Samples whose ratio pi_theta / pi_behav is ``ratios`` for the policy as it is (behaviour log-probs
+    set from the policy's own), joint states and actions random, zero beyond each chain."""
+    gen = torch.Generator().manual_seed(seed)
+    n = torch.tensor(num_joints)
+    j = int(n.max())
+    mask = torch.arange(j) < n.unsqueeze(1)
+    fields = dict(
+        num_joints=n,
+        joint_pos=torch.randn(len(n), j, generator=gen) * mask,
+        joint_vel=torch.randn(len(n), j, generator=gen) * mask,
+        global_feats=torch.randn(len(n), 4, generator=gen),
+        actions=0.3 * torch.randn(len(n), j, generator=gen) * mask,
+        log_prob=torch.zeros(len(n)),
+        values=torch.zeros(len(n)),
+        advantages=torch.tensor(advantages),
+        returns=torch.zeros(len(n)),
+    )
+    current = proximal_log_probs(policy, RolloutBatch(**fields))
+    fields["log_prob"] = current - torch.tensor(ratios).log()
+    return RolloutBatch(**fields)
+
+
+def _config(rule, **kw):
+    base = dict(rule=rule, clip_eps=EPS, update_epochs=1, minibatch_size=4096, vf_coef=0.0, ent_coef=0.0,
+                max_grad_norm=1e9)  # fmt: skip
+    return UpdateConfig(**{**base, **kw})
+
+
+def _normalised(a):
+    a = torch.tensor(a, dtype=torch.float64)
+    return ((a - a.mean()) / a.std()).tolist()
+
+
+def _reference_gradient(policy, batch, old_log_prob, live, coef):
+    """Gradient of -(1/B) sum_{i in live} coef_i * r_i(theta) (the samples whose clip does not bind)."""
+    ref = copy.deepcopy(policy)
+    chains, actions = batch.minibatch(torch.arange(batch.size))
+    ratio = (ref.log_prob(chains, actions) - old_log_prob).exp()
+    loss = -sum(coef[i] * ratio[i] for i in live) / batch.size
+    loss.backward()
+    return torch.cat([(torch.zeros_like(p) if p.grad is None else p.grad).flatten() for p in ref.parameters()])
+
+
+# Chains of 1 and 4 joints. eps = 0.1: fixed clips every sample at 1 +- 0.1; compensated widens the
+# 4-joint samples to 1 +- 0.2, so r = 1.15 is clipped at d = 1 by both rules and at d = 4 by fixed only.
+NUM_JOINTS = [1, 1, 4, 4]
+RATIOS = [1.05, 1.15, 1.15, 1.05]
+ADVANTAGES = [-1.0, 1.0, 2.0, 0.0]  # normalised: [-, +, +, -], so the clip binds where r > 1 + eps_i
+CASES = {
+    # rule: (ratio each sample's surrogate is taken at, samples whose clip binds, clip fraction d1, d4)
+    "fixed": ([1.05, 1.1, 1.1, 1.05], {1, 2}, 0.5, 0.5),
+    "compensated": ([1.05, 1.1, 1.15, 1.05], {1}, 0.5, 0.0),
+}
+
+
+@pytest.mark.parametrize("rule", list(CASES))
+def test_update_clips_each_sample_at_its_rule_and_logs_it_per_dimension(rule):
+    surrogate_ratio, binding, frac_d1, frac_d4 = CASES[rule]
+    policy = _policy()
+    batch = _batch(policy, NUM_JOINTS, RATIOS, ADVANTAGES)
+    adv = _normalised(ADVANTAGES)
+    expected_grad = _reference_gradient(policy, batch, batch.log_prob, [i for i in range(4) if i not in binding], adv)
+    learner = Learner.create(policy, learning_rate=1e-3, adam_eps=1e-5, compile=False)
+    stats = update(learner, batch, _config(rule), torch.Generator().manual_seed(0))
+
+    assert stats.epochs == 1
+    row = stats.row(range(1, 5))
+    assert row["clip_frac_d1"] == frac_d1 and row["clip_frac_d4"] == frac_d4
+    assert row["clip_frac"] == (frac_d1 + frac_d4) / 2
+    assert "clip_frac_d2" not in row  # no sample of that dimension
+    # |log 1.05| <= eps < |log 1.15| whatever the rule: the theory's in-eps fraction uses the base eps
+    assert row["in_eps_frac_d1"] == row["in_eps_frac_d4"] == 0.5
+    for d, r in ((1, RATIOS[:2]), (4, RATIOS[2:])):
+        assert row[f"logr_mean_d{d}"] == pytest.approx(sum(math.log(x) for x in r) / 2, abs=1e-5)
+    expected_loss = -sum(s * a for s, a in zip(surrogate_ratio, adv, strict=True)) / 4
+    assert stats.policy_loss == pytest.approx(expected_loss, abs=1e-5)
+    # The gradient comes from the samples whose clip does not bind, and only from them.
+    torch.testing.assert_close(learner.params.grad, expected_grad, atol=1e-6, rtol=1e-4)
+    assert expected_grad.abs().max() > 0
+
+
+def test_update_with_proximal_equal_to_behaviour_is_plain_ppo_bit_for_bit():
+    policy = _policy()
+    batch = _batch(policy, NUM_JOINTS, RATIOS, ADVANTAGES)
+    same = RolloutBatch(**{**batch.__dict__, "proximal_log_prob": batch.log_prob.clone()})
+    results = []
+    for b in (batch, same):
+        learner = Learner.create(copy.deepcopy(policy), learning_rate=1e-2, adam_eps=1e-5, compile=False)
+        stats = update(learner, b, _config("compensated", update_epochs=3, minibatch_size=2), torch.Generator())
+        results.append((learner.params.theta.detach(), stats.policy_loss, stats.per_dim.kl))
+    assert torch.equal(results[0][0], results[1][0])
+    assert results[0][1] == results[1][1] and torch.equal(results[0][2], results[1][2])
+
+
+@pytest.mark.parametrize("cap", [1.0, 3.0])
+def test_decoupled_objective_clips_against_the_proximal_policy_and_weights_stale_samples(cap):
+    # Sample 0 (2 joints) is stale: the behaviour policy liked its action more than the proximal one,
+    # pi_prox / pi_behav = 1 / 1.3, and theta has moved away from pi_prox: pi_theta / pi_prox = 1.3.
+    # Sample 1 (3 joints): pi_theta = pi_prox, but pi_prox / pi_behav = 2.
+    policy = _policy(1)
+    batch = _batch(policy, [2, 3], [1.0, 2.0], [1.0, -1.0])
+    current = proximal_log_probs(policy, batch)
+    prox = current - torch.tensor([math.log(1.3), 0.0])
+    batch = RolloutBatch(**{**batch.__dict__, "proximal_log_prob": prox})
+    weight = [1 / 1.3, min(2.0, cap)]  # min(pi_prox / pi_behav, c): the stale sample counts less
+    adv = _normalised([1.0, -1.0])  # [+0.707, -0.707]
+    # Against pi_prox, sample 0 (r = 1.3 > 1.1, A > 0) is clipped and sample 1 (r = 1) is not; against
+    # pi_behav it would be the other way round (r = 1 and r = 2).
+    expected_grad = _reference_gradient(policy, batch, prox, [1], [w * a for w, a in zip(weight, adv, strict=True)])
+    learner = Learner.create(policy, learning_rate=1e-3, adam_eps=1e-5, compile=False)
+    stats = update(learner, batch, _config("fixed", proximal_weight_cap=cap), torch.Generator())
+    row = stats.row([2, 3])
+    assert row["clip_frac_d2"] == 1.0 and row["clip_frac_d3"] == 0.0
+    assert row["logr_mean_d2"] == pytest.approx(math.log(1.3), abs=1e-5)  # the log ratio is against pi_prox
+    assert stats.policy_loss == pytest.approx(-(weight[0] * 1.1 * adv[0] + weight[1] * 1.0 * adv[1]) / 2, abs=1e-5)
+    torch.testing.assert_close(learner.params.grad, expected_grad, atol=1e-6, rtol=1e-4)
+
+
+def test_proximal_log_probs_are_the_current_policys_in_chunks():
+    policy = _policy()
+    batch = _batch(policy, [3, 1, 5, 2, 4], [1.0] * 5, [0.0] * 5)
+    got = with_proximal(policy, batch).proximal_log_prob
+    for i in range(batch.size):  # one sample at a time, its own padding width
+        chains, actions = batch.minibatch(torch.tensor([i]))
+        torch.testing.assert_close(got[i], policy.log_prob(chains, actions)[0])
+    torch.testing.assert_close(proximal_log_probs(policy, batch, chunk=2), got)
+
+
+def test_minibatches_are_cut_to_their_longest_chain():
+    batch = _batch(_policy(), [3, 1, 5, 2], [1.0] * 4, [0.0] * 4)
+    chains, actions = batch.minibatch(torch.tensor([1, 3]))
+    assert chains.max_joints == 2 and actions.shape == (2, 2)
+    torch.testing.assert_close(actions, batch.actions[[1, 3], :2])
+
+
+def test_bad_batches_are_refused_with_the_field_named():
+    good = _batch(_policy(), [2, 3], [1.0, 1.0], [0.0, 0.0]).__dict__
+    actions = good["actions"].clone()
+    actions[0, 2] = 0.5  # beyond the 2-joint chain's end
+    with pytest.raises(ValueError, match="actions is not zero beyond"):
+        RolloutBatch(**{**good, "actions": actions})
+    with pytest.raises(ValueError, match=r"advantages must be \[2\]"):
+        RolloutBatch(**{**good, "advantages": torch.zeros(3)})
+    with pytest.raises(ValueError, match="returns holds NaN"):
+        RolloutBatch(**{**good, "returns": torch.tensor([0.0, math.nan])})
+    with pytest.raises(ValueError, match="num_joints must be in 1..3"):
+        RolloutBatch(**{**good, "num_joints": torch.tensor([0, 3])})
+    with pytest.raises(ValueError, match="unknown trust-region rule"):
+        _config("adaptive")
