@@ -1,6 +1,12 @@
-"""Pick the best evaluated run's final policy and write it where the policy node loads it by default.
+"""Pick the best evaluated checkpoint of training runs and write it, with its provenance, to ``--dest``.
 
-    python -m trainer.ship --run runs/compensated-s* [--dest PATH.safetensors]
+    python -m trainer.ship --run runs/compensated-s* \
+        --dest ros2_ws/src/morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors
+
+The destination is always given: the path above is where the policy node
+loads its default model from (its own package's ``models/``), but which file
+a trainer overwrites is the caller's decision, not a path this package
+derives from where its source happens to sit.
 
 "Best" is the evaluated checkpoint (any run, any step in its eval.csv) with
 the highest mean deterministic return over the training chain lengths; the
@@ -19,22 +25,13 @@ import numpy as np
 
 from morph_core.algo.train import TrainConfig
 from morph_core.policy.actor_critic import GraphActorCritic
-from trainer.plots import eval_means, load_runs
-
-DEFAULT_DEST = (
-    Path(__file__).resolve().parents[2]
-    / "morph_policy_node"
-    / "morph_policy_node"
-    / "models"
-    / "swimmer_gnn.safetensors"
-)
+from trainer.runs import eval_means, load_run
 
 
 def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
     """{global_step: {num_joints: mean return}} of every evaluated checkpoint of a run."""
-    runs = [r for group in load_runs([run_dir]).values() for r in group]
     by_step: dict[int, dict[int, float]] = {}
-    for n, steps in eval_means(runs[0]).items():
+    for n, steps in eval_means(load_run(run_dir)).items():
         for step, ret in steps.items():
             by_step.setdefault(step, {})[n] = ret
     if not by_step:
@@ -44,7 +41,8 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
 
 def training_command(cfg: dict, run_name: str) -> str:
     """The morph-train command of a run: clip mode, seed, and every option that differs from the defaults."""
-    given, defaults = _flat(cfg), _flat(TrainConfig().to_dict())
+    # Through TrainConfig, so keys older configs carry that are no options any more (policy.backend) drop out.
+    given, defaults = _flat(TrainConfig.from_dict(cfg).to_dict()), _flat(TrainConfig().to_dict())
     cosmetic = {"tensorboard", "progress_bar", "clip_mode", "seed"}
     changed = {k: v for k, v in given.items() if k not in cosmetic and v != defaults.get(k)}
     flags = [f"--{k.replace('_', '-')} {_text(v)}" for k, v in changed.items()]
@@ -67,7 +65,9 @@ def _text(value) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m trainer.ship", description=__doc__)
     parser.add_argument("--run", type=Path, nargs="+", required=True)
-    parser.add_argument("--dest", type=Path, default=DEFAULT_DEST)
+    parser.add_argument(
+        "--dest", type=Path, required=True, help="where to write the policy (.safetensors, with its .json beside it)"
+    )
     args = parser.parse_args(argv)
     scored = []
     for run in args.run:

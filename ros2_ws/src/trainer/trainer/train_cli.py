@@ -1,4 +1,4 @@
-"""``morph-train``: PPO on swimmers of mixed chain lengths, fixed or compensated clipping.
+"""``morph-train``: PPO on swimmers of mixed chain lengths, under a trust-region rule of the table.
 
 Every TrainConfig field is an option (``--clip-mode``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...). ``--resume`` continues the run in ``--out``
@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from morph_core.algo.train import TrainConfig, load_run_config, train
+from morph_core.algo.trust_region import RULES
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 
 
@@ -21,7 +22,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    add_dataclass_options(parser, TrainConfig)
+    # The rule's choices and their help come from the table of trust-region rules.
+    rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
+    parser.add_argument(
+        "--clip-mode",
+        dest="clip_mode",
+        choices=list(RULES),
+        default=None,
+        help=f"trust-region rule ({rules}) (default: {TrainConfig.clip_mode})",
+    )
+    add_dataclass_options(parser, TrainConfig, skip=("clip_mode",))
     return parser
 
 

@@ -1,0 +1,103 @@
+"""Run directories as data, and the table of trust-region rules reaching the CLI, the plots and the
+summary: a rule registered in the table (here a temporary one) shows up everywhere without another edit."""
+
+import csv
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from morph_core.algo.train import TrainConfig, log_columns
+from morph_core.algo.trust_region import ClippedRatio, register, unregister
+from trainer import plots, summary, train_cli
+from trainer.runs import load_run, load_runs, series, smooth
+
+TEST_RULE = "eighth-root"
+
+
+class EighthRootClip(ClippedRatio):
+    name = TEST_RULE
+    help = "clip r to 1 +- eps * d^(1/8) (exists only in this test)"
+
+    def clip_scale(self, dim):
+        return dim**0.125
+
+
+@pytest.fixture
+def eighth_root():
+    rule = register(EighthRootClip())
+    yield rule
+    unregister(rule.name)
+
+
+def write_run(run_dir, rule, seed, steps=(6144, 12288, 18432)):
+    """A run directory as morph-train and morph-eval leave it, with made-up numbers."""
+    cfg = TrainConfig(clip_mode=rule, seed=seed, total_timesteps=steps[-1], min_joints=2, max_joints=3)
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
+    columns = log_columns(cfg)
+    with (run_dir / "progress.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, columns)
+        w.writeheader()
+        for k, step in enumerate(steps):
+            w.writerow({c: 0.1 * (k + 1) for c in columns} | {"global_step": step, "return_mean": 150 * k})
+    with (run_dir / "eval.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, ["global_step", "num_joints", "episode", "return"])
+        w.writeheader()
+        for step in steps:
+            for n in (2, 3, 5):
+                w.writerows({"global_step": step, "num_joints": n, "episode": e, "return": step / 1000 + n + e}
+                            for e in range(2))  # fmt: skip
+    return run_dir
+
+
+def test_series_and_smoothing_of_progress_rows():
+    rows = [{"global_step": "1", "x": "1.0"}, {"global_step": "2", "x": ""}, {"global_step": "3", "x": "3.0"}]
+    steps, y = series(rows, "x")
+    assert steps.tolist() == [1, 2, 3] and y[0] == 1.0 and math.isnan(y[1])
+    assert smooth(y, 2).tolist() == [1.0, 1.0, 3.0]  # trailing mean of the finite values in the window
+    assert math.isnan(series(rows, "absent")[1][0])
+
+
+def test_a_run_of_a_rule_the_table_does_not_know_is_an_error(tmp_path):
+    run = write_run(tmp_path / "r", "fixed", 1)
+    cfg = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**cfg, "clip_mode": "adaptive"}))
+    with pytest.raises(ValueError, match="'adaptive' is not a rule"):
+        load_run(run)
+    with pytest.raises(ValueError, match="not a training run"):
+        load_run(tmp_path / "nowhere")
+
+
+def test_a_registered_rule_reaches_the_cli_the_plots_and_the_summary(tmp_path, eighth_root, capsys):
+    parser = train_cli.build_parser()
+    args = parser.parse_args(["--out", "x", "--clip-mode", TEST_RULE])
+    assert args.clip_mode == TEST_RULE and TEST_RULE in parser.format_help()
+
+    runs = [write_run(tmp_path / f"{rule}-s{s}", rule, s) for rule in (TEST_RULE, "fixed") for s in (1, 2)]
+    groups = load_runs(runs)
+    assert list(groups) == ["fixed", TEST_RULE]  # the table's order, only rules with runs
+    assert [r.dir.name for r in groups[TEST_RULE]] == [f"{TEST_RULE}-s1", f"{TEST_RULE}-s2"]
+
+    written = plots.plot_all(runs, tmp_path / "fig")
+    for name in ("training_returns.png", "clip_fraction_per_dim.png", "eval_return_per_length.png"):
+        assert (tmp_path / "fig" / name) in written
+    table = (tmp_path / "fig" / "final_eval_table.md").read_text()
+    assert table.splitlines()[0] == f"| joints | fixed (2 seeds) | {TEST_RULE} (2 seeds) |"
+    # last checkpoint 18432: returns 18.432 + n + {0, 1}, mean over episodes 18.932 + n, same for both seeds
+    assert f"| 5 | {18.932 + 5:.1f} ± 0.0 | {18.932 + 5:.1f} ± 0.0 |" in table
+
+    summary.main(["--run", *map(str, runs)])
+    out = capsys.readouterr().out
+    assert f"clip fraction per dimension, {TEST_RULE} (2 runs): 2:0.20 3:0.20" in out
+    assert f"| {TEST_RULE}-s1 | 18k | never | 150 |" in out  # trailing means 0, 75, 150
+
+
+def test_ship_needs_an_explicit_destination(tmp_path):
+    run = write_run(tmp_path / "fixed-s1", "fixed", 1)
+    out = subprocess.run([sys.executable, "-m", "trainer.ship", "--run", str(run)], capture_output=True, text=True)
+    assert out.returncode != 0 and "--dest" in out.stderr
+    assert np.isfinite(float(load_run(run).progress[0]["return_mean"]))

@@ -1,0 +1,94 @@
+"""Training run directories as data: config.json, progress.csv, eval.csv, grouped by trust-region rule.
+
+What the figures (``plots``), the tables (``summary``) and the model picker
+(``ship``) read. Runs are grouped under their ``clip_mode`` in the order of
+``algo.trust_region.RULES``; a run of a rule the table does not know is an
+error, not a run left out.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from morph_core.algo.trust_region import rule_names
+
+
+@dataclass
+class Run:
+    """One run directory's files: its config, progress rows and eval rows (empty without eval.csv)."""
+
+    dir: Path
+    config: dict
+    progress: list[dict] = field(default_factory=list)
+    eval: list[dict] = field(default_factory=list)
+
+    @property
+    def rule(self) -> str:
+        return self.config["clip_mode"]
+
+    @property
+    def trained_lengths(self) -> range:
+        return range(self.config["min_joints"], self.config["max_joints"] + 1)
+
+
+def load_run(run_dir: Path) -> Run:
+    run_dir = Path(run_dir)
+    config_path = run_dir / "config.json"
+    if not config_path.is_file():
+        raise ValueError(f"{run_dir} is not a training run (config.json missing)")
+    config = json.loads(config_path.read_text())
+    if config.get("clip_mode") not in rule_names():
+        raise ValueError(f"{run_dir}: clip_mode {config.get('clip_mode')!r} is not a rule of {rule_names()}")
+    with (run_dir / "progress.csv").open() as f:
+        progress = list(csv.DictReader(f))
+    evals = []
+    if (run_dir / "eval.csv").exists():
+        with (run_dir / "eval.csv").open() as f:
+            evals = list(csv.DictReader(f))
+    return Run(run_dir, config, progress, evals)
+
+
+def load_runs(run_dirs: list[Path]) -> dict[str, list[Run]]:
+    """Runs grouped by trust-region rule, rules in the table's order (only rules with runs appear)."""
+    groups: dict[str, list[Run]] = defaultdict(list)
+    for d in run_dirs:
+        run = load_run(d)
+        groups[run.rule].append(run)
+    return {name: groups[name] for name in rule_names() if groups.get(name)}
+
+
+def float_or_nan(text: str | None) -> float:
+    """A CSV cell as a float; an empty cell (nothing measured) is NaN."""
+    return float(text) if text not in ("", None) else math.nan
+
+
+def series(rows: list[dict], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(global_step, column ``key``) of progress rows, NaN where the cell is empty or absent."""
+    steps = np.array([int(r["global_step"]) for r in rows])
+    return steps, np.array([float_or_nan(r.get(key, "")) for r in rows])
+
+
+def smooth(y: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over the last ``window`` finite values (episodes end only every ~1000 steps)."""
+    out = np.full_like(y, np.nan)
+    for i in range(len(y)):
+        seg = y[max(0, i - window + 1) : i + 1]
+        seg = seg[np.isfinite(seg)]
+        if seg.size:
+            out[i] = seg.mean()
+    return out
+
+
+def eval_means(run: Run) -> dict[int, dict[int, float]]:
+    """{num_joints: {global_step: mean return over episodes}} of one run."""
+    acc: dict[int, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in run.eval:
+        acc[int(r["num_joints"])][int(r["global_step"])].append(float(r["return"]))
+    return {n: {s: float(np.mean(v)) for s, v in by_step.items()} for n, by_step in acc.items()}
