@@ -1,4 +1,6 @@
-"""SwimmerSim: same physics as the env, effort validation and timeout, rebuild in place, monotonic clock."""
+"""SwimmerSim: same physics as the env, effort validation and timeout, rebuild in place, monotonic clock.
+
+Episodes: test_sim_episodes.py."""
 
 import math
 
@@ -59,7 +61,7 @@ def test_effort_timeout_zeroes_the_efforts():
     assert sim.timed_out and sim.applied.tolist() == [0.0, 0.0, 0.0]
 
 
-def test_rebuild_changes_length_resets_efforts_and_keeps_time():
+def test_rebuild_changes_length_resets_efforts_and_the_clock_counts_on():
     sim = SwimmerSim(num_joints=6, effort_timeout=None)
     sim.command([1.0] * 6, now=0)
     for _ in range(10):
@@ -68,11 +70,11 @@ def test_rebuild_changes_length_resets_efforts_and_keeps_time():
     sim.rebuild(20)
     assert sim.num_joints == 20
     assert len(sim.joint_names()) == len(sim.joint_positions) == len(sim.joint_velocities) == 20
-    assert sim.time == t
+    assert sim.time == pytest.approx(t + sim.dt)  # the new chain's first state is the next period's
     assert abs(sim.torso().x) < 0.2  # fresh chain at the origin (reset noise only)
     sim.step(now=0)
     np.testing.assert_array_equal(sim.applied, np.zeros(20))  # the 6-joint command does not carry over
-    assert sim.time > t
+    assert sim.time == pytest.approx(t + 2 * sim.dt)
     with pytest.raises(ValueError, match="1..64"):
         sim.rebuild(0)
     assert sim.num_joints == 20

@@ -3,8 +3,20 @@
 ``SwimmerSim`` owns a ``MorphSwimmerEnv`` (same physics, reset noise and
 frame skip as training) and adds what a robot-facing simulator needs:
 efforts held between commands and validated on arrival, an effort timeout
-(zero effort when commands stop), a chain rebuilt in place, a sim clock that
-never goes backwards, and the torso's pose and twist.
+(zero effort when commands stop), episodes, a chain rebuilt in place, a sim
+clock that never goes backwards, and the torso's pose and twist.
+
+Episodes are the env's: the first begins with ``env.reset(seed=seed)``, every
+later one with ``env.reset()`` (the chain length redrawn from ``num_joints``
+when it is a range, the reset noise drawn from the same generator). So a run
+is replayed exactly by a fresh ``MorphSwimmerEnv(num_joints)`` reset the same
+way at the same boundaries and stepped with the same efforts. An episode
+ends after ``episode_steps`` steps (0: never), on ``reset()``, on
+``rebuild(n)`` (that episode has n joints, as ``env.reset(options=
+{"num_joints": n})``) or when the physics diverges. The clock counts on
+across episodes: every state is one control period after the one before, the
+first state of an episode included (a diverged state, never shown, is
+replaced by the next episode's first).
 
 Effort units are the motors' normalised commands (the env's action, ctrl
 range [-1, 1]; joint torque = 150 x effort). Values outside the range are
@@ -13,6 +25,7 @@ clipped, as MuJoCo would.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -20,6 +33,8 @@ import numpy as np
 
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.protocol.episode_start import EpisodeCause
 
 
 class EffortError(ValueError):
@@ -43,47 +58,103 @@ class TorsoState:
 
 
 class SwimmerSim:
-    """One swimmer of ``num_joints`` joints.
+    """One swimmer; ``num_joints`` an int (a fixed chain) or an inclusive range ``(lo, hi)`` drawn from
+    at every reset.
 
     ``now`` arguments are the caller's clock in seconds (a node passes wall
     time: the effort timeout is about a controller going quiet, not about sim
     time); ``effort_timeout=None`` never times out.
     """
 
-    def __init__(self, num_joints: int = 6, seed: int | None = 0, effort_timeout: float | None = 0.25):
-        self._env = MorphSwimmerEnv(num_joints=check_num_joints(num_joints), observation_mode="graph")
+    def __init__(
+        self,
+        num_joints: int | tuple[int, int] = 6,
+        seed: int | None = 0,
+        effort_timeout: float | None = 0.25,
+        episode_steps: int = 0,
+    ):
+        self._env = MorphSwimmerEnv(num_joints=num_joints, observation_mode="graph")
+        fixed = isinstance(num_joints, numbers.Integral)
+        self._fixed: int | None = self._env.joint_range[0] if fixed else None
         self.effort_timeout = effort_timeout
-        self.time = 0.0
-        """sim time [s]; keeps counting across rebuilds so a /clock never jumps back"""
+        self.episode_steps = check_episode_steps(episode_steps)
+        """steps per episode before the next reset; 0 = episodes end only on request"""
+        self._period_ns = seconds_to_ns(self._env.dt)
+        self._ticks = 0
         self.steps = 0
+        """control steps taken, over all episodes"""
         self.rejected = 0
         """effort commands refused so far"""
         self.timed_out = False
         """whether the last step ran on zero effort because commands had stopped"""
         self.unstable_resets = 0
-        self._seeded = seed
-        self._reset()
+        self.episode = 0
+        """index of the current episode (0 = the first)"""
+        self.episode_step = 0
+        """steps taken in the current episode"""
+        self.episode_cause = EpisodeCause.START
+        """why the current episode began"""
+        self.episode_start_ns = 0
+        """stamp of the current episode's first state"""
+        # The seed goes in once: later resets draw from the same generator, so a run
+        # (seed, sequence of resets and efforts) is reproducible.
+        self._env.reset(seed=seed)
+        self._clear_efforts()
 
-    # -- chain ------------------------------------------------------------------
+    # -- chain and episodes -------------------------------------------------------
     @property
     def num_joints(self) -> int:
         return self._env.num_joints
+
+    @property
+    def joint_range(self) -> tuple[int, int]:
+        """Chain lengths the next reset may draw (lo == hi: a fixed chain)."""
+        return (self._fixed, self._fixed) if self._fixed is not None else self._env.joint_range
 
     @property
     def dt(self) -> float:
         """Control period [s] (0.04: 4 physics steps of 0.01)."""
         return self._env.dt
 
-    def rebuild(self, num_joints: int) -> None:
-        """Replace the chain by one of ``num_joints`` joints, freshly reset; efforts drop to zero."""
-        n = check_num_joints(num_joints)
-        self._env.reset(options={"num_joints": n})
-        self._clear_efforts()
+    @property
+    def time(self) -> float:
+        """Sim time [s] of the current state; keeps counting across episodes so a /clock never jumps back."""
+        return self._ticks * self.dt
 
-    def _reset(self) -> None:
-        # The seed goes in once: later rebuilds draw from the same generator, so a
-        # run (seed, sequence of rebuilds) is reproducible.
-        self._env.reset(seed=self._seeded)
+    @property
+    def stamp_ns(self) -> int:
+        """Sim time of the current state in integer nanoseconds (a whole number of control periods)."""
+        return self._ticks * self._period_ns
+
+    @property
+    def episode_over(self) -> bool:
+        """The episode has run its ``episode_steps``: the next ``advance`` resets."""
+        return 0 < self.episode_steps <= self.episode_step
+
+    def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
+        """Begin a new episode, one control period after the current state: a fresh swimmer (its
+        length redrawn when ``num_joints`` is a range); efforts drop to zero."""
+        if self._fixed is not None:
+            self._env.reset(options={"num_joints": self._fixed})  # draws the same as env.reset() would
+        else:
+            self._env.reset()
+        self._new_episode(cause)
+
+    def rebuild(self, num_joints: int) -> None:
+        """Begin a new episode with a chain of ``num_joints`` joints. A fixed chain keeps that length from
+        now on; with a range, later resets draw from the range again."""
+        n = check_num_joints(num_joints)
+        if self._fixed is not None:
+            self._fixed = n
+        self._env.reset(options={"num_joints": n})
+        self._new_episode(EpisodeCause.REBUILD)
+
+    def _new_episode(self, cause: EpisodeCause) -> None:
+        self._ticks += 1
+        self.episode += 1
+        self.episode_step = 0
+        self.episode_cause = cause
+        self.episode_start_ns = self.stamp_ns
         self._clear_efforts()
 
     def _clear_efforts(self) -> None:
@@ -119,17 +190,29 @@ class SwimmerSim:
     # -- stepping ---------------------------------------------------------------
     def step(self, now: float) -> bool:
         """Advance one control period under the held efforts (zero if stale). Returns False if the
-        physics diverged, in which case the swimmer was reset to a fresh chain of the same length."""
+        physics diverged, in which case a new episode began (``EpisodeCause.DIVERGED``)."""
         self.timed_out = self.commands_stale(now)
         a = np.zeros(self.num_joints) if self.timed_out else self._effort
         _, _, unstable, _, _ = self._env.step(a)
         self.applied = a.copy()
         self.steps += 1
-        self.time = self.steps * self.dt
         if unstable:
+            # MuJoCo has already reset the state on its own; that state is never shown: the
+            # next episode's first state takes its place on the clock.
             self.unstable_resets += 1
-            self.rebuild(self.num_joints)
-        return not unstable
+            self.reset(EpisodeCause.DIVERGED)
+            return False
+        self._ticks += 1
+        self.episode_step += 1
+        return True
+
+    def advance(self, now: float) -> bool:
+        """The next state: one step, or the next episode's first state once this one is over.
+        Returns True when a new episode began."""
+        if self.episode_over:
+            self.reset(EpisodeCause.STEPS)
+            return True
+        return not self.step(now)
 
     # -- state ------------------------------------------------------------------
     def joint_names(self, prefix: str = "") -> list[str]:
@@ -154,3 +237,10 @@ class SwimmerSim:
             vy=float(qvel[1]),
             yaw_rate=float(qvel[2]),
         )
+
+
+def check_episode_steps(n) -> int:
+    """``n`` as an episode length (0 = no limit); ValueError otherwise."""
+    if not isinstance(n, numbers.Integral) or isinstance(n, bool) or n < 0:
+        raise ValueError(f"episode_steps must be an integer >= 0, got {n!r}")
+    return int(n)

@@ -78,6 +78,9 @@ class EpisodeStartRecord:
     stamp_ns: int
     episode: int | None = None
     num_joints: int | None = None
+    cause: str | None = None
+    """why it began, hence how the previous episode ended: "start", "steps" (time limit), "reset",
+    "rebuild" or "diverged" (``protocol.episode_start.EpisodeCause``)"""
 
 
 Record = JointStateRecord | OdometryRecord | EffortRecord | PolicyInfoRecord | EpisodeStartRecord
