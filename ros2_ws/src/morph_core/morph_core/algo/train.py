@@ -158,8 +158,7 @@ class Rollout:
         self.actions, self.log_prob = np.zeros((T, E, J), np.float32), np.zeros((T, E), np.float32)
         self.rewards, self.values = np.zeros((T, E), np.float32), np.zeros((T, E), np.float32)
         self.terminated, self.truncated = np.zeros((T, E), bool), np.zeros((T, E), bool)
-        self.final_values = np.zeros((T, E), np.float32)
-        """V(final observation) where a time limit truncated the episode, zero elsewhere"""
+        self.final_values = np.zeros((T, E), np.float32)  # V(final obs) where a time limit cut the episode
 
     def batch(self, advantages: torch.Tensor, returns: torch.Tensor) -> RolloutBatch:
         def flat(x: np.ndarray) -> torch.Tensor:
