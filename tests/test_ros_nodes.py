@@ -245,7 +245,7 @@ def test_sampling_publishes_policy_info(probe, launch, untrained_checkpoint):
     assert answer.layout.dim[0].label == "joints@42.000000000"  # the answer names the state it answers
     np.testing.assert_allclose(np.clip(info.action, -1, 1), answer.data, atol=1e-12)
     # The log-prob is the Gaussian's, recomputed here from the published mean and log-std.
-    log_std = float(GraphActorCritic.load(untrained_checkpoint).log_std)
+    log_std = float(GraphActorCritic.load(untrained_checkpoint).log_std.detach())
     np.testing.assert_allclose(info.log_std, log_std, atol=1e-7)
     z = (info.action - info.mean) / math.exp(log_std)
     want = float(np.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)))

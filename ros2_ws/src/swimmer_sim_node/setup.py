@@ -14,7 +14,10 @@ setup(
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",
-    description="ROS 2 node: MuJoCo swimmer with a configurable chain, publishing JointState, Odometry and Clock.",
+    description=(
+        "ROS 2 node: MuJoCo swimmer with a configurable chain and episodes, "
+        "publishing JointState, Odometry, Clock and episode announcements."
+    ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": [

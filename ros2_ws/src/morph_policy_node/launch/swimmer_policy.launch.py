@@ -1,6 +1,7 @@
 """Sim + policy on a Jazzy install.
 
 ros2 launch morph_policy_node swimmer_policy.launch.py [num_joints:=10] [lockstep:=true] [real_time_factor:=0.0]
+    [episode_steps:=1000]
 """
 
 import os
@@ -17,18 +18,25 @@ def generate_launch_description():
     num_joints = LaunchConfiguration("num_joints")
     lockstep = LaunchConfiguration("lockstep")
     real_time_factor = LaunchConfiguration("real_time_factor")
+    episode_steps = LaunchConfiguration("episode_steps")
     return LaunchDescription(
         [
             DeclareLaunchArgument("num_joints", default_value="6", description="chain length (1..64)"),
             DeclareLaunchArgument("lockstep", default_value="false", description="deterministic closed loop"),
             DeclareLaunchArgument("real_time_factor", default_value="1.0", description="0 = as fast as possible"),
+            DeclareLaunchArgument("episode_steps", default_value="0", description="steps per episode; 0 = no resets"),
             Node(
                 package="swimmer_sim_node",
                 executable="swimmer_sim_node",
                 name="swimmer_sim",
                 parameters=[
                     params,
-                    {"num_joints": num_joints, "lockstep": lockstep, "real_time_factor": real_time_factor},
+                    {
+                        "num_joints": num_joints,
+                        "lockstep": lockstep,
+                        "real_time_factor": real_time_factor,
+                        "episode_steps": episode_steps,
+                    },
                 ],
                 output="screen",
             ),

@@ -5,7 +5,9 @@ is built from it (joint order = message order, joint 0 next to the torso),
 so any chain length works with no restart and no parameter change. The
 latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
 for how they are turned back into the training features (yaw unwrapped,
-body-frame twist rotated to the world frame). If the odometry for a state's
+body-frame twist rotated to the world frame; the unwrapping restarts with
+each new chain and with each episode announced on ``episode_start``, see
+``morph_core.protocol.episode_tracker``). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
 publishes both at once; a state must not be paired with the previous
 odometry, or a lockstep loop would not be deterministic; the rule is
@@ -38,9 +40,9 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParam
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.msgs.joint_state import (
@@ -54,11 +56,16 @@ from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
+from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.pairing import StatePairing
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
 _LOG_THROTTLE = 5.0
+# Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
+# no publisher can make this reader wait on repairs.
+EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 
 def default_checkpoint() -> str:
@@ -117,6 +124,8 @@ class MorphPolicyNode(Node):
         self._effort_pub = self.create_publisher(Float64MultiArray, "effort_commands", 10)
         self._info_pub = self.create_publisher(JointTrajectory, "policy_info", 10)
         # Sensor-data QoS (best effort, keep last): matches any publisher and never queues stale states.
+        # Announcements first: one ready together with its first state is handled before it.
+        self.create_subscription(Int64MultiArray, "episode_start", self._on_episode_start, EPISODE_QOS)
         self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
@@ -124,6 +133,7 @@ class MorphPolicyNode(Node):
         self.rejected = 0
         self._odom = None  # (quaternion, body linear xy, angular z) of the latest valid odometry
         self._unwrap = YawUnwrapper()
+        self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
         self._names: list[str] = []  # joints of the last chain answered
         self._last_input = time.monotonic()
@@ -174,6 +184,16 @@ class MorphPolicyNode(Node):
         self.rejected += 1
         self.get_logger().warn(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
 
+    def _on_episode_start(self, msg: Int64MultiArray) -> None:
+        label = msg.layout.dim[0].label if msg.layout.dim else ""
+        try:
+            start = unpack_episode_start(0, label, msg.data)
+        except EpisodeStartError as err:
+            self._reject("episode_start", err)
+            return
+        if self._episodes.announced(start.stamp_ns):
+            self._unwrap.reset()  # its first state was answered already: restart from the next one
+
     def _on_odom(self, msg: Odometry) -> None:
         q = msg.pose.pose.orientation
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
@@ -216,9 +236,11 @@ class MorphPolicyNode(Node):
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
         self._silent = False
-        if names != self._names:
+        stamp = msg.header.stamp
+        new_episode = self._episodes.state(to_ns(stamp.sec, stamp.nanosec))
+        if names != self._names or new_episode:
             self._names = names
-            self._unwrap.reset()  # a new robot (or a rebuilt one): its yaw starts afresh
+            self._unwrap.reset()  # a new robot, or a new episode: its yaw starts afresh
         if self._odom is None:
             glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
         else:
@@ -232,7 +254,6 @@ class MorphPolicyNode(Node):
             efforts = np.clip(action[0].numpy(), -1.0, 1.0).astype(np.float64)
         out = Float64MultiArray(data=array.array("d", efforts.tobytes()))
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
-        stamp = msg.header.stamp
         out.layout.dim = [
             MultiArrayDimension(label=answer_tag(stamp.sec, stamp.nanosec), size=len(names), stride=len(names))
         ]
@@ -241,7 +262,7 @@ class MorphPolicyNode(Node):
             self._publish_info(msg, names, action[0], mean[0])
 
     def _publish_info(self, msg: JointState, names: list[str], action: torch.Tensor, mean: torch.Tensor) -> None:
-        fields = pack_policy_info(action.double().numpy(), mean.double().numpy(), float(self.policy.log_std))
+        fields = pack_policy_info(action.double().numpy(), mean.double().numpy(), float(self.policy.log_std.detach()))
         point = JointTrajectoryPoint()
         for field, values in fields.items():
             setattr(point, field, array.array("d", values.tobytes()))

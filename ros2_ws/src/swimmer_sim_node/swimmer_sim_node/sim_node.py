@@ -1,21 +1,59 @@
-"""MuJoCo swimmer as a ROS 2 node: JointState, Odometry and /clock out, efforts in.
+"""MuJoCo swimmer as a ROS 2 node: JointState, Odometry, /clock and episode announcements out, efforts in.
 
-All physics is ``morph_core.env.sim.SwimmerSim``; this node only paces it, converts
-messages and handles parameters.
+All physics and episode logic is ``morph_core.env.sim.SwimmerSim``; this node
+only paces it, converts messages and handles parameters.
 
 Wire conventions
 - ``joint_states`` (sensor_msgs/JointState): joints torso to tail; position
   [rad], velocity [rad/s], effort = the normalised motor command applied over
-  the control period that ended at this state (torque = 150 x effort);
-  stamp = sim time.
+  the control period that ended at this state (torque = 150 x effort; zeros
+  for an episode's first state); stamp = sim time.
 - ``odom`` (nav_msgs/Odometry): frame ``odom`` -> ``<joint_prefix>torso``;
   pose in the world frame (yaw as a quaternion about z); twist in the torso
   (child) frame, as the message defines it.
 - ``/clock`` (rosgraph_msgs/Clock): sim time.
+- ``episode_start`` (std_msgs/Int64MultiArray): one message per episode,
+  published just before the episode's first state; ``layout.dim[0]`` =
+  (label ``"episode,stamp_ns,num_joints,cause"``, size 4, stride 4) and
+  ``data = [episode, stamp_ns, num_joints, cause]``: the episode's index (0
+  first), the stamp of its first ``joint_states`` in ns (sec * 10**9 +
+  nanosec), its chain length, and why it began (0 node start, 1 the previous
+  one ran ``episode_steps``, 2 reset service, 3 ``num_joints`` set, 4 the
+  physics diverged). Layout and decoding: ``morph_core.protocol.episode_start``.
 - ``effort_commands`` (std_msgs/Float64MultiArray): one value per joint in
   ``joint_states`` order, clipped to [-1, 1].
+- ``~/reset`` (std_srvs/Trigger): end the episode now; the next one's first
+  state is published (and announced) at once; the response names it.
 Odometry is published before the joint state of the same stamp, so a
 controller that acts on joint states finds the matching odometry first.
+
+QoS: ``joint_states``, ``odom``, ``/clock``: reliable, volatile, keep last 10
+(any subscriber matches). ``episode_start``: reliable, transient local, keep
+last 1: a recorder or trainer that starts late still gets the current
+episode's announcement (``ros2 bag record`` adopts the publisher's
+durability). ``effort_commands`` is read best effort, keep last 10: it
+matches reliable and best-effort publishers, and no publisher can make this
+reader wait on repairs (a reliable reader can be made to spin on a malformed
+sample). No publisher here blocks: all keep last.
+
+Episodes: each lasts ``episode_steps`` control steps (0 = until a reset is
+asked for). A chain's length is ``num_joints``, or drawn at every reset
+from ``min_joints``..``max_joints`` when those are set (then ``num_joints``
+follows the drawn length; setting it rebuilds the chain at that length for
+one episode). Reset noise and draws come from the sim's generator seeded
+once with ``seed``, so a lockstep recording replays exactly in
+``MorphSwimmerEnv(num_joints=(min_joints, max_joints))`` (or
+``num_joints``): ``reset(seed=seed)``, then ``reset()`` at each announced
+episode, the recorded efforts stepped in between. Sim time counts on across
+resets: an episode's first state is one control period after the previous
+episode's last, so /clock never goes back and episodes are split by the
+announcements (and by the joint names when the length changes). Efforts
+tagged as answering a state of an earlier episode are dropped in every mode
+(counted in ``old_episode_answers``). In lockstep the answer to an episode's
+last state is what lets the sim reset (those efforts are never applied), so
+even an untagged controller stays in step across ``episode_steps`` resets;
+a ``~/reset`` or ``num_joints`` change cuts in at any moment, and an untagged
+answer to the old state still in flight is then taken for the new one.
 
 Pacing (``morph_core.protocol.pacing``): free-running steps track
 ``real_time_factor`` x wall time (0: as fast as possible). With ``lockstep``
@@ -49,14 +87,17 @@ from rcl_interfaces.msg import (
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
+from std_srvs.srv import Trigger
 
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
 from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
-from morph_core.msgs.stamps import from_ns, parse_answer_tag, seconds_to_ns
+from morph_core.msgs.stamps import from_ns, parse_answer_tag
+from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 
@@ -64,6 +105,19 @@ from morph_core.protocol.pacing import RealTimePacer, tick_period
 # serve commands and parameter requests.
 _TICK_BUDGET = 0.02
 _LOG_THROTTLE = 5.0
+_MAX_EPISODE_STEPS = 2**31 - 1
+
+STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+"""joint_states, odom, /clock"""
+EPISODE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""episode_start: latched, so a late subscriber still learns where the current episode began"""
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+"""effort_commands (read): depth 10 so a stale answer queued behind the awaited one cannot push it out"""
 
 
 def _time(ns: int) -> Time:
@@ -76,15 +130,49 @@ def _doubles(values) -> array.array:
     return array.array("d", values.tobytes())
 
 
+def chain_lengths(num_joints: int, min_joints: int, max_joints: int) -> int | tuple[int, int]:
+    """The sim's ``num_joints`` argument from the three parameters: a fixed chain when no range is set
+    (both 0), else the range. Raises ValueError naming the parameters for anything else."""
+    if min_joints == 0 and max_joints == 0:
+        return num_joints
+    if not MIN_JOINTS <= min_joints <= max_joints <= MAX_JOINTS:
+        raise ValueError(
+            f"min_joints and max_joints must both be 0 (a fixed chain of num_joints) or satisfy "
+            f"{MIN_JOINTS} <= min_joints <= max_joints <= {MAX_JOINTS}; got {min_joints} and {max_joints}"
+        )
+    return min_joints, max_joints
+
+
 class SwimmerSimNode(Node):
     def __init__(self):
         super().__init__("swimmer_sim")
+        joints = IntegerRange(from_value=MIN_JOINTS, to_value=MAX_JOINTS, step=1)
         self.declare_parameter(
             "num_joints",
             6,
             ParameterDescriptor(
-                description="actuated joints in the chain; setting it rebuilds the swimmer in place",
-                integer_range=[IntegerRange(from_value=MIN_JOINTS, to_value=MAX_JOINTS, step=1)],
+                description="actuated joints in the chain (with a range set: the current episode's, drawn); "
+                "setting it starts a new episode with that chain",
+                integer_range=[joints],
+            ),
+        )
+        for bound in ("min_joints", "max_joints"):
+            self.declare_parameter(
+                bound,
+                0,
+                ParameterDescriptor(
+                    description="chain lengths drawn at each reset, min_joints..max_joints inclusive; "
+                    "both 0 = a fixed chain of num_joints",
+                    integer_range=[IntegerRange(from_value=0, to_value=MAX_JOINTS, step=1)],
+                    read_only=True,
+                ),
+            )
+        self.declare_parameter(
+            "episode_steps",
+            0,
+            ParameterDescriptor(
+                description="control steps per episode before the sim resets; 0 = only on request",
+                integer_range=[IntegerRange(from_value=0, to_value=_MAX_EPISODE_STEPS, step=1)],
             ),
         )
         self.declare_parameter(
@@ -111,30 +199,44 @@ class SwimmerSimNode(Node):
                 floating_point_range=[FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)],
             ),
         )
-        self.declare_parameter("seed", 0, ParameterDescriptor(description="seed of the reset noise", read_only=True))
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.declare_parameter(
+            "seed", 0, ParameterDescriptor(description="seed of the reset noise and chain draws", read_only=True)
+        )
 
         p = self.get_parameter
         self._prefix = p("joint_prefix").value
         self._rtf = p("real_time_factor").value
         self._lockstep = p("lockstep").value
+        lengths = chain_lengths(p("num_joints").value, p("min_joints").value, p("max_joints").value)
         self.sim = SwimmerSim(
-            num_joints=p("num_joints").value, seed=p("seed").value, effort_timeout=p("effort_timeout").value
+            num_joints=lengths,
+            seed=p("seed").value,
+            effort_timeout=p("effort_timeout").value,
+            episode_steps=p("episode_steps").value,
         )
         self._names = self.sim.joint_names(self._prefix)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
 
-        self._state_pub = self.create_publisher(JointState, "joint_states", 10)
-        self._odom_pub = self.create_publisher(Odometry, "odom", 10)
-        self._clock_pub = self.create_publisher(Clock, "/clock", 10)
-        self.create_subscription(Float64MultiArray, "effort_commands", self._on_efforts, 10)
+        self._state_pub = self.create_publisher(JointState, "joint_states", STATE_QOS)
+        self._odom_pub = self.create_publisher(Odometry, "odom", STATE_QOS)
+        self._clock_pub = self.create_publisher(Clock, "/clock", STATE_QOS)
+        self._episode_pub = self.create_publisher(Int64MultiArray, "episode_start", EPISODE_QOS)
+        self.create_subscription(Float64MultiArray, "effort_commands", self._on_efforts, COMMAND_QOS)
+        self.create_service(Trigger, "~/reset", self._on_reset)
 
         self._pacer = RealTimePacer(self._rtf)
         self._gate = LockstepGate(resend_after=p("effort_timeout").value)
+        self._announced = -1  # the last episode announced
+        self._started = False  # the first state has been published
+        self.old_episode_answers = 0
         self._timer = None
         self._restart_pacing()
+        self._follow_chain()
+        described = f"{lengths[0]}..{lengths[1]} joints" if isinstance(lengths, tuple) else f"{lengths} joints"
         self.get_logger().info(
-            f"swimmer with {self.sim.num_joints} joints, real_time_factor {self._rtf}, lockstep {self._lockstep}"
+            f"swimmer with {described}, episode_steps {self.sim.episode_steps or 'unlimited'}, "
+            f"real_time_factor {self._rtf}, lockstep {self._lockstep}"
         )
 
     # -- parameters -------------------------------------------------------------
@@ -145,6 +247,9 @@ class SwimmerSimNode(Node):
                     return SetParametersResult(
                         successful=False, reason=f"num_joints must be an integer in {MIN_JOINTS}..{MAX_JOINTS}"
                     )
+            elif param.name == "episode_steps":
+                if param.type_ != Parameter.Type.INTEGER or not 0 <= param.value <= _MAX_EPISODE_STEPS:
+                    return SetParametersResult(successful=False, reason="episode_steps must be an integer >= 0")
             elif param.name == "real_time_factor":
                 if param.type_ != Parameter.Type.DOUBLE or not (math.isfinite(param.value) and param.value >= 0):
                     return SetParametersResult(successful=False, reason="real_time_factor must be a finite double >= 0")
@@ -157,11 +262,10 @@ class SwimmerSimNode(Node):
         for param in params:
             if param.name == "num_joints" and param.value != self.sim.num_joints:
                 self.sim.rebuild(param.value)
-                self._names = self.sim.joint_names(self._prefix)
                 self.get_logger().info(f"rebuilt the swimmer with {param.value} joints")
-                if self._lockstep:
-                    self._gate.restart()
-                    self._publish(time.monotonic())  # the new chain asks for its own efforts
+                self._episode_began()
+            elif param.name == "episode_steps":
+                self.sim.episode_steps = param.value
             elif param.name == "joint_prefix":
                 self._prefix = param.value
                 self._names = self.sim.joint_names(self._prefix)
@@ -174,6 +278,37 @@ class SwimmerSimNode(Node):
                 self._restart_pacing()
             elif param.name == "effort_timeout":
                 self.sim.effort_timeout = self._gate.resend_after = param.value
+
+    def _follow_chain(self) -> None:
+        """Keep ``num_joints`` telling the chain's length when it was drawn (no rebuild: it is equal)."""
+        if self.get_parameter("num_joints").value != self.sim.num_joints:
+            self.set_parameters([Parameter("num_joints", value=self.sim.num_joints)])
+
+    # -- episodes ---------------------------------------------------------------
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self.sim.reset(EpisodeCause.RESET)
+        self._episode_began()
+        response.success = True
+        response.message = (
+            f"episode {self.sim.episode}: {self.sim.num_joints} joints, first state at t={self.sim.time:.2f} s"
+        )
+        return response
+
+    def _episode_began(self) -> None:
+        """A reset outside the loop's own stepping: publish the new episode's first state now (in
+        lockstep it asks for its own efforts; an answer pending for the old state goes stale)."""
+        self._gate.restart()
+        self._publish(time.monotonic())
+
+    def _announce(self, stamp_ns: int) -> None:
+        self._announced = self.sim.episode
+        self._names = self.sim.joint_names(self._prefix)
+        label, data = pack_episode_start(self.sim.episode, stamp_ns, self.sim.num_joints, self.sim.episode_cause)
+        msg = Int64MultiArray(data=data)
+        msg.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=len(data))]
+        self._episode_pub.publish(msg)
+        self._follow_chain()
+        self.get_logger().debug(f"episode {self.sim.episode}: {self.sim.num_joints} joints from t={self.sim.time} s")
 
     # -- pacing -----------------------------------------------------------------
     def _restart_pacing(self) -> None:
@@ -201,9 +336,11 @@ class SwimmerSimNode(Node):
                 )
                 self._publish(now)
             return
+        if not self._started:
+            self._publish(now)  # the first episode's first state
         end = now + _TICK_BUDGET
         while self._due(now):
-            self._step(now)
+            self._advance(now)
             self._publish(now)
             now = time.monotonic()
             if now > end:
@@ -211,12 +348,12 @@ class SwimmerSimNode(Node):
 
     def _lockstep_step(self, now: float) -> None:
         if self._due(now):
-            self._step(now)
+            self._advance(now)
             self._gate.stepped()
             self._publish(now)
 
-    def _step(self, now: float) -> None:
-        if not self.sim.step(now):
+    def _advance(self, now: float) -> None:
+        if self.sim.advance(now) and self.sim.episode_cause is EpisodeCause.DIVERGED:
             self.get_logger().error(
                 f"physics diverged; swimmer reset ({self.sim.unstable_resets} so far)",
                 throttle_duration_sec=_LOG_THROTTLE,
@@ -225,11 +362,14 @@ class SwimmerSimNode(Node):
     # -- messages ---------------------------------------------------------------
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
-        if self._lockstep and msg.layout.dim:
-            # An answer to an earlier (re-sent) state: taking it for the current one would
-            # shift the whole loop by a step.
-            if self._gate.is_stale(parse_answer_tag(msg.layout.dim[0].label)):
-                return
+        answers = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
+        if answers is not None and answers < self.sim.episode_start_ns:
+            self.old_episode_answers += 1  # for a swimmer that is gone (maybe of another length)
+            return
+        # In lockstep, an answer to an earlier (re-sent) state: taking it for the current one
+        # would shift the whole loop by a step.
+        if self._lockstep and self._gate.is_stale(answers):
+            return
         try:
             self.sim.command(msg.data, now)
         except EffortError as err:
@@ -241,7 +381,9 @@ class SwimmerSimNode(Node):
             self._lockstep_step(now)
 
     def _publish(self, now: float) -> None:
-        stamp_ns = seconds_to_ns(self.sim.time)
+        stamp_ns = self.sim.stamp_ns
+        if self.sim.episode != self._announced:
+            self._announce(stamp_ns)
         stamp = _time(stamp_ns)
         torso = self.sim.torso()
 
@@ -267,6 +409,7 @@ class SwimmerSimNode(Node):
         state.effort = _doubles(self.sim.applied)
         self._state_pub.publish(state)
 
+        self._started = True
         self._gate.published(stamp_ns, now)
 
 
