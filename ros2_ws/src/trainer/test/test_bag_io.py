@@ -326,6 +326,30 @@ def test_episode_announcement_of_a_custom_type(tmp_path):
     assert not records and stats.rejected == {("episode_start", "no stamp"): 1}
 
 
+def test_the_sims_episode_announcement(tmp_path):
+    """std_msgs/Int64MultiArray with the fields named in layout.dim[0].label (protocol.episode_start)."""
+
+    def announcement(label, data):
+        dim = T["std_msgs/msg/MultiArrayDimension"](label=label, size=len(data), stride=len(data))
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[dim], data_offset=0)
+        return T["std_msgs/msg/Int64MultiArray"](layout=layout, data=np.array(data, dtype=np.int64))
+
+    msgs = [
+        (f"{NS}/episode_start", 1, announcement("episode,stamp_ns,num_joints,cause", [0, 0, 4, 0])),
+        (f"{NS}/episode_start", 2, announcement("episode,stamp_ns,num_joints,cause", [1, 10 * STEP_NS, 6, 1])),
+        (f"{NS}/episode_start", 3, announcement("episode,stamp_ns", [2, 20 * STEP_NS, 7])),  # 2 names, 3 values
+        (f"{NS}/joint_states", 4, joint_state(0)),
+    ]
+    types = {**TYPES, f"{NS}/episode_start": "std_msgs/msg/Int64MultiArray"}
+    records, stats = read_bag(write_with_rosbags(tmp_path / "bag", msgs, types=types))
+    starts = by_type(records, EpisodeStartRecord)
+    assert [(r.stamp_ns, r.episode, r.num_joints, r.cause) for r in starts] == [
+        (0, 0, 4, "start"),
+        (10 * STEP_NS, 1, 6, "steps"),
+    ]
+    assert stats.rejected == {("episode_start", "bad layout"): 1}
+
+
 # -- bad input: clear errors naming the file and the problem ------------------------------------
 def test_bad_paths(tmp_path):
     with pytest.raises(BagError, match="no such file or directory") as e:

@@ -17,7 +17,8 @@ Topics are found relative to a namespace (given, or taken from the one
     odom             nav_msgs/msg/Odometry               -> OdometryRecord
     effort_commands  std_msgs/msg/Float64MultiArray      -> EffortRecord (answers_ns from the answer tag)
     policy_info      trajectory_msgs/msg/JointTrajectory -> PolicyInfoRecord (msgs.policy_info layout)
-    episode_start    any stamped type                    -> EpisodeStartRecord (``episode_start_record``)
+    episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``protocol.episode_start``)
+                     or any stamped type                 -> EpisodeStartRecord (``episode_start_record``)
 
 Other topics (``/clock``, ...) are counted in ``stats.skipped``. A message
 that cannot be decoded is counted in ``stats.rejected`` by (topic, reason),
@@ -85,17 +86,32 @@ _NAME_LISTS = ("name", "joint_names", "names")
 
 
 def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
-    """An episode announcement of any stamped type as a record.
+    """An episode announcement as a record: the sim's layout, or any stamped message.
 
-    The stamp (the first state of the episode) is ``header.stamp`` or a
-    ``stamp`` field (builtin_interfaces/Time). The episode index comes from
-    an integer field ``episode`` / ``episode_index`` / ``index``, the joint
-    count from ``num_joints`` / ``joints`` / ``joint_count`` or the length of
-    a name list (``name``, ``joint_names``); else from ``key=value`` pairs in
-    a string field (``frame_id``, ``header.frame_id`` or ``data``, e.g. a
-    std_msgs/Header with frame_id "episode=3 num_joints=6").
-    Missing values are None. Raises ``DecodeError`` when there is no stamp.
+    The sim's announcement (``std_msgs/Int64MultiArray``, fields named by
+    ``layout.dim[0].label``, e.g. "episode,stamp_ns,num_joints,cause") is
+    decoded by ``morph_core.protocol.episode_start.unpack_episode_start``.
+
+    Any other type needs a stamp (the first state of the episode):
+    ``header.stamp`` or a ``stamp`` field (builtin_interfaces/Time). The
+    episode index comes from an integer field ``episode`` /
+    ``episode_index`` / ``index``, the joint count from ``num_joints`` /
+    ``joints`` / ``joint_count`` or the length of a name list (``name``,
+    ``joint_names``); else from ``key=value`` pairs in a string field
+    (``frame_id``, ``header.frame_id`` or ``data``, e.g. a std_msgs/Header
+    with frame_id "episode=3 num_joints=6"). Missing values are None.
+    Raises ``DecodeError`` when the message does not fit.
     """
+    layout = getattr(msg, "layout", None)
+    if layout is not None and hasattr(msg, "data"):
+        from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
+
+        if not len(layout.dim):
+            raise DecodeError("bad layout", "a multi-array announcement without layout.dim[0] naming its fields")
+        try:
+            return unpack_episode_start(log_ns, layout.dim[0].label, [int(v) for v in msg.data])
+        except EpisodeStartError as err:
+            raise DecodeError("bad layout", str(err)) from None
     stamp = getattr(getattr(msg, "header", None), "stamp", None) or getattr(msg, "stamp", None)
     if stamp is None or not hasattr(stamp, "nanosec"):
         raise DecodeError("no stamp", f"{type(msg).__name__} has neither header.stamp nor stamp")

@@ -4,16 +4,24 @@
 
 Topics (relative names resolve under the node's namespace): ``episode_start``,
 ``joint_states``, ``odom``, ``effort_commands``, ``policy_info`` and
-``/clock`` by default (parameter ``topics``). Each is subscribed once a
-publisher appears, with whatever type the graph says it has; messages are
+``/clock`` by default (parameter ``topics``). Topics of a known type
+(``topic_types``: the project's conventions) are subscribed at once,
+reliable, so a node started after the recorder is recorded from its first
+message (a lockstep loop runs hundreds of steps in the time graph discovery
+takes); any other topic (the episode announcement) is subscribed once a
+publisher appears, with whatever type the graph says it has. Messages are
 written as the serialized CDR bytes received (raw subscriptions, never
-re-serialized), with the reception time (the node's clock) as log time.
+re-serialized), with the reception time (the node's clock) as log time; a
+topic enters the bag at its first message, with the QoS profiles its
+publishers offer then.
 
 Subscription QoS follows the publishers' offers, as rosbag2 does: reliable
 only if every publisher is reliable (a reliable reader gets nothing from a
-best-effort writer), transient-local only if every publisher is (then the
-late-joining recorder still gets what they kept), keep-last with a deep
-queue (``queue_depth``) so a burst is not dropped while a chunk is written.
+best-effort writer: a subscription made in advance is replaced when a
+best-effort publisher appears), transient-local only if every publisher is
+(then the recorder still gets what a latched publisher kept, e.g. the
+current episode's announcement), keep-last with a deep queue
+(``queue_depth``) so a burst is not dropped while a chunk is written.
 
 The bag (``trainer.bag_writer``): metadata.yaml version 9 with each topic's
 offered QoS profiles and type hash, MCAP (default) or sqlite3, split by size
@@ -45,6 +53,15 @@ from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOption
 # sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
 DEFAULT_TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_info", "/clock"]
 EPISODE_TOPIC = "episode_start"
+# The project's own conventions. Not the announcement: it is latched (transient local), and only a
+# subscription made after its publisher is seen can ask for transient local and get the current one.
+KNOWN_TYPES = [
+    "joint_states=sensor_msgs/msg/JointState",
+    "odom=nav_msgs/msg/Odometry",
+    "effort_commands=std_msgs/msg/Float64MultiArray",
+    "policy_info=trajectory_msgs/msg/JointTrajectory",
+    "/clock=rosgraph_msgs/msg/Clock",
+]
 _LOG_THROTTLE = 5.0
 
 
@@ -140,6 +157,16 @@ class RecorderNode(Node):
             "episode_topic",
             EPISODE_TOPIC,
             ParameterDescriptor(description="the topic announcing episodes (counted by max_episodes)", read_only=True),
+        )
+        self.declare_parameter(
+            "topic_types",
+            KNOWN_TYPES,
+            ParameterDescriptor(
+                description="topic=pkg/msg/Type pairs subscribed at once (reliable), before any publisher "
+                "exists, so a node that starts later is recorded from its first message; other topics "
+                "are subscribed once discovered, with the type and QoS the graph shows",
+                read_only=True,
+            ),
         )
         self.declare_parameter("storage", "mcap", ParameterDescriptor(description="mcap or sqlite3", read_only=True))
         self.declare_parameter(
@@ -238,61 +265,106 @@ class RecorderNode(Node):
         self._counted = 0
         self._episodes = 0
         self._first_at: float | None = None
-        self._recorded = {}
+        self._subs: dict[str, tuple] = {}  # topic -> (type, reliable, latched, subscription)
+        self._ids: dict[str, int] = {}  # topic -> writer id, from its first message on
+        self._failed: set[str] = set()
         self.finished = False
         self.stop_reason = ""
+        declared = {}
+        for pair in p("topic_types"):
+            name, _, msgtype = pair.partition("=")
+            if msgtype.count("/") != 2:
+                raise BagWriterError(f"topic_types entry {pair!r} is not topic=pkg/msg/Type")
+            declared[self.resolve_topic_name(name)] = msgtype
+        for topic in self._wanted:
+            if topic in declared:
+                self._subscribe(topic, declared[topic], reliable=True)  # our nodes publish reliably
         self._discover()
-        self._discovery_timer = self.create_timer(0.1, self._discover)
+        self.create_timer(0.1, self._discover)
         self.create_timer(p("flush_period"), self._flush)
         self.get_logger().info(f"recording {sorted(self._wanted)} into {self.writer.path} ({options.storage})")
 
     # -- discovery ----------------------------------------------------------------------------
     def _discover(self) -> None:
-        for topic in [t for t in self._wanted if t not in self._recorded]:
+        """Subscribe to topics that gained a publisher; follow the type or QoS the graph shows when a
+        subscription made in advance does not fit it (until the topic's first message)."""
+        for topic in self._wanted:
+            if topic in self._failed or topic in self._ids:
+                continue
             infos = self.get_publishers_info_by_topic(topic)
             if not infos:
                 continue
             types = sorted({i.topic_type for i in infos})
             msgtype = types[0]
             if len(types) > 1:
-                self.get_logger().warn(f"{topic} is published with several types {types}: recording {msgtype}")
-            infos = [i for i in infos if i.topic_type == msgtype]
-            try:
-                self._subscribe(topic, msgtype, infos)
-            except (ImportError, AttributeError, OSError, BagWriterError) as err:
-                self.get_logger().error(f"cannot record {topic} ({msgtype}): {err}")
-                self._recorded[topic] = None  # do not retry every 0.1 s
-        if len(self._recorded) == len(self._wanted):
-            self._discovery_timer.cancel()
+                self.get_logger().warn(
+                    f"{topic} is published with several types {types}: recording {msgtype}",
+                    throttle_duration_sec=_LOG_THROTTLE,
+                )
+            wanted = subscription_qos([i.qos_profile for i in infos if i.topic_type == msgtype], 1)
+            reliable = wanted.reliability == ReliabilityPolicy.RELIABLE
+            latched = wanted.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            current = self._subs.get(topic)
+            if current is not None:
+                # Keep one that matches every publisher (a reliable reader gets nothing from a
+                # best-effort writer) and asks for what latched publishers keep.
+                if current[0] == msgtype and (reliable or not current[1]) and current[2] == latched:
+                    continue
+                self.destroy_subscription(current[3])
+            self._subscribe(topic, msgtype, reliable, latched)
 
-    def _subscribe(self, topic: str, msgtype: str, infos) -> None:
-        offers = [i.qos_profile for i in infos]
-        type_hash = str(infos[0].topic_type_hash)
-        ensure_type(self.writer.typestore, msgtype)
-        topic_id = self.writer.add_topic(
-            BagTopic(
-                name=topic,
-                msgtype=msgtype,
-                offered_qos=tuple(bag_qos(q) for q in offers),
-                type_hash=type_hash if type_hash.startswith("RIHS01_") and not type_hash.endswith("0" * 64) else "",
-            )
+    def _subscribe(self, topic: str, msgtype: str, reliable: bool, latched: bool = False) -> None:
+        try:
+            cls = message_class(msgtype)
+        except (ImportError, AttributeError, ValueError) as err:
+            self.get_logger().error(f"cannot record {topic}: no message type {msgtype} here ({err})")
+            self._failed.add(topic)
+            return
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self._depth,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
         )
-        qos = subscription_qos(offers, self._depth)
-        self._recorded[topic] = self.create_subscription(
-            message_class(msgtype),
-            topic,
-            lambda data, tid=topic_id, t=topic: self._on_message(tid, t, data),
-            qos,
-            raw=True,
+        sub = self.create_subscription(
+            cls, topic, lambda data, t=topic, ty=msgtype: self._on_message(t, ty, data), qos, raw=True
         )
+        self._subs[topic] = (msgtype, reliable, latched, sub)
         self.get_logger().info(
-            f"recording {topic} ({msgtype}, {qos.reliability.name.lower()}, {qos.durability.name.lower()})"
+            f"subscribed to {topic} ({msgtype}, {qos.reliability.name.lower()}, {qos.durability.name.lower()})"
         )
+
+    def _add_to_bag(self, topic: str, msgtype: str) -> int | None:
+        """The topic's writer id; registered at its first message, with what its publishers offer now."""
+        infos = [i for i in self.get_publishers_info_by_topic(topic) if i.topic_type == msgtype]
+        type_hash = str(infos[0].topic_type_hash) if infos else ""
+        try:
+            ensure_type(self.writer.typestore, msgtype)
+            topic_id = self.writer.add_topic(
+                BagTopic(
+                    name=topic,
+                    msgtype=msgtype,
+                    offered_qos=tuple(bag_qos(i.qos_profile) for i in infos),
+                    type_hash=type_hash if type_hash.startswith("RIHS01_") and set(type_hash[7:]) != {"0"} else "",
+                )
+            )
+        except (OSError, ValueError, KeyError, BagWriterError) as err:
+            self.get_logger().error(f"cannot record {topic} ({msgtype}): {err}")
+            self._failed.add(topic)
+            self.destroy_subscription(self._subs.pop(topic)[3])
+            return None
+        self._ids[topic] = topic_id
+        return topic_id
 
     # -- writing ------------------------------------------------------------------------------
-    def _on_message(self, topic_id: int, topic: str, data: bytes) -> None:
-        if self.finished:
+    def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
+        if self.finished or topic in self._failed:
             return
+        topic_id = self._ids.get(topic)
+        if topic_id is None:
+            topic_id = self._add_to_bag(topic, msgtype)
+            if topic_id is None:
+                return
         if topic == self._episode_topic and self._max_episodes:
             self._episodes += 1
             if self._episodes > self._max_episodes:
@@ -321,12 +393,11 @@ class RecorderNode(Node):
         """Close the bag (metadata.yaml written) and say what is in it."""
         path = self.writer.close()
         counts = ", ".join(f"{t}: {n}" for t, n in self.writer.counts().items()) or "no topics"
-        missing = sorted(t for t, s in self._recorded.items() if s is None)
-        missing += sorted(t for t in self._wanted if t not in self._recorded)
+        missing = sorted(t for t in self._wanted if t not in self._ids)
         self.get_logger().info(
             f"bag {path} closed{' (' + self.stop_reason + ')' if self.stop_reason else ''}: "
             f"{self.writer.message_count} messages ({counts})"
-            f"{'; never published: ' + ', '.join(missing) if missing else ''}"
+            f"{'; nothing recorded on: ' + ', '.join(missing) if missing else ''}"
         )
 
 
@@ -342,6 +413,11 @@ def main(args=None) -> int:
     except BagWriterError as err:
         print(f"morph-record: {err}", file=sys.stderr)
         return 1
+    except Exception:
+        # SIGINT/SIGTERM can shut the context down between rclpy.ok() and the wait in
+        # spin_once, which then fails on the dead context: still a normal end.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.close()

@@ -65,6 +65,20 @@ def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
     return name in future.result().result.names
 
 
+def _wait_for_subscriber(node, proc, topics: list[str], name: str, timeout: float) -> None:
+    """Until node ``name`` subscribes to every one of ``topics`` (as the ROS graph shows it)."""
+    import rclpy
+
+    deadline = time.monotonic() + timeout
+    while True:
+        missing = [t for t in topics if not any(i.node_name == name for i in node.get_subscriptions_info_by_topic(t))]
+        if not missing:
+            return
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"{name} did not subscribe to {missing} (exited, or DDS discovery failed)")
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
 def run(args) -> int:
     profile = _fastdds_profile()
     if profile:
@@ -103,9 +117,13 @@ def run(args) -> int:
             recorder_params["count_topic"] = "policy_info"
             what = f"{args.episodes * args.steps_per_episode} steps (this sim has no episodes)"
         # The lockstep sim publishes its first state once someone listens to joint_states: the
-        # recorder, started now, so the bag begins with the reset state.
+        # recorder, started now, so the bag begins with the reset state. The policy starts once the
+        # recorder listens to everything (its own topics are subscribed in advance), or the loop
+        # could run many steps before the recorder hears of the policy.
         recorder = _start("trainer.record", ns, recorder_params)
         procs.insert(0, recorder)
+        topics = ["joint_states", "effort_commands", "policy_info"] + (["episode_start"] if episodes else [])
+        _wait_for_subscriber(node, recorder, [f"{ns}/{t}" for t in topics], "morph_record", args.startup_timeout)
         procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
         print(f"record_bringup: recording {what}, {args.joints} joints, into {out}", flush=True)
         deadline = time.monotonic() + args.timeout

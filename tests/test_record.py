@@ -1,0 +1,202 @@
+"""morph-record at topic level: real sim, policy and recorder processes on real Fast DDS, the bag read back.
+
+Runs inside a private network namespace (``scripts/test.sh``).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from rclpy.qos import qos_profile_sensor_data
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+from ruamel.yaml import YAML
+from std_msgs.msg import Header
+from trajectory_msgs.msg import JointTrajectory
+
+from morph_core.msgs.records import EffortRecord, EpisodeStartRecord, JointStateRecord, PolicyInfoRecord
+from trainer.bag_io import BagError, BagReader
+from trainer.bag_writer import jazzy_metadata_problems
+
+STARTUP = 60.0
+STEP_NS = 40_000_000
+TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_info", "/clock", "probe_episodes"]
+JAZZY = get_typestore(Stores.ROS2_JAZZY)
+
+
+def _collect(probe, msg_type, topic, qos=qos_profile_sensor_data):
+    got = []
+    probe.node.create_subscription(msg_type, topic, got.append, qos)
+    return got
+
+
+def _start_loop(launch, checkpoint, joints=4):
+    sim = launch("swimmer_sim_node", num_joints=joints, lockstep=True, real_time_factor=0.0, effort_timeout=2.0)
+    policy = launch("morph_policy_node", checkpoint=str(checkpoint), deterministic=False)
+    return sim, policy
+
+
+def _read(bag, namespace):
+    reader = BagReader(bag, namespace=namespace, episode_topic="probe_episodes")
+    return reader.read(), reader.stats
+
+
+def _check_loop(records):
+    """The recorded closed loop is consistent: states on the 40 ms grid, every answer for a recorded state."""
+    states = sorted({r.stamp_ns for r in records if isinstance(r, JointStateRecord)})
+    assert states == list(range(states[0], states[-1] + 1, STEP_NS))  # no state missing in the middle
+    answered = sorted({r.stamp_ns for r in records if isinstance(r, PolicyInfoRecord)})
+    # policy_info carries the stamp of the state it answers: the same stamps over the span both cover
+    # (the recorder's subscriptions match one by one, so either may start a little later)
+    lo, hi = max(states[0], answered[0]), min(states[-1], answered[-1])
+    assert [a for a in answered if lo <= a <= hi] == [s for s in states if lo <= s <= hi]
+    assert hi - lo >= 0.9 * (answered[-1] - answered[0])
+    efforts = {r.answers_ns for r in records if isinstance(r, EffortRecord)}
+    assert efforts <= set(states)
+    return states, answered
+
+
+@pytest.mark.timeout(180)
+def test_records_the_closed_loop(probe, launch, untrained_checkpoint, tmp_path, namespace):
+    # A best-effort publisher of a stamped type the recorder knows only from the graph: a reliable
+    # subscription would never match it.
+    announce = probe.node.create_publisher(Header, "probe_episodes", qos_profile_sensor_data)
+    infos = _collect(probe, JointTrajectory, "policy_info")
+    bag = tmp_path / "bag"
+    recorder = launch("morph-record", output=str(bag), topics=TOPICS, chunk_size=16384)
+    probe.spin_until(lambda: announce.get_subscription_count() > 0, STARTUP, "the recorder on probe_episodes")
+    _start_loop(launch, untrained_checkpoint)
+    # The recorder subscribes to each topic once it sees a publisher: count from then on.
+    probe.spin_until(
+        lambda: probe.node.count_subscribers("policy_info") >= 2 and len(infos) > 0, STARTUP, "policy_info recorded"
+    )
+    n0 = len(infos)
+    for episode in range(3):
+        n = n0 + 50 * episode + 1
+        probe.spin_until(lambda n=n: len(infos) >= n, STARTUP, f"{n} policy_info")
+        announce.publish(Header(stamp=infos[-1].header.stamp, frame_id=f"episode={episode} num_joints=4"))
+    probe.spin_until(lambda: len(infos) >= n0 + 170, STARTUP, "170 more policy_info messages")
+    assert recorder.stop() == 0, recorder.log()
+    assert "closed" in recorder.log()
+
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert jazzy_metadata_problems(info) == []
+    assert info["version"] == 9 and info["storage_identifier"] == "mcap" and info["ros_distro"] == "jazzy"
+    topics = {t["topic_metadata"]["name"]: t for t in info["topics_with_message_count"]}
+    expected = {
+        f"{namespace}/joint_states": "sensor_msgs/msg/JointState",
+        f"{namespace}/odom": "nav_msgs/msg/Odometry",
+        f"{namespace}/effort_commands": "std_msgs/msg/Float64MultiArray",
+        f"{namespace}/policy_info": "trajectory_msgs/msg/JointTrajectory",
+        f"{namespace}/probe_episodes": "std_msgs/msg/Header",
+        "/clock": "rosgraph_msgs/msg/Clock",
+    }
+    if f"{namespace}/episode_start" in topics:  # the sim announces episodes
+        expected[f"{namespace}/episode_start"] = "std_msgs/msg/Int64MultiArray"
+    assert {n: t["topic_metadata"]["type"] for n, t in topics.items()} == expected, recorder.log()
+    for name, msgtype in expected.items():
+        meta = topics[name]["topic_metadata"]
+        assert meta["type_description_hash"] == JAZZY.hash_rihs01(msgtype), name
+        assert meta["serialization_format"] == "cdr"
+        assert meta["offered_qos_profiles"], name
+    sim_qos = topics[f"{namespace}/joint_states"]["topic_metadata"]["offered_qos_profiles"]
+    assert [(q["reliability"], q["durability"]) for q in sim_qos] == [("reliable", "volatile")]
+    probe_qos = topics[f"{namespace}/probe_episodes"]["topic_metadata"]["offered_qos_profiles"]
+    assert [q["reliability"] for q in probe_qos] == ["best_effort"]
+
+    records, stats = _read(bag, namespace)
+    assert not stats.rejected and not stats.warnings
+    for name in ("joint_states", "odom", "effort_commands", "policy_info"):
+        assert stats.counts[name] == topics[f"{namespace}/{name}"]["message_count"], name
+    assert stats.counts["policy_info"] >= 150 and stats.counts["joint_states"] >= stats.counts["policy_info"]
+    assert stats.skipped["/clock"] == topics["/clock"]["message_count"] > 0
+    states, answered = _check_loop(records)
+    assert len(answered) >= 150
+    starts = [r for r in records if isinstance(r, EpisodeStartRecord)]
+    assert [(r.episode, r.num_joints) for r in starts] == [(0, 4), (1, 4), (2, 4)]
+    assert all(r.stamp_ns in states for r in starts)
+    assert {len(r.names) for r in records if isinstance(r, JointStateRecord)} == {4}
+
+    if f"{namespace}/episode_start" in topics:
+        # Latched by the sim: recorded transient-local, so even a recorder started late has episode 0.
+        latched = topics[f"{namespace}/episode_start"]["topic_metadata"]["offered_qos_profiles"]
+        assert [q["durability"] for q in latched] == ["transient_local"]
+        sim_starts = [r for r in BagReader(bag, namespace=namespace).read() if isinstance(r, EpisodeStartRecord)]
+        assert sim_starts and sim_starts[0].episode == 0 and sim_starts[0].num_joints == 4
+
+    # The bytes are the publishers' own CDR: rosbags' reader decodes them with the Jazzy types too.
+    with Reader(bag) as r:
+        assert r.message_count == info["message_count"]
+        first = next(m for c, _, m in r.messages() if c.topic.endswith("/policy_info"))
+        assert len(JAZZY.deserialize_cdr(first, "trajectory_msgs/msg/JointTrajectory").joint_names) == 4
+
+
+def _recorded(bag, namespace, topic) -> int:
+    """Messages of ``topic`` a reader gets from the bag now, while it is being written."""
+    try:
+        reader = BagReader(bag, namespace=namespace)
+        reader.read()
+    except BagError:  # no storage file yet, or not its first chunk
+        return 0
+    return reader.stats.counts[topic]
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_sigkilled_recorder_leaves_a_readable_prefix(probe, launch, untrained_checkpoint, tmp_path, namespace, storage):
+    bag = tmp_path / "bag"
+    recorder = launch("morph-record", output=str(bag), storage=storage, chunk_size=4096, flush_period=0.2)
+    _start_loop(launch, untrained_checkpoint)
+
+    # Wait until a reader finds 60 policy_info in the bag being written (MCAP: complete chunks;
+    # sqlite3: committed), checking twice a second.
+    seen_live = [0]
+    next_check = [0.0]
+
+    def enough_on_disk() -> bool:
+        if time.monotonic() >= next_check[0]:
+            next_check[0] = time.monotonic() + 0.5
+            seen_live[0] = _recorded(bag, namespace, "policy_info")
+        return seen_live[0] >= 60
+
+    probe.spin_until(enough_on_disk, 2 * STARTUP, "60 policy_info readable from the live bag")
+    recorder.proc.kill()
+    recorder.proc.wait()
+    assert not (bag / "metadata.yaml").exists()
+
+    reader = BagReader(bag, namespace=namespace, required=("joint_states", "policy_info"))
+    records = reader.read()
+    assert any("no metadata.yaml" in w for w in reader.stats.warnings)
+    assert not reader.stats.rejected
+    assert reader.stats.counts["policy_info"] >= seen_live[0]  # what was readable before the kill still is
+    states, _ = _check_loop(records)
+    assert len(states) >= 60
+
+
+@pytest.mark.timeout(240)
+def test_bringup_records_and_exits(untrained_checkpoint, tmp_path, namespace):
+    bag = tmp_path / "bag"
+    cmd = [sys.executable, "-m", "trainer.record_bringup", "--out", str(bag), "--episodes", "2"]
+    cmd += ["--steps-per-episode", "15", "--joints", "3", "--namespace", namespace]
+    cmd += ["--checkpoint", str(untrained_checkpoint), "--timeout", "150"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=220)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "timed out" not in done.stdout and f"bag {bag}" in done.stdout
+
+    reader = BagReader(bag, namespace=namespace, required=("joint_states", "effort_commands", "policy_info"))
+    records = reader.read()
+    assert not reader.stats.rejected and not reader.stats.warnings
+    if reader.stats.counts["episode_start"]:  # a sim with episodes: two announced, the third not recorded
+        assert reader.stats.counts["episode_start"] == 2
+        assert reader.stats.counts["policy_info"] >= 29  # every answer of both episodes (the first: a race)
+    else:  # no episodes: 2 x 15 policy answers
+        assert reader.stats.counts["policy_info"] == 30
+    _check_loop(records)
+    assert {len(r.names) for r in records if isinstance(r, JointStateRecord)} == {3}
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert jazzy_metadata_problems(info) == []
+    assert np.isfinite([r.log_prob for r in records if isinstance(r, PolicyInfoRecord)]).all()
