@@ -67,6 +67,9 @@ class TrainConfig:
     """entropy bonus weight"""
     max_grad_norm: float = 0.5
     """global gradient-norm clip"""
+    proximal_weight_cap: float = 1.0
+    """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples (training from
+    recorded data, algo.train_from_data); simulator rollouts are on-policy and carry no weight"""
     min_joints: int = 2
     """shortest chain drawn at a reset"""
     max_joints: int = 10
@@ -100,6 +103,8 @@ class TrainConfig:
             raise ValueError(f"minibatch_size {self.minibatch_size} exceeds the rollout size {self.batch_size}")
         if self.clip_eps <= 0:
             raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
+        if not self.proximal_weight_cap > 0:
+            raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
 
     @property
     def batch_size(self) -> int:
@@ -118,6 +123,7 @@ class TrainConfig:
             vf_coef=self.vf_coef,
             ent_coef=self.ent_coef,
             max_grad_norm=self.max_grad_norm,
+            proximal_weight_cap=self.proximal_weight_cap,
         )
 
     def to_dict(self) -> dict:

@@ -1,0 +1,470 @@
+"""PPO on recorded transitions (rosbag2 bags, exported ``.npz``): the training loop without a simulator.
+
+The data are a ``protocol.transition_batch.TransitionBatch``: steps a
+sampling policy took, each with the behaviour log-prob it published
+(``policy_info``). Each update
+
+1. recomputes the values of every recorded state with the trainer's own
+   critic as it is now, and GAE over the recorded episodes
+   (``algo.ppo.compute_gae``; a truncated step is bootstrapped on
+   gamma * V(next state), as the simulator trainer does; the recorded steps
+   are never terminal);
+2. takes its batch: all the data if they hold at most ``batch_size``
+   (num_envs * num_steps, 6144 by default) samples, else the next part of a
+   seeded random permutation cut into ceil(steps / batch_size) near-equal
+   parts (``iterations`` defaults to one pass: each step once);
+3. runs the one PPO update every data source uses (``algo.update``) under
+   the run's trust-region rule, with the decoupled objective below.
+
+Why the decoupled objective (Hilton et al. 2022, "Batch size-invariance for
+policy optimization"). PPO's ratio r = pi_theta / pi_old clips against the
+policy that collected the data, which on-policy is also the policy the
+update starts from: the clip keeps the new policy near the current one, a
+trust region. Recorded data come from an older policy pi_behav. Against it
+the ratio starts away from 1 before any step is taken: samples the current
+policy already moved away from sit outside [1 - eps, 1 + eps] and are
+clipped (no gradient) or not clipped at all (the pessimistic minimum keeps
+the unclipped term), whatever the update does, so the clip bounds the
+distance to pi_behav, not the step from the current policy; the trust
+region is gone. The decoupled objective takes the ratio against the
+proximal policy pi_prox, the policy as the update starts
+(``update.with_proximal``), r = pi_theta / pi_prox, so the clip bounds the
+step again, and corrects for the data's origin separately: each sample's
+surrogate is weighted by the importance weight pi_prox / pi_behav,
+truncated at c (``TrainConfig.proximal_weight_cap``, 1 by default, as
+V-trace's rho-bar). The truncation bounds the variance a few samples the
+behaviour policy rarely took would otherwise bring, at the price of a bias
+towards the behaviour policy's action distribution; with c = 1 a sample the
+current policy finds likelier than the behaviour did counts as on-policy,
+and one it finds less likely counts less. The log weight sums over the
+sample's joints, so on stale data long chains drift from 1 further than
+short ones. Data recorded by the current policy (one update per recording
+round) have pi_prox = pi_behav, weights 1 (up to float rounding of the log
+densities, the node's float64 against the trainer's float32) and the
+objective is PPO's. The value targets are GAE returns of the behaviour
+policy's trajectories, uncorrected (no V-trace on the critic): a bias that
+grows with the data's age.
+
+Logged per update (``progress.csv``, TensorBoard), besides the update's
+statistics per dimension as in simulator training: the mean truncated
+weight, the share of samples whose weight the cap cut, the share of stale
+samples (|log pi_prox - log pi_behav| > ``STALE_LOG_RATIO``), and the
+recorded episodes' returns per chain length (fixed for one data set).
+
+A run trains on one data set, then optionally on further ones (rounds:
+record with the current policy, train, record again), policy, critic, Adam
+moments and generator carrying over. The state holds a digest of the data,
+so ``resume`` on other data is refused (``DataMismatchError``), and
+``new_data`` starts the next round. Checkpoints and resume work as in
+``algo.train``: a run killed at any moment resumes bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.ppo import compute_gae, explained_variance
+from morph_core.algo.run_log import RunLog
+from morph_core.algo.train import TrainConfig
+from morph_core.algo.update import Learner, RolloutBatch, update, with_proximal
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
+from morph_core.protocol.transition_batch import TransitionBatch
+from morph_core.util.atomic import atomic_writer
+
+STALE_LOG_RATIO = 1e-3
+"""a sample is stale when |log pi_prox - log pi_behav| exceeds this (float rounding of the same policy's
+log-density stays below 1e-4 for 64 joints)"""
+
+
+class DataMismatchError(ValueError):
+    """The data do not fit the run: other data than it trains on, or chains outside its config."""
+
+
+def data_digest(data: TransitionBatch) -> str:
+    """SHA-256 of the transitions (every array's key, dtype, shape and bytes): the data's identity."""
+    h = hashlib.sha256()
+    for key, a in data.arrays().items():
+        a = np.ascontiguousarray(a)
+        h.update(f"{key}:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def episode_spans(data: TransitionBatch) -> tuple[np.ndarray, np.ndarray]:
+    """(first row, length) of each episode; raises ``ValueError`` unless episodes are contiguous runs that
+    end in a terminated or truncated step, as ``TransitionBatch`` promises."""
+    if not len(data):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    starts = np.flatnonzero(np.r_[True, data.episode[1:] != data.episode[:-1]])
+    if len(np.unique(data.episode[starts])) != len(starts):
+        raise ValueError("transitions of one episode are not consecutive rows")
+    lengths = np.diff(np.r_[starts, len(data)])
+    last = starts + lengths - 1
+    if not (data.terminated[last] | data.truncated[last]).all():
+        raise ValueError("an episode's last transition is neither terminated nor truncated")
+    return starts, lengths
+
+
+@dataclass(frozen=True)
+class EpisodeReturns:
+    """Undiscounted returns of the recorded episodes (runs of consecutive transitions)."""
+
+    num_joints: np.ndarray
+    """[E] chain length of each episode"""
+    returns: np.ndarray
+    """[E] sum of rewards"""
+    lengths: np.ndarray
+    """[E] transitions"""
+
+    @classmethod
+    def of(cls, data: TransitionBatch) -> EpisodeReturns:
+        starts, lengths = episode_spans(data)
+        sums = np.add.reduceat(data.reward, starts) if len(starts) else np.zeros(0)
+        return cls(data.num_joints[starts], sums, lengths)
+
+    def row(self, dims) -> dict[str, float]:
+        """Log columns: episodes, mean return overall and per chain length in ``dims``, mean reward per step."""
+        out = {
+            "episodes": len(self.returns),
+            "return_mean": float(self.returns.mean()) if len(self.returns) else math.nan,
+            "reward_rate": float(self.returns.sum() / self.lengths.sum()) if len(self.returns) else math.nan,
+        }
+        for d in dims:
+            r = self.returns[self.num_joints == d]
+            out[f"return_d{d}"] = float(r.mean()) if len(r) else math.nan
+        return out
+
+
+def log_columns(cfg: TrainConfig) -> list[str]:
+    per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
+    return [
+        "global_step", "iteration", "data_round", "round_iteration", "env_steps", "data_steps", "batch_size",
+        "wall_time", "sps", "prepare_s", "update_s", "learning_rate",
+        "episodes", "return_mean", *[f"return_d{d}" for d in cfg.dims], "reward_rate",
+        "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
+        "is_weight_mean", "is_weight_capped_frac", "stale_frac", "behaviour_logr_mean",
+        *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
+    ]  # fmt: skip
+
+
+class Samples:
+    """The transitions as the tensors an update needs (float32, padded to ``width`` joints, the run's
+    longest chain: the update's per-dimension statistics go up to it), and the GAE layout: episodes as the
+    columns of an [L, E] grid (L = longest episode), so the recursion runs L steps over E episodes at once
+    rather than once per transition."""
+
+    def __init__(self, data: TransitionBatch, width: int):
+        if width < data.max_joints:
+            raise ValueError(f"width {width} is narrower than the data's longest chain ({data.max_joints})")
+
+        def f32(a: np.ndarray, joints: bool = False) -> torch.Tensor:
+            if joints:
+                a = np.pad(a, ((0, 0), (0, width - a.shape[1])))
+            return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+        self.size = len(data)
+        self.num_joints = torch.from_numpy(data.num_joints.astype(np.int64))
+        self.joint_pos, self.joint_vel = f32(data.joint_pos, True), f32(data.joint_vel, True)
+        self.global_feats, self.actions = f32(data.global_feats), f32(data.action, True)
+        self.log_prob, self.rewards = f32(data.log_prob), f32(data.reward)
+        self.terminated = torch.from_numpy(data.terminated.copy())
+        self.truncated = torch.from_numpy(data.truncated.copy())
+        # The bootstrap state of each truncated step (within an episode, next_* is the next row's state).
+        rows = np.flatnonzero(data.truncated)
+        self.truncated_rows = torch.from_numpy(rows)
+        self.next_obs = (
+            f32(data.next_joint_pos[rows], True),
+            f32(data.next_joint_vel[rows], True),
+            f32(data.next_global[rows]),
+        )
+        starts, lengths = episode_spans(data)
+        steps = np.arange(int(lengths.max()) if len(lengths) else 0)
+        self.grid_mask = torch.from_numpy(steps[:, None] < lengths[None, :])
+        self.grid_rows = torch.from_numpy(starts[None, :] + steps[:, None])[self.grid_mask]
+
+    def _grid(self, x: torch.Tensor, fill) -> torch.Tensor:
+        out = torch.full(self.grid_mask.shape, fill, dtype=x.dtype)
+        out[self.grid_mask] = x[self.grid_rows]
+        return out
+
+    @torch.no_grad()
+    def values(self, policy: GraphActorCritic, chunk: int = 1024) -> tuple[torch.Tensor, torch.Tensor]:
+        """(V of every state [N], V of every truncated step's next state [K]) under ``policy`` now."""
+
+        def value(pos, vel, glob, nj) -> torch.Tensor:
+            out = []
+            for s in range(0, len(nj), chunk):
+                chains = ChainBatch.from_padded(pos[s : s + chunk], vel[s : s + chunk], glob[s : s + chunk],
+                                                nj[s : s + chunk])  # fmt: skip
+                out.append(policy(chains)[2])
+            return torch.cat(out) if out else torch.zeros(0)
+
+        states = value(self.joint_pos, self.joint_vel, self.global_feats, self.num_joints)
+        finals = value(*self.next_obs, self.num_joints[self.truncated_rows])
+        return states, finals
+
+    def advantages(
+        self, policy: GraphActorCritic, gamma: float, gae_lambda: float
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(values, advantages, returns), each [N], with the current critic."""
+        values, finals = self.values(policy)
+        final_values = torch.zeros(self.size)
+        final_values[self.truncated_rows] = finals
+        # Beyond an episode's end: terminal, so nothing flows back into the episode (it ends truncated anyway).
+        adv, ret = compute_gae(
+            self._grid(self.rewards, 0.0), self._grid(values, 0.0), self._grid(self.terminated, True),
+            self._grid(self.truncated, False), self._grid(final_values, 0.0), torch.zeros(self.grid_mask.shape[1]),
+            gamma, gae_lambda,
+        )  # fmt: skip
+        advantages, returns = torch.empty(self.size), torch.empty(self.size)
+        advantages[self.grid_rows], returns[self.grid_rows] = adv[self.grid_mask], ret[self.grid_mask]
+        return values, advantages, returns
+
+    def batch(self, index: torch.Tensor, values, advantages, returns) -> RolloutBatch:
+        """The samples at ``index``."""
+        return RolloutBatch(
+            num_joints=self.num_joints[index],
+            joint_pos=self.joint_pos[index],
+            joint_vel=self.joint_vel[index],
+            global_feats=self.global_feats[index],
+            actions=self.actions[index],
+            log_prob=self.log_prob[index],
+            values=values[index],
+            advantages=advantages[index],
+            returns=returns[index],
+        )
+
+
+def off_policy_stats(batch: RolloutBatch, cap: float) -> dict[str, float]:
+    """How far the proximal policy is from the behaviour policy on ``batch`` (``with_proximal``'s)."""
+    log_w = (batch.proximal_log_prob - batch.log_prob).double()
+    return {
+        "is_weight_mean": float(torch.clamp(log_w.exp(), max=cap).mean()),
+        "is_weight_capped_frac": float((log_w.exp() > cap).double().mean()),
+        "stale_frac": float((log_w.abs() > STALE_LOG_RATIO).double().mean()),
+        "behaviour_logr_mean": float(log_w.mean()),
+    }
+
+
+def check_data(data: TransitionBatch, cfg: TrainConfig) -> None:
+    """Raise unless PPO can train on ``data`` under ``cfg``: steps there, every one with its behaviour
+    log-prob (``MissingPolicyInfoError``), chains within the config's range (``DataMismatchError``: the
+    log's per-dimension columns come from it), whole episodes."""
+    if not len(data):
+        raise ValueError("no transitions to train on")
+    data.require_policy_info()
+    lo, hi = int(data.num_joints.min()), int(data.num_joints.max())
+    if lo < cfg.min_joints or hi > cfg.max_joints:
+        raise DataMismatchError(
+            f"the data hold chains of {lo}..{hi} joints, outside the run's min_joints..max_joints "
+            f"({cfg.min_joints}..{cfg.max_joints}): set --min-joints/--max-joints to cover them"
+        )
+    episode_spans(data)
+
+
+@dataclass
+class _Round:
+    """The run's current data set and how far training on it has got (saved with the state)."""
+
+    digest: str
+    steps: int
+    source: list[str]
+    iterations: int
+    """updates to run on these data"""
+    done: int = 0
+    """updates run on these data"""
+    order: np.ndarray | None = None
+    """the current pass's permutation, when the data are cut into several batches"""
+
+
+def passes_cut(steps: int, batch_size: int) -> int:
+    """Batches one pass over ``steps`` samples is cut into: ceil(steps / batch_size)."""
+    return -(-steps // batch_size)
+
+
+def train_from_data(
+    cfg: TrainConfig,
+    data: TransitionBatch,
+    run_dir: str | Path,
+    *,
+    iterations: int | None = None,
+    init: str | Path | None = None,
+    resume: bool = False,
+    new_data: bool = False,
+    source: list[str] | None = None,
+) -> Path:
+    """PPO updates on ``data`` into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors).
+
+    ``iterations``: updates on these data (default: one pass, ceil(steps / batch_size); on ``resume`` the
+    number the data set was started with). ``init``: a policy checkpoint (.safetensors beside its .json) to
+    start a new run from, else a fresh policy seeded with ``cfg.seed``. ``resume``: continue the run in
+    ``run_dir`` on the same data (else ``DataMismatchError``); with ``new_data`` too, train it further on
+    new data (the next round). ``source`` names the data (bag paths), for the record.
+    """
+    run_dir = Path(run_dir)
+    state_path = run_dir / "state.safetensors"
+    ckpt_dir = run_dir / "checkpoints"
+    if cfg.anneal_lr:
+        raise ValueError("anneal_lr needs a known run length; training from data has none")
+    if iterations is not None and iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    if new_data and not resume:
+        raise ValueError("new_data continues a run: it needs resume")
+    if init is not None and resume:
+        raise ValueError("init starts a new run; a resumed run continues from its own state")
+    if resume and not state_path.exists() and (run_dir / "init.json").exists():
+        init = json.loads((run_dir / "init.json").read_text())["init"]  # killed before its first checkpoint
+    check_data(data, cfg)
+    digest = data_digest(data)
+    one_pass = passes_cut(len(data), cfg.batch_size)
+
+    torch.set_num_threads(1)  # before init, as algo.train (the orthogonal init's QR depends on it)
+    if init is not None:
+        policy = GraphActorCritic.load(init)
+        cfg = dataclasses.replace(cfg, policy=policy.config)  # the run's config says what it trains
+    else:
+        torch.manual_seed(cfg.seed)
+        policy = GraphActorCritic(cfg.policy)
+    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "data_round": 0, "env_steps": 0}
+    current: _Round | None = None
+    resumed = resume and state_path.exists()
+    if resumed:
+        tensors, meta = load_training_state(state_path)
+        policy.load_state_dict(sub_dict(tensors, "policy."))
+        restore_optimizer(learner.optimizer, tensors, meta)
+        gen.set_state(tensors["rng.torch"])
+        counters = meta["counters"]
+        saved = meta["env"]["round"]
+        order = tensors.get("env.order")
+        current = _Round(**{**saved, "order": None if order is None else order.numpy()})
+        finished = current.done >= current.iterations
+        if not new_data and current.digest != digest:
+            raise DataMismatchError(
+                f"{run_dir} trains on other data (digest {current.digest[:12]}, {current.steps} steps from "
+                f"{current.source}) than given (digest {digest[:12]}, {len(data)} steps); pass new_data "
+                "(--new-data) to train it further on these"
+            )
+        if new_data and current.digest == digest:
+            raise DataMismatchError(f"{run_dir} trains on these data already: resume it without new_data")
+        if new_data and not finished:
+            raise DataMismatchError(
+                f"{run_dir} has {current.iterations - current.done} updates left on its data "
+                f"({current.source}): finish them (resume without new_data) before training on new data"
+            )
+        if not new_data and iterations is not None:
+            current.iterations = iterations
+    elif new_data:
+        raise ValueError(f"new_data: no trained state in {run_dir} to continue")
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with atomic_writer(run_dir / "config.json") as f:
+            json.dump(cfg.to_dict(), f, indent=2)
+        if init is not None:
+            with atomic_writer(run_dir / "init.json") as f:
+                json.dump({"init": str(init)}, f, indent=2)
+    if current is None or new_data:
+        current = _Round(digest, len(data), list(source or []), iterations or one_pass)
+        counters["data_round"] += 1
+        counters["env_steps"] += len(data)
+    log = RunLog(run_dir, log_columns(cfg), resume_step=counters["global_step"] if resume else None,
+                 tensorboard=cfg.tensorboard)  # fmt: skip
+
+    samples = Samples(data, cfg.max_joints)
+    recorded = EpisodeReturns.of(data).row(cfg.dims)
+    update_cfg = cfg.update_config()
+    bar = _progress(cfg, current)
+    while current.done < current.iterations:
+        t0 = time.perf_counter()
+        # 1. Values and advantages of every recorded step with the critic as it is now.
+        values, advantages, returns = samples.advantages(policy, cfg.gamma, cfg.gae_lambda)
+        # 2. This update's samples: all, or the next part of this pass's permutation.
+        if one_pass == 1:
+            index = torch.arange(len(data))
+        else:
+            part = current.done % one_pass
+            if part == 0 or current.order is None:
+                current.order = torch.randperm(len(data), generator=gen).numpy()
+            index = torch.tensor_split(torch.from_numpy(current.order), one_pass)[part]
+        batch = with_proximal(policy, samples.batch(index, values, advantages, returns))
+        prepare_s = time.perf_counter() - t0
+
+        # 3. Update.
+        t1 = time.perf_counter()
+        torch.set_num_threads(cfg.torch_threads)
+        stats = update(learner, batch, update_cfg, gen)
+        torch.set_num_threads(1)
+        update_s = time.perf_counter() - t1
+        current.done += 1
+        counters["iteration"] += 1
+        counters["global_step"] += batch.size
+
+        # 4. Log and checkpoint.
+        row = {
+            "global_step": counters["global_step"],
+            "iteration": counters["iteration"],
+            "data_round": counters["data_round"],
+            "round_iteration": current.done,
+            "env_steps": counters["env_steps"],
+            "data_steps": len(data),
+            "batch_size": batch.size,
+            "wall_time": time.time(),
+            "sps": batch.size / (prepare_s + update_s),
+            "prepare_s": prepare_s,
+            "update_s": update_s,
+            "learning_rate": learner.optimizer.param_groups[0]["lr"],
+            **recorded,
+            **stats.row(cfg.dims),
+            "explained_variance": explained_variance(batch.values, batch.returns),
+            "log_std": float(policy.log_std.detach()),
+            **off_policy_stats(batch, cfg.proximal_weight_cap),
+        }
+        log.log(row)
+        step, last = counters["global_step"], counters["last_ckpt"]
+        if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval or current.done >= current.iterations:
+            counters["last_ckpt"] = step
+            policy.save(ckpt_dir / f"policy_{step:08d}.safetensors", metadata={"global_step": step})
+            _save_state(state_path, learner, gen, current, counters)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(kl=f"{row['approx_kl']:.3f}", w=f"{row['is_weight_mean']:.3f}")
+    if bar is not None:
+        bar.close()
+    log.close()
+    return run_dir
+
+
+def _save_state(path: Path, learner: Learner, gen: torch.Generator, current: _Round, counters: dict) -> None:
+    meta = {"round": {k: getattr(current, k) for k in ("digest", "steps", "source", "iterations", "done")}}
+    arrays = {} if current.order is None else {"order": current.order}
+    save_training_state(path, learner.policy, learner.optimizer, gen, meta, arrays, dict(counters))
+
+
+def run_state(run_dir: str | Path) -> dict | None:
+    """What a run trained from data holds (its counters and current data set: digest, steps, source,
+    iterations, done), or None before its first checkpoint."""
+    path = Path(run_dir) / "state.safetensors"
+    if not path.exists():
+        return None
+    _, meta = load_training_state(path)
+    return {**meta["counters"], **meta["env"]["round"]}
+
+
+def _progress(cfg: TrainConfig, current: _Round):
+    if not cfg.progress_bar:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=current.iterations, initial=current.done, unit="update", dynamic_ncols=True)
