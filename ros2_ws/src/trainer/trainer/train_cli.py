@@ -4,16 +4,47 @@ Every TrainConfig field is an option (``--clip-mode``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...). ``--resume`` continues the run in ``--out``
 from its last checkpoint, with the config it was started with (options
 given again override it, e.g. a larger ``--total-timesteps``).
+
+From recorded topics instead of the simulator (``morph_core.algo.train_from_data``):
+
+    morph-train --from-bags BAG... --out DIR [--init POLICY.safetensors] [--iterations N]
+    morph-train --from-bags BAG... --out DIR --resume               after a kill: the same bags
+    morph-train --from-bags NEW... --out DIR --resume --new-data    the next round, on new bags
+
+PPO updates of up to num_envs x num_steps samples (6144 by default) on the
+bags' transitions, each bag its own stream (``morph-bag info`` shows what a
+bag holds). The bags must carry ``policy_info`` (the behaviour log-prob):
+record with ``morph_policy_node`` ``deterministic:=false`` (scripts/record.sh
+does). ``--iterations`` defaults to one pass over the data. Without
+``--init`` the policy starts fresh from ``--seed``. The run directory is laid
+out as for simulator training; a resume on other bags than the run trains
+on is refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
+import numpy as np
+
 from morph_core.algo.train import TrainConfig, load_run_config, train
+from morph_core.algo.train_from_data import passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from trainer.bag_io import BagError, BagReader
+
+PPO_TOPICS = ("joint_states", "odom")
+"""topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
+(``MissingPolicyInfoError``), effort_commands may be missing (policy_info holds the action)"""
+
+
+class CliError(Exception):
+    """A one-line error for the command line."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,6 +53,33 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    bags = parser.add_argument_group("training from recorded bags")
+    bags.add_argument(
+        "--from-bags",
+        nargs="+",
+        metavar="BAG",
+        default=None,
+        help="train on these rosbag2 bags (folder, metadata.yaml or storage file) instead of the simulator",
+    )
+    bags.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="start a new run from this policy checkpoint (.safetensors, its .json beside it)",
+    )
+    bags.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="PPO updates on these bags (default: one pass, ceil(steps / (num_envs * num_steps)))",
+    )
+    bags.add_argument(
+        "--new-data",
+        action="store_true",
+        help="with --resume: the bags are new data for the run, trained on after what it has done "
+        "(policy, critic, optimizer and generator carry over)",
+    )
+    bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
     parser.add_argument(
@@ -35,9 +93,84 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> None:
+def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[TransitionBatch, list[str], SkipCounts]:
+    """The transitions of ``bags`` (each its own stream), the reader's warnings and the steps skipped;
+    raises ``BagError`` for a bag that cannot be read."""
+    batches, warnings, skips = [], [], SkipCounts()
+    for bag in bags:
+        reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
+        asm = TransitionAssembler()
+        batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
+        warnings += reader.stats.warnings
+        skips.merge(asm.skips)
+    return TransitionBatch.concatenate(batches), warnings, skips
+
+
+def _train_from_bags(args) -> None:
+    overrides = overrides_from_args(args, TrainConfig)
+    if args.init is not None:
+        if args.resume:
+            raise CliError("--init starts a new run; --resume continues the run in --out from its own state")
+        try:
+            GraphActorCritic.load(args.init)
+        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
+            raise CliError(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})") from None
+    if args.resume:
+        if not (args.out / "config.json").exists():
+            raise CliError(f"--resume: no run to resume in {args.out} (config.json missing)")
+        cfg = load_run_config(args.out, overrides)
+    else:
+        if (args.out / "state.safetensors").exists():
+            raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
+        cfg = replace_nested(TrainConfig(), overrides)
+    data, warnings, skips = read_bags(args.from_bags, args.namespace)
+    for w in warnings:
+        print(f"morph-train: warning: {w}", file=sys.stderr)
+    if not len(data):
+        skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
+        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {skipped or 'none'})")
+    try:
+        data.require_policy_info()
+    except MissingPolicyInfoError as err:
+        raise CliError(f"{err}; record with morph_policy_node deterministic:=false (scripts/record.sh does)") from None
+    updates = args.iterations or passes_cut(len(data), cfg.batch_size)
+    print(
+        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, chains of {int(np.min(data.num_joints))}.."
+        f"{data.max_joints} joints) from {len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
+        f"update(s) of up to {cfg.batch_size} samples into {args.out}",
+        flush=True,
+    )
+    train_from_data(
+        cfg,
+        data,
+        args.out,
+        iterations=args.iterations,
+        init=args.init,
+        resume=args.resume,
+        new_data=args.new_data,
+        source=[str(Path(b).resolve()) for b in args.from_bags],
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.from_bags is not None:
+        if args.iterations is not None and args.iterations < 1:
+            parser.error("--iterations must be >= 1")
+        if args.new_data and not args.resume:
+            parser.error("--new-data continues a run: pass --resume too")
+        try:
+            _train_from_bags(args)
+        except (CliError, BagError, ValueError, TypeError) as err:
+            # ValueError: bad option values (the config's checks), data that do not fit the run
+            print(f"morph-train: error: {err}", file=sys.stderr)
+            return 1
+        return 0
+    given = [opt for opt, v in (("--init", args.init), ("--iterations", args.iterations),
+                                ("--new-data", args.new_data), ("--namespace", args.namespace)) if v]  # fmt: skip
+    if given:
+        parser.error(f"{', '.join(given)}: only with --from-bags")
     overrides = overrides_from_args(args, TrainConfig)
     if args.resume:
         if not (args.out / "config.json").exists():
@@ -48,10 +181,11 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         try:
             cfg = replace_nested(TrainConfig(), overrides)
-        except (TypeError, ValueError) as e:
-            parser.error(str(e))
+        except (TypeError, ValueError) as err:
+            parser.error(str(err))
     train(cfg, args.out, resume=args.resume)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,0 +1,298 @@
+"""``morph-train --from-bags`` on real bags: a swimmer and a sampling policy stepped in lockstep in this
+process (protocol.loopback), every message serialized with the Jazzy type store and written by
+trainer.bag_writer (MCAP and sqlite3), read back through trainer.bag_io. PPO from the bag, resume after a
+SIGKILL equal to an uninterrupted run, the refusal of bags without policy_info, every bad input."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+from rosbags.typesys import Stores, get_typestore
+
+from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.train_from_data import run_state
+from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.records import (
+    EffortRecord,
+    EpisodeStartRecord,
+    JointStateRecord,
+    OdometryRecord,
+    PolicyInfoRecord,
+)
+from morph_core.msgs.stamps import answer_tag, from_ns
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
+from morph_core.protocol.loopback import LoopbackRecording, MeanController, SamplingController
+from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
+from trainer.train_cli import main
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+T = TS.types
+NS = "/swimmer"
+TYPES = {
+    "episode_start": "std_msgs/msg/Int64MultiArray",
+    "joint_states": "sensor_msgs/msg/JointState",
+    "odom": "nav_msgs/msg/Odometry",
+    "effort_commands": "std_msgs/msg/Float64MultiArray",
+    "policy_info": "trajectory_msgs/msg/JointTrajectory",
+}
+SMALL = [
+    "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "2",
+    "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
+]  # fmt: skip
+CLI = [sys.executable, "-m", "trainer.train_cli"]
+
+
+# -- a lockstep recording as the nodes' messages, in a bag ----------------------------------------
+def loop_records(controller, episodes, seed=0):
+    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
+    for i, (n, steps) in enumerate(episodes):
+        if i:
+            loop.new_episode(n)
+        loop.run(steps)
+    loop.finish()
+    return loop.records
+
+
+def _time(ns):
+    sec, nanosec = from_ns(ns)
+    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+
+
+def _header(ns, frame_id=""):
+    return T["std_msgs/msg/Header"](stamp=_time(ns), frame_id=frame_id)
+
+
+def _dim(label, size):
+    return T["std_msgs/msg/MultiArrayDimension"](label=label, size=size, stride=size)
+
+
+def message(r):
+    """(topic, message) the sim, the policy node or the recorder's announcement source publishes for a record."""
+    if isinstance(r, JointStateRecord):
+        msg = T["sensor_msgs/msg/JointState"](
+            header=_header(r.stamp_ns), name=list(r.names), position=r.position, velocity=r.velocity, effort=r.effort
+        )
+        return "joint_states", msg
+    if isinstance(r, OdometryRecord):
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](*r.orientation_xyzw),
+        )
+        vec = T["geometry_msgs/msg/Vector3"]
+        twist = T["geometry_msgs/msg/Twist"](linear=vec(*r.body_linear_xy, 0.0), angular=vec(0.0, 0.0, r.angular_z))
+        msg = T["nav_msgs/msg/Odometry"](
+            header=_header(r.stamp_ns, "odom"),
+            child_frame_id="torso",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+        return "odom", msg
+    if isinstance(r, EffortRecord):
+        n = r.effort.size
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(answer_tag(*from_ns(r.answers_ns)), n)], data_offset=0)
+        return "effort_commands", T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
+    if isinstance(r, PolicyInfoRecord):
+        point = T["trajectory_msgs/msg/JointTrajectoryPoint"](
+            positions=r.action, velocities=r.mean, accelerations=r.log_std, effort=r.log_prob_per_joint,
+            time_from_start=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        )  # fmt: skip
+        msg = T["trajectory_msgs/msg/JointTrajectory"](
+            header=_header(r.stamp_ns), joint_names=list(r.names), points=[point]
+        )
+        return "policy_info", msg
+    if isinstance(r, EpisodeStartRecord):
+        cause = EpisodeCause.START if r.episode == 0 else EpisodeCause.STEPS
+        label, data = pack_episode_start(r.episode, r.stamp_ns, r.num_joints, cause)
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(label, len(data))], data_offset=0)
+        return "episode_start", T["std_msgs/msg/Int64MultiArray"](layout=layout, data=np.array(data, np.int64))
+    raise TypeError(r)
+
+
+def write_bag(path, records, storage="mcap", types=None, chunk_size=256 * 1024):
+    """A bag as morph-record writes it; ``types`` overrides a topic's type (a message of that type is made by
+    ``message`` unless the override is for a topic left out: type None drops the topic)."""
+    types = {**TYPES, **(types or {})}
+    with BagWriter(path, WriterOptions(storage=storage, chunk_size=chunk_size)) as w:
+        ids = {name: w.add_topic(BagTopic(f"{NS}/{name}", ty)) for name, ty in types.items() if ty is not None}
+        for r in records:
+            name, msg = message(r)
+            if name in ids:
+                w.write(ids[name], r.log_ns, TS.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+# -- fixtures and helpers ------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def init(tmp_path_factory):
+    """The recording policy as a checkpoint."""
+    torch.set_num_threads(1)
+    torch.manual_seed(11)
+    path = tmp_path_factory.mktemp("init") / "policy.safetensors"
+    GraphActorCritic().save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def sampled(init):
+    """Records of three episodes of 3, 6 and 9 joints sampled by the init policy (150 steps)."""
+    return loop_records(SamplingController(GraphActorCritic.load(init), seed=1), ((3, 60), (6, 50), (9, 40)))
+
+
+def _rows(run):
+    with (run / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def _weights(run):
+    tensors, meta = load_training_state(run / "state.safetensors")
+    return tensors, meta["counters"]
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("morph-train: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+# -- PPO from a bag ------------------------------------------------------------------------------
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_ppo_from_a_bag_changes_the_policy_and_logs_per_dimension(tmp_path, init, sampled, storage, capsys):
+    bag = write_bag(tmp_path / "bag", sampled, storage)
+    run = tmp_path / "run"
+    assert main(["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", *SMALL]) == 0
+    out = capsys.readouterr().out
+    assert "150 steps (3 episodes, chains of 3..9 joints) from 1 bag(s); 2 update(s) of up to 32 samples" in out
+    before = GraphActorCritic.load(init).state_dict()
+    tensors, counters = _weights(run)
+    assert counters["iteration"] == 2 and counters["global_step"] == 60  # 150 steps in 5 parts of 30
+    changed = [k for k in before if not torch.equal(before[k], tensors[f"policy.{k}"])]
+    assert changed, "the policy did not change"
+    rows = _rows(run)
+    assert len(rows) == 2
+    for r in rows:
+        for k in ("policy_loss", "value_loss", "approx_kl", "clip_frac", "entropy", "is_weight_mean"):
+            assert np.isfinite(float(r[k])), k
+        assert float(r["approx_kl"]) >= 0.0
+    logged = {d for r in rows for d in range(2, 11) if r[f"clip_frac_d{d}"] != ""}
+    assert len(logged) >= 2 and logged <= {3, 6, 9}
+    for r in rows:
+        for d in logged & {d for d in range(2, 11) if r[f"clip_frac_d{d}"] != ""}:
+            assert 0.0 <= float(r[f"clip_frac_d{d}"]) <= 1.0
+    assert all(rows[0][f"return_d{d}"] != "" for d in (3, 6, 9)) and rows[0]["episodes"] == "3"
+    # Recorded by the init policy: the first update is on-policy, the second sees an older policy's data.
+    assert float(rows[0]["stale_frac"]) == 0.0 and float(rows[0]["is_weight_mean"]) == pytest.approx(1.0, abs=1e-5)
+    assert float(rows[1]["stale_frac"]) == 1.0 and float(rows[1]["is_weight_mean"]) < 1.0
+    ckpts = sorted(p.name for p in (run / "checkpoints").glob("*.safetensors"))
+    assert ckpts == ["policy_00000060.safetensors"]  # 30 did not reach the interval of 32 samples; 60 did
+    assert GraphActorCritic.load(run / "checkpoints" / ckpts[-1]) is not None  # loads as the policy node would
+
+
+def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampled, capsys):
+    bag = write_bag(tmp_path / "bag", sampled)
+    other = write_bag(tmp_path / "other", sampled[: len(sampled) // 2], "sqlite3")
+    args = ["--from-bags", str(bag), "--init", str(init), "--iterations", "400", "--seed", "5", *SMALL]
+    ref = tmp_path / "ref"
+    subprocess.run([*CLI, *args, "--out", str(ref)], check=True, capture_output=True, timeout=600)
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([*CLI, *args, "--out", str(run)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    # Kill it mid-run, once it has checkpointed a few times: polling files the child writes.
+    while time.monotonic() < deadline and proc.poll() is None:
+        if (run / "state.safetensors").exists() and (run / "progress.csv").exists() and len(_rows(run)) >= 5:
+            break
+        time.sleep(0.005)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = run_state(run)["done"]
+    assert killed_at < 400, "the run finished before it could be killed; make it longer"
+
+    # Other bags, as a resume or as new data while updates are left: refused, nothing changed.
+    assert main(["--from-bags", str(other), "--out", str(run), "--resume", *SMALL]) == 1
+    assert "trains on other data" in _error(capsys)
+    assert main(["--from-bags", str(other), "--out", str(run), "--resume", "--new-data", *SMALL]) == 1
+    assert "updates left on its data" in _error(capsys)
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--init", str(init), *SMALL]) == 1
+    assert "--init starts a new run" in _error(capsys)
+    assert main(["--from-bags", str(bag), "--out", str(run), *SMALL]) == 1
+    assert "already holds a run" in _error(capsys)
+    assert run_state(run)["done"] == killed_at
+
+    subprocess.run([*CLI, "--from-bags", str(bag), "--out", str(run), "--resume"], check=True, timeout=600)
+    (w_ref, c_ref), (w_run, c_run) = _weights(ref), _weights(run)
+    assert c_ref == c_run and c_ref["iteration"] == 400
+    assert w_ref.keys() == w_run.keys()
+    for k in w_ref:
+        assert torch.equal(w_ref[k], w_run[k]), k  # weights, Adam moments, generator, pass order
+    assert [r["global_step"] for r in _rows(run)] == [r["global_step"] for r in _rows(ref)]
+    assert [r["policy_loss"] for r in _rows(run)] == [r["policy_loss"] for r in _rows(ref)]
+
+
+# -- bad input -----------------------------------------------------------------------------------
+def test_a_bag_without_policy_info_is_refused_naming_what_is_missing(tmp_path, init, capsys):
+    records = loop_records(MeanController(GraphActorCritic.load(init)), ((3, 20),))
+    bag = write_bag(tmp_path / "deterministic", records, types={"policy_info": None})
+    run = tmp_path / "run"
+    assert main(["--from-bags", str(bag), "--out", str(run), *SMALL]) == 1
+    line = _error(capsys)
+    assert "20 of 20 steps have no policy_info" in line and "morph_policy_node deterministic:=false" in line
+    assert not (run / "state.safetensors").exists() and not (run / "progress.csv").exists()
+
+
+def test_bad_bags_give_one_line_errors_naming_the_file(tmp_path, sampled, capsys):
+    def fails(path, *extra) -> str:
+        assert main(["--from-bags", str(path), "--out", str(tmp_path / "run"), *extra, *SMALL]) == 1
+        return _error(capsys)
+
+    assert "no such file or directory" in fails(tmp_path / "nothing") and str(tmp_path / "nothing") in fails(
+        tmp_path / "nothing"
+    )
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "notes.txt").write_text("hello")
+    assert "not a rosbag2 bag" in fails(tmp_path / "junk")
+    (tmp_path / "fake.mcap").write_bytes(b"not an mcap file at all")
+    assert f"{tmp_path / 'fake.mcap'}: not an MCAP file" in fails(tmp_path / "fake.mcap")
+    no_odom = write_bag(tmp_path / "no_odom", sampled, types={"odom": None})
+    line = fails(no_odom)
+    assert str(no_odom) in line and "required topic /swimmer/odom is not in the bag" in line
+    wrong = write_bag(tmp_path / "wrong", [r for r in sampled if not isinstance(r, PolicyInfoRecord)],
+                      types={"policy_info": "std_msgs/msg/String"})  # fmt: skip
+    line = fails(wrong)
+    assert "wrong_0.mcap" in line and "/swimmer/policy_info has type std_msgs/msg/String" in line
+    assert "not a policy checkpoint" in fails(write_bag(tmp_path / "ok", sampled), "--init", str(tmp_path / "x.bin"))
+    assert not (tmp_path / "run").exists()  # nothing was created for any of them
+
+
+def test_a_truncated_bag_trains_on_its_valid_prefix_with_a_warning(tmp_path, sampled, capsys):
+    whole = write_bag(tmp_path / "whole", sampled, chunk_size=4096)
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    data = (whole / "whole_0.mcap").read_bytes()
+    (cut / "cut_0.mcap").write_bytes(data[: len(data) // 2])  # a recorder killed mid-write: no metadata.yaml
+    run = tmp_path / "run"
+    assert main(["--from-bags", str(cut), "--out", str(run), "--iterations", "1", *SMALL]) == 0
+    captured = capsys.readouterr()
+    assert "morph-train: warning:" in captured.err and "cut_0.mcap: incomplete MCAP file" in captured.err
+    steps = int(captured.out.split("morph-train: ")[1].split(" steps")[0])
+    assert 0 < steps < 150
+    assert run_state(run)["steps"] == steps
+
+
+def test_options_of_bag_training_need_from_bags(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "x"), "--iterations", "2"])
+    assert "--iterations: only with --from-bags" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--from-bags", "b", "--out", str(tmp_path / "x"), "--new-data"])
+    assert "--new-data continues a run: pass --resume too" in capsys.readouterr().err
+    assert main(["--from-bags", "b", "--out", str(tmp_path / "x"), "--resume"]) == 1
+    assert "no run to resume" in _error(capsys)
