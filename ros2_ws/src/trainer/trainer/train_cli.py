@@ -37,6 +37,7 @@ from morph_core.protocol.transition_batch import MissingPolicyInfoError, Transit
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 from trainer.bag_io import BagError, BagReader
+from trainer.live_learner import LiveOptions
 
 PPO_TOPICS = ("joint_states", "odom")
 """topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
@@ -80,6 +81,17 @@ def build_parser() -> argparse.ArgumentParser:
         "(policy, critic, optimizer and generator carry over)",
     )
     bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
+    live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live)")
+    live.add_argument("--live", action="store_true", help="learn from running pairs, push weights back")
+    live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
+    live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
+                      help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
+    live.add_argument("--max-staleness", type=int, default=LiveOptions.max_staleness,
+                      help="drop steps sampled by weights more than this many versions old")  # fmt: skip
+    live.add_argument("--silence-timeout", type=float, default=LiveOptions.silence_timeout,
+                      help="seconds without a new state before a pair's partial episode is dropped")  # fmt: skip
+    live.add_argument("--max-updates", type=int, default=LiveOptions.max_updates,
+                      help="stop after this many updates (0: at --total-timesteps)")  # fmt: skip
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
     parser.add_argument(
@@ -152,9 +164,35 @@ def _train_from_bags(args) -> None:
     )
 
 
+def _train_live(args, parser) -> int:
+    from trainer.live import run_live  # rclpy only here
+
+    if not args.namespaces:
+        parser.error("--live needs --namespaces NS [NS ...]")
+    if args.from_bags is not None:
+        parser.error("--live and --from-bags are two data sources: choose one")
+    overrides = overrides_from_args(args, TrainConfig)
+    try:
+        if args.resume:
+            if not (args.out / "state.safetensors").exists():
+                parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
+            cfg = load_run_config(args.out, overrides)
+        else:
+            if (args.out / "state.safetensors").exists():
+                parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
+            cfg = replace_nested(TrainConfig(), overrides)
+        options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
+                              args.silence_timeout, args.max_updates)  # fmt: skip
+    except (TypeError, ValueError) as err:
+        parser.error(str(err))
+    return run_live(cfg, options)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.live:
+        return _train_live(args, parser)
     if args.from_bags is not None:
         if args.iterations is not None and args.iterations < 1:
             parser.error("--iterations must be >= 1")
@@ -167,6 +205,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"morph-train: error: {err}", file=sys.stderr)
             return 1
         return 0
+    if args.namespaces:
+        parser.error("--namespaces: only with --live")
     given = [opt for opt, v in (("--init", args.init), ("--iterations", args.iterations),
                                 ("--new-data", args.new_data), ("--namespace", args.namespace)) if v]  # fmt: skip
     if given:

@@ -1,0 +1,303 @@
+"""Live training over DDS: K sim+policy pairs in namespaces, one trainer, new weights pushed back.
+
+    morph-train --live --namespaces /swimmer0 /swimmer1 --out runs/live [--resume] [TrainConfig options]
+
+Per namespace the node subscribes to ``episode_start``, ``joint_states``,
+``odom``, ``effort_commands`` and ``policy_info`` (decoded into records by
+``trainer.bag_io``'s decoders, as from a bag) and feeds one
+``protocol.transitions.TransitionAssembler``: the same transitions as
+training from recorded topics, lost or reordered messages counted as skips.
+Each finished episode goes to ``trainer.live_learner.LiveLearner`` with the
+weights version of each step (``policy_info``'s ``header.frame_id``); once it
+holds a batch it updates (in a worker thread, so the subscriptions keep
+draining) and the new policy is published on every namespace's
+``policy_weights`` (``msgs.policy_weights``; reliable, transient local, keep
+last 1: a policy node that starts or restarts late gets the latest).
+
+Episodes: when a pair appears (at start, or back after a fault) the trainer
+sets its sim's ``episode_steps`` and calls its ``~/reset`` service, so the
+sim starts a fresh episode with a chain length redrawn from the
+``min_joints``..``max_joints`` it was started with (2..10 in the bring-up).
+
+Faults. A pair joins when its loop runs (a ``policy_info`` arrives). A
+pair whose sim publishes no new state for ``silence_timeout`` seconds (sim
+killed; or policy killed: a lockstep sim then only re-sends its state) is
+dropped: its partial episode is thrown away (logged, counted), the others go
+on; when its policy answers again it is taken back (episode steps set,
+reset). The trainer killed: ``--resume`` continues from the state saved at
+its last update and re-publishes that version; policy nodes run the
+last weights they got meanwhile.
+
+Subscription QoS: reliable keep-last 1000 for the data topics (a deep queue:
+the worker thread's update must not cost samples; reliable readers match the
+nodes' reliable writers and a best-effort writer is still heard by nobody:
+the project's publishers of these topics are reliable), reliable transient
+local for ``episode_start`` (the sim latches the current announcement).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, OrderedDict
+from dataclasses import dataclass, field
+
+import rclpy
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from morph_core.algo.train import TrainConfig
+from morph_core.msgs.policy_weights import parse_policy_version
+from morph_core.msgs.records import PolicyInfoRecord
+from morph_core.protocol.transitions import SkipCounts, StreamStats, Transition, TransitionAssembler
+from trainer.bag_io import (
+    DecodeError,
+    effort_record,
+    episode_start_record,
+    joint_state_record,
+    odometry_record,
+    policy_info_record,
+)
+from trainer.live_learner import LiveLearner, LiveOptions
+
+DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+EPISODE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+WEIGHTS_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""the weights topic: the latest policy kept for late joiners"""
+WEIGHTS_TOPIC = "policy_weights"
+SIM_NODE = "swimmer_sim"
+_VERSIONS_KEPT = 4096  # stamps whose policy_info version is remembered, per pair
+
+
+@dataclass
+class _Pair:
+    """One namespace's stream."""
+
+    ns: str
+    assembler: TransitionAssembler = field(default_factory=TransitionAssembler)
+    episode: list[Transition] = field(default_factory=list)
+    versions: OrderedDict = field(default_factory=OrderedDict)
+    """policy_info stamp -> weights version (None: not said)"""
+    states: int = 0
+    last_new_state: float = 0.0
+    active: bool = False
+    configure: bool = False
+    """episode_steps and a reset still to send (the sim's services may not be discovered yet)"""
+    decode_errors: Counter = field(default_factory=Counter)
+    dropped_partial: int = 0
+    drops: int = 0
+
+
+class LiveTrainer(Node):
+    def __init__(self, cfg: TrainConfig, options: LiveOptions):
+        super().__init__("morph_live_trainer")
+        self.options = options
+        self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness)
+        self.pairs: dict[str, _Pair] = {}
+        self._weights_pubs = []
+        self._sim_params: dict[str, object] = {}
+        self._sim_reset: dict[str, object] = {}
+        self._updating: threading.Thread | None = None
+        self._updates_here = 0
+        self._done = False
+        self._lock = threading.Lock()
+        services = MutuallyExclusiveCallbackGroup()
+        for ns in options.namespaces:
+            ns = "/" + ns.strip("/")
+            pair = self.pairs[ns] = _Pair(ns)
+            self.create_subscription(Int64MultiArray, f"{ns}/episode_start",
+                                     self._handler(pair, episode_start_record), EPISODE_QOS)  # fmt: skip
+            for msg_type, topic, decode in (
+                (JointState, "joint_states", joint_state_record),
+                (Odometry, "odom", odometry_record),
+                (Float64MultiArray, "effort_commands", effort_record),
+                (JointTrajectory, "policy_info", policy_info_record),
+            ):
+                self.create_subscription(msg_type, f"{ns}/{topic}", self._handler(pair, decode), DATA_QOS)
+            self._weights_pubs.append(self.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS))
+            self._sim_params[ns] = self.create_client(SetParameters, f"{ns}/{SIM_NODE}/set_parameters",
+                                                      callback_group=services)  # fmt: skip
+            self._sim_reset[ns] = self.create_client(Trigger, f"{ns}/{SIM_NODE}/reset", callback_group=services)
+        self.publish_weights()
+        self.create_timer(0.05, self._on_timer)
+        self.create_timer(10.0, self._report)
+        what = "resumed at" if self.learner.resumed else "started with"
+        self.get_logger().info(
+            f"live training {what} version {self.learner.version} on {len(self.pairs)} pairs "
+            f"({', '.join(self.pairs)}), batch {cfg.batch_size} samples, run {options.out}"
+        )
+
+    # -- input ---------------------------------------------------------------------------
+    def _handler(self, pair: _Pair, decode):
+        def on_message(msg) -> None:
+            try:
+                record = decode(msg, time.time_ns())
+            except DecodeError as err:
+                pair.decode_errors[err.reason] += 1
+                return
+            if decode is policy_info_record:
+                pair.versions[record.stamp_ns] = parse_policy_version(msg.header.frame_id)
+                while len(pair.versions) > _VERSIONS_KEPT:
+                    pair.versions.popitem(last=False)
+            self._push(pair, record)
+
+        return on_message
+
+    def _push(self, pair: _Pair, record) -> None:
+        with self._lock:
+            out = pair.assembler.push(record)
+            if pair.assembler.stats.states != pair.states:
+                pair.states = pair.assembler.stats.states
+                pair.last_new_state = time.monotonic()
+            # A pair joins when its loop runs: a new state and an answer from its sampling policy (a lockstep
+            # sim alone only re-sends its state; resetting it then would just repeat).
+            if not pair.active and isinstance(record, PolicyInfoRecord):
+                pair.last_new_state = time.monotonic()
+                self._join(pair)
+            for t in out:
+                pair.episode.append(t)
+                if t.truncated:
+                    versions = [pair.versions.get(s.stamp_ns) for s in pair.episode]
+                    self.learner.add_episode(pair.episode, versions)
+                    pair.episode = []
+
+    # -- pairs joining and leaving ---------------------------------------------------------
+    def _join(self, pair: _Pair) -> None:
+        pair.active = True
+        pair.configure = True
+        self.get_logger().info(f"pair {pair.ns} is running: setting episode_steps and resetting its sim")
+
+    def _configure(self, pair: _Pair) -> None:
+        """episode_steps, then a reset (a fresh episode, chain length redrawn), once the services answer."""
+        steps = self.options.episode_steps
+        params, reset = self._sim_params[pair.ns], self._sim_reset[pair.ns]
+        if not (reset.service_is_ready() and (steps <= 0 or params.service_is_ready())):
+            return
+        pair.configure = False
+        if steps > 0:
+            value = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=steps)
+            params.call_async(SetParameters.Request(parameters=[ParameterMsg(name="episode_steps", value=value)]))
+        reset.call_async(Trigger.Request())
+
+    def _drop(self, pair: _Pair, why: str) -> None:
+        lost = len(pair.episode) + len(pair.assembler.flush())
+        pair.episode = []
+        pair.active = False
+        pair.dropped_partial += lost
+        pair.drops += 1
+        self.get_logger().warn(f"pair {pair.ns} {why}: dropped its partial episode ({lost} steps); training on")
+
+    # -- learning ------------------------------------------------------------------------
+    def _on_timer(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for pair in self.pairs.values():
+                if pair.active and now - pair.last_new_state > self.options.silence_timeout:
+                    self._drop(pair, f"silent for {self.options.silence_timeout} s")
+                elif pair.active and pair.configure:
+                    self._configure(pair)
+        if self._updating is not None and not self._updating.is_alive():
+            self._updating = None
+            self.publish_weights()
+            if self._finished():
+                self._done = True
+        if self._updating is None and not self._done and self.learner.ready():
+            with self._lock:
+                pool = self.learner.take_pool()
+            active = sum(p.active for p in self.pairs.values())
+            self._updating = threading.Thread(target=self._update, args=(pool, active), daemon=True)
+            self._updating.start()
+
+    def _update(self, pool, active: int) -> None:
+        row = self.learner.update(pool, pairs=active)
+        self._updates_here += 1
+        self.get_logger().info(
+            f"update {row['iteration']}: version {row['version']}, {row['batch_size']} samples "
+            f"({row['pool_episodes']} episodes, mean return {row['return_mean']:.2f}), "
+            f"update {row['update_s']:.2f} s, weight {row['is_weight_mean']:.3f}, lag {row['version_lag_mean']:.2f}"
+        )
+
+    def _finished(self) -> bool:
+        if self.options.max_updates and self._updates_here >= self.options.max_updates:
+            return True
+        return self.learner.counters["global_step"] >= self.learner.cfg.total_timesteps
+
+    @property
+    def done(self) -> bool:
+        return self._done
+
+    def publish_weights(self) -> None:
+        dims, data = self.learner.weights_message()
+        msg = UInt8MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
+        msg.data = data
+        for pub in self._weights_pubs:
+            pub.publish(msg)
+
+    def skips(self) -> tuple[SkipCounts, StreamStats]:
+        skips, stats = SkipCounts(), StreamStats()
+        for p in self.pairs.values():
+            skips.merge(p.assembler.skips)
+            stats.merge(p.assembler.stats)
+        return skips, stats
+
+    def _report(self) -> None:
+        skips, stats = self.skips()
+        parts = [
+            f"{p.ns}: {'up' if p.active else 'down'}, {p.states} states, {p.drops} drops" for p in self.pairs.values()
+        ]
+        self.get_logger().info(
+            f"version {self.learner.version}, pool {self.learner.pool_size}/{self.learner.cfg.batch_size}, "
+            f"{stats.transitions} transitions, {skips.steps_skipped} steps skipped, dropped stale "
+            f"{self.learner.dropped_stale}; " + "; ".join(parts)
+        )
+
+    def close(self) -> None:
+        if self._updating is not None:
+            self._updating.join()
+        self.learner.close()
+
+
+def run_live(cfg: TrainConfig, options: LiveOptions, args=None) -> int:
+    """Run the live trainer until done (``max_updates`` / ``total_timesteps``) or SIGINT/SIGTERM."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = LiveTrainer(cfg, options)
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        if node.done:
+            node.get_logger().info(
+                f"done: version {node.learner.version}, {node.learner.counters['global_step']} steps"
+            )
+            end = time.monotonic() + 1.0  # let reliable readers fetch the last weights
+            while rclpy.ok() and time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.05)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,114 @@
+"""Live training on this machine: K lockstep sim+policy pairs in namespaces plus the live trainer.
+
+    python -m trainer.live_bringup --pairs 4 --out runs/live [--updates N] [--resume] [-- TRAIN OPTIONS]
+
+What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
+machines without ``launch``. The trainer starts first (``morph-train --live``,
+its subscriptions made in advance), then each pair in ``/swimmer<i>``: the
+sim (lockstep, as fast as possible, chain length redrawn from 2..10 at each
+reset, seed i) and, once the trainer listens to the pair, the sampling policy
+(``deterministic:=false``, seed i). The trainer pushes its weights to every
+policy node and sets each sim's episode length. The bring-up ends when the
+trainer does (``--updates``, or the config's total_timesteps) and stops the
+pairs; the run directory is ``--out``. Options after ``--`` go to
+``morph-train`` (e.g. ``-- --num-steps 256 --seed 3``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from trainer.record_bringup import _fastdds_profile, _start, _stop, _wait_for_subscriber
+
+TRAINER_NODE = "morph_live_trainer"
+
+
+def pair_params(index: int, min_joints: int, max_joints: int, checkpoint: str | None) -> tuple[dict, dict]:
+    """(sim, policy) parameters of pair ``index``."""
+    sim = {
+        "lockstep": "true",
+        "real_time_factor": 0.0,
+        "effort_timeout": 2.0,
+        "min_joints": min_joints,
+        "max_joints": max_joints,
+        "seed": index,
+    }
+    policy = {"deterministic": "false", "seed": index}
+    if checkpoint is not None:
+        policy["checkpoint"] = checkpoint if checkpoint else "''"
+    return sim, policy
+
+
+def trainer_command(namespaces: list[str], args, extra: list[str]) -> list[str]:
+    cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(args.out)]
+    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.updates)]
+    if args.resume:
+        cmd.append("--resume")
+    return cmd + extra
+
+
+def run(args, extra: list[str]) -> int:
+    import subprocess
+
+    profile = _fastdds_profile()
+    if profile:
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    import rclpy
+
+    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
+    rclpy.init()
+    node = rclpy.create_node("live_bringup")
+    trainer = subprocess.Popen(trainer_command(namespaces, args, extra))
+    procs: list[subprocess.Popen] = []
+    try:
+        for i, ns in enumerate(namespaces):
+            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint)
+            procs.append(_start("swimmer_sim_node.sim_node", ns, sim))
+            topics = [f"{ns}/{t}" for t in ("joint_states", "effort_commands", "policy_info", "odom")]
+            _wait_for_subscriber(node, trainer, topics, TRAINER_NODE, args.startup_timeout)
+            procs.append(_start("morph_policy_node.policy_node", ns, policy))
+        print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
+        deadline = time.monotonic() + args.timeout
+        while trainer.poll() is None:
+            if time.monotonic() > deadline:
+                print(f"live_bringup: timed out after {args.timeout} s: stopping the trainer", flush=True)
+                break
+            time.sleep(0.5)
+    finally:
+        _stop([trainer])
+        _stop(procs)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0 if trainer.returncode in (0, None) else 1
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        cut = argv.index("--")
+        argv, extra = argv[:cut], argv[cut + 1 :]
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
+    ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
+    ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --out")
+    ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
+    ap.add_argument("--min-joints", type=int, default=2)
+    ap.add_argument("--max-joints", type=int, default=10)
+    ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
+                    "weights replace it)")  # fmt: skip
+    ap.add_argument("--timeout", type=float, default=24 * 3600.0, help="wall seconds before stopping")
+    ap.add_argument("--startup-timeout", type=float, default=60.0)
+    args = ap.parse_args(argv)
+    if args.pairs < 1:
+        ap.error("--pairs must be >= 1")
+    return run(args, extra)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

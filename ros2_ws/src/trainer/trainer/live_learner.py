@@ -1,0 +1,257 @@
+"""The learning half of live training, without ROS: episodes in, PPO updates and weights versions out.
+
+``trainer.live`` (the node) feeds ``LiveLearner.add_episode`` with the
+transitions of one swimmer's episode (``protocol.transitions``) and the
+weights version that sampled each step (from ``policy_info``'s
+``header.frame_id``, ``msgs.policy_weights``). Once the pool holds
+``TrainConfig.batch_size`` samples (num_envs x num_steps, the paper's 6,144,
+whatever the number of swimmers), ``update`` runs one PPO update on the whole
+pool (whole episodes, so slightly more than a batch) with the update every data
+source uses (``algo.update``) and the objective of training from data
+(``algo.train_from_data``): values and GAE from the current critic, the ratio
+against the proximal policy, each sample weighted by pi_prox / pi_behav
+truncated at ``proximal_weight_cap``. Each update makes a new version.
+
+Stale samples. A pair keeps acting with the version it has while the trainer
+updates, so a pool mixes versions. The decoupled objective is correct for any
+behaviour policy (the behaviour log-prob travels with each sample), but the
+further behind, the more the truncated weights bias the update towards old
+behaviour and the more samples carry weight ~0. Steps sampled by a version
+more than ``max_staleness`` updates behind the current one are dropped
+(counted); as versions only grow along an episode, what is dropped is the
+episode's beginning, and the rest stays one unbroken episode for GAE.
+Steps with no version (a policy node that does not say) are kept: the
+objective still holds, only the drop cannot be applied. Steps without
+policy_info (no behaviour log-prob) cannot enter PPO: the episode keeps only
+its part after the last such step.
+
+The run directory is the simulator trainer's: config.json, progress.csv
+(``train_from_data.log_columns`` plus live columns), tb/, checkpoints every
+``checkpoint_interval`` steps, state.safetensors (policy, Adam, generator,
+counters, the run's id). ``resume`` continues from the last state; the pool
+collected since the last update is lost with the process (a few seconds of
+data). The run id goes with every weights message (``metadata["run"]``), so
+policy nodes take a fresh run's version 0 but ignore an old message of this
+run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import save as safetensors_bytes
+
+from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.ppo import explained_variance
+from morph_core.algo.run_log import RunLog
+from morph_core.algo.train import TrainConfig
+from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
+from morph_core.algo.update import Learner, update, with_proximal
+from morph_core.msgs.policy_weights import pack_policy_weights
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.transition_batch import TransitionBatch
+from morph_core.protocol.transitions import Transition
+from morph_core.util.atomic import atomic_writer
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """What the live node does beside PPO (TrainConfig says how it learns)."""
+
+    namespaces: tuple[str, ...]
+    out: Path
+    resume: bool = False
+    episode_steps: int = 1000
+    """set on each sim when its pair (re)joins; 0 leaves the sim's own setting"""
+    max_staleness: int = 2
+    """steps sampled by weights more than this many versions behind are dropped"""
+    silence_timeout: float = 3.0
+    """seconds without a new state before a pair is dropped (its partial episode thrown away)"""
+    max_updates: int = 0
+    """stop after this many updates in this process (0: run until total_timesteps)"""
+
+    def __post_init__(self):
+        if not self.namespaces:
+            raise ValueError("live training needs at least one namespace")
+        if len(set(self.namespaces)) != len(self.namespaces):
+            raise ValueError(f"namespaces given twice: {list(self.namespaces)}")
+        if self.episode_steps < 0 or self.max_staleness < 0 or self.max_updates < 0:
+            raise ValueError("episode_steps, max_staleness and max_updates must be >= 0")
+        if not self.silence_timeout > 0:
+            raise ValueError(f"silence_timeout must be > 0, got {self.silence_timeout}")
+
+
+LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]
+
+
+def live_log_columns(cfg: TrainConfig) -> list[str]:
+    return [*log_columns(cfg), *LIVE_COLUMNS]
+
+
+class LiveLearner:
+    """Pool of episodes, PPO updates, checkpoints and the current weights version (see module docstring)."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, max_staleness: int = 2):
+        if cfg.anneal_lr:
+            raise ValueError("anneal_lr needs a known run length; live training has none")
+        if max_staleness < 0:
+            raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
+        self.run_dir = Path(run_dir)
+        self.state_path = self.run_dir / "state.safetensors"
+        self.max_staleness = max_staleness
+        torch.set_num_threads(1)  # before init, as algo.train
+        resumed = resume and self.state_path.exists()
+        self.cfg = cfg  # on resume: the run's config.json with any overrides (``train.load_run_config``)
+        torch.manual_seed(cfg.seed)
+        self.policy = GraphActorCritic(cfg.policy)
+        self.learner = Learner.create(self.policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "version": 0, "env_steps": 0}
+        self.run_id = uuid.uuid4().hex
+        if resumed:
+            tensors, meta = load_training_state(self.state_path)
+            self.policy.load_state_dict(sub_dict(tensors, "policy."))
+            restore_optimizer(self.learner.optimizer, tensors, meta)
+            self.gen.set_state(tensors["rng.torch"])
+            self.counters = meta["counters"]
+            self.run_id = meta["env"]["run"]
+        else:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            with atomic_writer(self.run_dir / "config.json") as f:
+                json.dump(cfg.to_dict(), f, indent=2)
+            self._save_state()  # version 0 is resumable too: policy nodes may already run it
+        self.resumed = resumed
+        self.log = RunLog(self.run_dir, live_log_columns(cfg), resume_step=self.counters["global_step"] if resume
+                          else None, tensorboard=cfg.tensorboard)  # fmt: skip
+        self._pool: list[TransitionBatch] = []
+        self._pool_versions: list[np.ndarray] = []
+        self.pool_size = 0
+        self.dropped_stale = 0
+        self.dropped_no_info = 0
+
+    @property
+    def version(self) -> int:
+        return self.counters["version"]
+
+    # -- data -------------------------------------------------------------------------
+    def add_episode(self, transitions: Sequence[Transition], versions: Sequence[int | None]) -> int:
+        """Take one episode (consecutive transitions, the last truncated) and the weights version of each
+        step; returns how many steps entered the pool."""
+        if len(transitions) != len(versions):
+            raise ValueError(f"{len(transitions)} transitions but {len(versions)} versions")
+        if not transitions:
+            return 0
+        if not transitions[-1].truncated:
+            raise ValueError("an episode handed over must end in a truncated step")
+        lo = self.version - self.max_staleness
+        keep_from = 0
+        for i, (t, v) in enumerate(zip(transitions, versions, strict=True)):
+            if not t.has_policy_info:
+                self.dropped_no_info += i + 1 - keep_from
+                keep_from = i + 1
+            elif v is not None and v < lo:
+                self.dropped_stale += i + 1 - keep_from
+                keep_from = i + 1
+        kept = list(transitions[keep_from:])
+        if not kept:
+            return 0
+        n = len(kept[0].joint_pos)
+        if not all(len(t.joint_pos) == n for t in kept) or not self.cfg.min_joints <= n <= self.cfg.max_joints:
+            self.dropped_no_info += len(kept)  # a chain the run does not train on
+            return 0
+        self._pool.append(TransitionBatch.from_transitions(kept))
+        self._pool_versions.append(np.array([np.nan if v is None else v for v in versions[keep_from:]], np.float64))
+        self.pool_size += len(kept)
+        self.counters["env_steps"] += len(kept)
+        return len(kept)
+
+    def ready(self) -> bool:
+        return self.pool_size >= self.cfg.batch_size
+
+    # -- learning ---------------------------------------------------------------------
+    def take_pool(self) -> tuple[list[TransitionBatch], np.ndarray]:
+        """The pool's episodes and their steps' versions (NaN: unknown), leaving the pool empty."""
+        pool, versions = self._pool, self._pool_versions
+        self._pool, self._pool_versions, self.pool_size = [], [], 0
+        return pool, np.concatenate(versions) if versions else np.zeros(0)
+
+    def update(self, pool: tuple[list[TransitionBatch], np.ndarray] | None = None, pairs: int = 0) -> dict:
+        """One PPO update on ``pool`` (default: ``take_pool()``); makes the next version, logs and
+        checkpoints; returns the logged row. ``add_episode`` may run in another thread meanwhile."""
+        episodes_list, versions = pool if pool is not None else self.take_pool()
+        if not episodes_list:
+            raise ValueError("no episodes to train on")
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        data = TransitionBatch.concatenate(episodes_list)
+        known = versions[np.isfinite(versions)]
+        lags = self.version - known
+        episodes = len(episodes_list)
+        samples = Samples(data, cfg.max_joints)
+        values, advantages, returns = samples.advantages(self.policy, cfg.gamma, cfg.gae_lambda)
+        batch = with_proximal(self.policy, samples.batch(torch.arange(len(data)), values, advantages, returns))
+        prepare_s = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        torch.set_num_threads(cfg.torch_threads)
+        stats = update(self.learner, batch, cfg.update_config(), self.gen)
+        torch.set_num_threads(1)
+        update_s = time.perf_counter() - t1
+        c = self.counters
+        c["iteration"] += 1
+        c["global_step"] += batch.size
+        c["version"] += 1
+        row = {
+            "global_step": c["global_step"],
+            "iteration": c["iteration"],
+            "data_round": c["iteration"],
+            "round_iteration": 1,
+            "env_steps": c["env_steps"],
+            "data_steps": len(data),
+            "batch_size": batch.size,
+            "wall_time": time.time(),
+            "sps": batch.size / (prepare_s + update_s),
+            "prepare_s": prepare_s,
+            "update_s": update_s,
+            "learning_rate": self.learner.optimizer.param_groups[0]["lr"],
+            **EpisodeReturns.of(data).row(cfg.dims),
+            **stats.row(cfg.dims),
+            "explained_variance": explained_variance(batch.values, batch.returns),
+            "log_std": float(self.policy.log_std.detach()),
+            **off_policy_stats(batch, cfg.proximal_weight_cap),
+            "version": c["version"],
+            "pool_episodes": episodes,
+            "dropped_stale": self.dropped_stale,
+            "dropped_no_info": self.dropped_no_info,
+            "version_lag_mean": float(lags.mean()) if len(lags) else float("nan"),
+            "pairs": pairs,
+        }
+        self.log.log(row)
+        step, last = c["global_step"], c["last_ckpt"]
+        if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval:
+            c["last_ckpt"] = step
+            self.policy.save(self.run_dir / "checkpoints" / f"policy_{step:08d}.safetensors",
+                             metadata={"global_step": step, "version": c["version"]})  # fmt: skip
+        self._save_state()  # every update: a resumed trainer continues from the version the nodes run
+        return row
+
+    def _save_state(self) -> None:
+        save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, {"run": self.run_id}, {},
+                            dict(self.counters))  # fmt: skip
+
+    def weights_message(self) -> tuple[list[tuple[str, int, int]], bytes]:
+        """The current policy as the weights topic carries it (``msgs.policy_weights``)."""
+        tensors = {k: v.detach().contiguous() for k, v in self.policy.state_dict().items()}
+        meta = {"run": self.run_id, "global_step": self.counters["global_step"]}
+        return pack_policy_weights(self.version, dataclasses.asdict(self.policy.config), safetensors_bytes(tensors),
+                                   meta)  # fmt: skip
+
+    def close(self) -> None:
+        self.log.close()
