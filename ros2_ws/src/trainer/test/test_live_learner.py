@@ -1,0 +1,117 @@
+"""LiveLearner without DDS: episodes of a real in-process lockstep loop (MuJoCo + the sampling policy), stale
+and unusable steps dropped from an episode's start, PPO updates making versions, weights that rebuild the
+policy exactly, resume continuing the run."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from morph_core.algo.train import TrainConfig
+from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.policy_weights import unpack_policy_weights
+from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.protocol.loopback import LoopbackRecording, SamplingController
+from morph_core.protocol.transitions import TransitionAssembler
+from trainer.live_learner import LiveLearner, LiveOptions
+
+SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
+                    tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    """Three episodes (3, 6, 9 joints; 40 steps each) sampled by a fresh policy, as the node would see them."""
+    torch.set_num_threads(1)
+    torch.manual_seed(3)
+    loop = LoopbackRecording(SwimmerSim(3, seed=0, effort_timeout=None), SamplingController(GraphActorCritic(), 1))
+    for i, n in enumerate((3, 6, 9)):
+        if i:
+            loop.new_episode(n)
+        loop.run(40)
+    loop.finish()
+    out: dict[int, list] = {}
+    asm = TransitionAssembler()
+    for t in asm.push_many(loop.records) + asm.flush():
+        out.setdefault(t.episode, []).append(t)
+    eps = list(out.values())
+    assert [len(e) for e in eps] == [40, 40, 40] and all(e[-1].truncated for e in eps)
+    return eps
+
+
+def test_update_needs_a_batch_then_makes_the_next_version(tmp_path, episodes):
+    learner = LiveLearner(SMALL, tmp_path, max_staleness=1)
+    assert learner.version == 0 and (tmp_path / "state.safetensors").exists()
+    assert learner.add_episode(episodes[0], [0] * 40) == 40
+    assert not learner.ready()
+    learner.add_episode(episodes[1], [None] * 40)  # a node that does not say its version: kept
+    assert learner.ready() and learner.pool_size == 80
+    before = [p.detach().clone() for p in learner.policy.parameters()]
+    row = learner.update(pairs=2)
+    assert learner.version == 1 and row["version"] == 1 and row["batch_size"] == 80 and row["pairs"] == 2
+    assert row["version_lag_mean"] == 0.0 and row["pool_episodes"] == 2
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))
+    assert learner.pool_size == 0
+    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    assert len(rows) == 1 and int(rows[0]["version"]) == 1 and float(rows[0]["return_d3"]) == row["return_d3"]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        "policy_00000080.json", "policy_00000080.safetensors"]  # fmt: skip
+
+
+def test_stale_and_unusable_steps_are_cut_from_the_episode_start(tmp_path, episodes):
+    learner = LiveLearner(SMALL, tmp_path, max_staleness=1)
+    learner.counters["version"] = 5
+    versions = [2] * 10 + [3] * 10 + [4] * 20  # versions 2 and 3 are more than 1 behind 5
+    assert learner.add_episode(episodes[0], versions) == 20
+    assert learner.dropped_stale == 20
+    bad = list(episodes[1])
+    bad[4] = type(bad[4])(**{**bad[4].__dict__, "has_policy_info": False, "log_prob": float("nan")})
+    assert learner.add_episode(bad, [5] * 40) == 35 and learner.dropped_no_info == 5
+    with pytest.raises(ValueError, match="truncated"):
+        learner.add_episode(episodes[2][:-1], [5] * 39)
+    with pytest.raises(ValueError, match="versions"):
+        learner.add_episode(episodes[2], [5])
+    learner.cfg = TrainConfig(**{**SMALL.to_dict(), "max_joints": 8})  # 9 joints: outside the run's chains
+    assert learner.add_episode(episodes[2], [5] * 40) == 0
+
+
+def test_weights_rebuild_the_policy_and_resume_continues(tmp_path, episodes):
+    learner = LiveLearner(SMALL, tmp_path)
+    for e in episodes[:2]:
+        learner.add_episode(e, [0] * 40)
+    learner.update()
+    dims, data = learner.weights_message()
+    w = unpack_policy_weights([d[0] for d in dims], [d[1] for d in dims], data)
+    assert w.version == 1 and w.metadata["run"] == learner.run_id
+    rebuilt = GraphActorCritic(PolicyConfig.from_dict(w.config))
+    rebuilt.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in w.tensors.items()})
+    for (k, a), b in zip(learner.policy.state_dict().items(), rebuilt.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+    run_id, step = learner.run_id, learner.counters["global_step"]
+    learner.close()
+    again = LiveLearner(SMALL, tmp_path, resume=True)
+    assert (again.version, again.run_id, again.counters["global_step"]) == (1, run_id, step)
+    for a, b in zip(again.policy.parameters(), learner.policy.parameters(), strict=True):
+        assert torch.equal(a, b)
+    again.add_episode(episodes[2], [1] * 40)
+    again.add_episode(episodes[0], [1] * 40)
+    again.update()
+    steps = [int(r["global_step"]) for r in csv.DictReader(open(tmp_path / "progress.csv"))]
+    assert steps == [80, 160] and again.version == 2
+    fresh = LiveLearner(SMALL, tmp_path / "other")
+    assert fresh.run_id != run_id
+
+
+def test_options_refuse_nonsense(tmp_path):
+    with pytest.raises(ValueError, match="at least one"):
+        LiveOptions((), tmp_path)
+    with pytest.raises(ValueError, match="twice"):
+        LiveOptions(("/a", "/a"), tmp_path)
+    with pytest.raises(ValueError, match="silence_timeout"):
+        LiveOptions(("/a",), tmp_path, silence_timeout=0)
+    with pytest.raises(ValueError, match="anneal_lr"):
+        LiveLearner(TrainConfig(**{**SMALL.to_dict(), "anneal_lr": True}), tmp_path)
+    assert np.isfinite(SMALL.batch_size)
