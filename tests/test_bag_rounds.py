@@ -1,0 +1,62 @@
+"""Learning from bags alone, end to end on real nodes: trainer.bag_rounds records episodes with the sim,
+the sampling policy node and morph-record (separate processes, real DDS), trains from each bag with
+morph-train --from-bags, and records the next round with the checkpoint that training wrote. A failed
+round stops cleanly and the same command continues."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from morph_core.algo.train_from_data import run_state
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.timeout(900)
+def test_rounds_record_with_the_trained_checkpoint_and_continue_after_a_failure(tmp_path, namespace):
+    out = tmp_path / "rounds"
+    base = [sys.executable, "-m", "trainer.bag_rounds", "--out", str(out), "--namespace", namespace]
+    base += ["--episodes-per-round", "2", "--episode-steps", "30", "--min-joints", "2", "--max-joints", "5"]
+    base += ["--compare-with", str(ROOT / "docs" / "results_data" / "compensated-s*"), "--record-timeout", "240"]
+    train = ["--", "--compile", "false", "--update-epochs", "2", "--tensorboard", "false"]
+
+    # Round 1 records, then its training fails (a bad option): the round stops, saying why; the bag is kept.
+    failed = subprocess.run([*base, "--rounds", "2", *train, "--clip-eps", "-1"], capture_output=True, text=True,
+                            timeout=600)  # fmt: skip
+    assert failed.returncode == 1, failed.stdout + failed.stderr
+    assert "round 1: morph-train failed (exit 1)" in failed.stderr and "clip_eps must be > 0" in failed.stderr
+    assert "the same command continues" in failed.stderr
+    assert (out / "bags" / "round_001" / "metadata.yaml").exists() and not (out / "rounds.csv").exists()
+
+    done = subprocess.run([*base, "--rounds", "2", *train], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "round 1: recording" not in done.stdout  # the kept bag was trained on, not recorded again
+    assert "round 2: recording" in done.stdout
+    rows = _rows(out / "rounds.csv")
+    assert [r["round"] for r in rows] == ["1", "2"]
+    assert [int(r["sim_steps"]) for r in rows] == [60, 120]
+    for r in rows:
+        assert 0 < int(r["steps"]) <= 60 and int(r["lost_steps"]) == 60 - int(r["steps"])
+        # Recorded by the policy the trainer starts its update from: on-policy, weights 1.
+        assert float(r["stale_frac"]) == 0.0 and abs(float(r["is_weight_mean"]) - 1.0) < 1e-5
+    assert int(rows[1]["env_steps"]) == int(rows[0]["steps"]) + int(rows[1]["steps"])
+    assert rows[0]["checkpoint"] == "init/policy.safetensors"
+    assert rows[1]["checkpoint"] == f"train/checkpoints/policy_{int(rows[0]['steps']):08d}.safetensors"
+    state = run_state(out / "train")
+    assert state["data_round"] == 2 and state["iteration"] == 2 and state["env_steps"] == int(rows[1]["env_steps"])
+
+    table = _rows(out / "comparison.csv")
+    assert [t["round"] for t in table] == ["1", "2"]
+    assert all(int(t["simulator_runs"]) >= 1 and t["simulator_return_mean"] != "" for t in table)
+    assert (out / "comparison.png").stat().st_size > 0
+    assert "| 2 | 120 |" in done.stdout
