@@ -1,0 +1,160 @@
+"""Live training over real DDS: lockstep sim+policy pairs in namespaces, ``morph-train --live`` as its own
+process, weights on the wire, faults (a sim killed with SIGKILL and restarted, the trainer killed and resumed).
+
+Small batches (128 samples) and short episodes keep it to a minute or two on 2 cores. Runs inside a private
+network namespace (``scripts/test.sh``).
+"""
+
+from __future__ import annotations
+
+import csv
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from std_msgs.msg import Int64MultiArray, UInt8MultiArray
+
+from morph_core.algo.checkpoint import load_training_state
+from morph_core.msgs.policy_weights import unpack_policy_weights
+from morph_core.protocol.episode_start import unpack_episode_start
+from trainer.live import EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC
+
+STARTUP = 120.0
+SMALL = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
+         "--compile", "false", "--tensorboard", "false", "--progress-bar", "false", "--checkpoint-interval", "128",
+         "--episode-steps", "60", "--silence-timeout", "2"]  # fmt: skip
+
+
+class Proc:
+    """A process whose output goes to a log file."""
+
+    def __init__(self, cmd: list[str], log_path: Path):
+        self.log_path = log_path
+        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT)
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, sig=signal.SIGTERM) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+
+def Trainer(namespaces: list[str], out: Path, log_path: Path, *extra: str, prefix: list[str] = ()) -> Proc:  # noqa: N802
+    """``morph-train --live`` as a process."""
+    cmd = [*prefix, sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces,
+           "--out", str(out), *SMALL, *extra]  # fmt: skip
+    return Proc(cmd, log_path)
+
+
+def node(module: str, ns: str, params: dict, log_path: Path, prefix: list[str] = ()) -> Proc:
+    args = [*prefix, sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={ns}"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}"]
+    return Proc(args, log_path)
+
+
+def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, which=("sim", "policy")) -> dict:
+    procs = {}
+    if "sim" in which:
+        procs["sim"] = node("swimmer_sim_node.sim_node", ns, dict(lockstep=True, real_time_factor=0.0,
+                                   effort_timeout=1.0, min_joints=2, max_joints=10, seed=seed),
+                                   tmp_path / f"sim{ns.replace('/', '_')}_{seed}.log")  # fmt: skip
+    if "policy" in which:
+        params = dict(deterministic=False, seed=seed, checkpoint=str(checkpoint))
+        procs["policy"] = node(
+            "morph_policy_node.policy_node", ns, params, tmp_path / f"policy{ns.replace('/', '_')}.log"
+        )
+    return procs
+
+
+class WeightsWatch:
+    """The versions (and run ids) a subscriber of one namespace's weights topic receives."""
+
+    def __init__(self, probe, ns: str):
+        self.got: list[tuple[int, str]] = []
+        probe.node.create_subscription(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", self._on, WEIGHTS_QOS)
+
+    def _on(self, msg) -> None:
+        w = unpack_policy_weights([d.label for d in msg.layout.dim], [d.size for d in msg.layout.dim], msg.data)
+        self.got.append((w.version, w.metadata["run"]))
+
+    @property
+    def version(self) -> int:
+        return self.got[-1][0] if self.got else -1
+
+
+def progress(out: Path) -> list[dict]:
+    path = out / "progress.csv"
+    return list(csv.DictReader(open(path))) if path.exists() else []
+
+
+@pytest.mark.timeout(600)
+def test_live_training_survives_a_killed_sim_and_a_killed_trainer(probe, namespace, tmp_path, untrained_checkpoint):
+    p0, p1 = f"{namespace}/p0", f"{namespace}/p1"
+    out = tmp_path / "run"
+    weights = WeightsWatch(probe, p0)
+    starts = []
+    probe.node.create_subscription(Int64MultiArray, f"{p0}/episode_start", starts.append, EPISODE_QOS)
+    trainer = Trainer([p0, p1], out, tmp_path / "trainer.log")
+    pairs = [start_pair(p0, 0, untrained_checkpoint, tmp_path), start_pair(p1, 1, untrained_checkpoint, tmp_path)]
+    procs = [trainer, *pairs[0].values(), *pairs[1].values()]
+    try:
+        probe.spin_until(lambda: weights.version >= 0, STARTUP, "the initial weights (version 0)")
+        probe.spin_until(lambda: weights.version >= 2, STARTUP, f"2 updates; trainer log:\n{trainer.log()}")
+        run_id = weights.got[0][1]
+        assert [v for v, _ in weights.got] == list(range(len(weights.got)))  # every version, in order
+        assert {r for _, r in weights.got} == {run_id}
+        rows = progress(out)
+        assert [int(r["version"]) for r in rows] == list(range(1, len(rows) + 1))
+        assert all(int(r["batch_size"]) >= 128 and int(r["pairs"]) == 2 for r in rows), rows
+
+        # The sim of p1 dies mid-episode: its partial episode is dropped, training goes on with p0.
+        pairs[1]["sim"].proc.kill()
+        probe.spin_until(lambda: f"pair {p1} silent" in trainer.log(), 30, "the trainer noticing p1 is gone")
+        n = len(progress(out))
+        probe.spin_until(lambda: len(progress(out)) >= n + 2, STARTUP, "2 updates on p0 alone")
+        assert int(progress(out)[-1]["pairs"]) == 1
+        # It comes back: taken back (episode length set, reset), training on both again.
+        pairs[1]["sim"].stop()
+        back = start_pair(p1, 1, untrained_checkpoint, tmp_path, which=("sim",))
+        procs.append(back["sim"])
+        probe.spin_until(lambda: trainer.log().count(f"pair {p1} is running") >= 2, STARTUP, "p1 taken back")
+        probe.spin_until(lambda: int(progress(out)[-1]["pairs"]) == 2, STARTUP, "an update with both pairs")
+
+        # The trainer dies; the nodes keep running; --resume continues from its last state and re-publishes it.
+        trainer.stop(signal.SIGKILL)
+        saved = load_training_state(out / "state.safetensors")[1]["counters"]
+        steps = [int(r["global_step"]) for r in progress(out) if int(r["global_step"]) <= saved["global_step"]]
+        saved = saved["version"]
+        probe.spin_for(1.0)  # what the killed trainer sent is in
+        assert all(p.alive() for pair in pairs for p in pair.values() if p is not pairs[1]["sim"])
+        n = len(weights.got)
+        trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", "--resume")
+        procs.append(trainer)
+        probe.spin_until(lambda: len(weights.got) > n, STARTUP, "the resumed trainer's weights")
+        assert weights.got[n] == (saved, run_id)  # the version the nodes run, same run
+        probe.spin_until(lambda: weights.version >= saved + 2, STARTUP, f"2 updates after resume:\n{trainer.log()}")
+        after = [int(r["global_step"]) for r in progress(out)]
+        assert after[: len(steps)] == steps and after == sorted(set(after)) and len(after) >= len(steps) + 2
+    finally:
+        for p in procs:
+            p.stop()
+    # The trainer drove the episodes: time-limited (episode_steps 60 set at run time), lengths redrawn.
+    records = [unpack_episode_start(0, m.layout.dim[0].label, m.data) for m in starts]
+    assert any(r.cause == "steps" for r in records) and any(r.cause == "reset" for r in records)
+    assert len({r.num_joints for r in records}) >= 2 and all(2 <= r.num_joints <= 10 for r in records)
+    assert "dropped its partial episode" in Path(tmp_path / "trainer.log").read_text()
