@@ -146,13 +146,27 @@ def run(args) -> int:
 
 
 def _summarise(out: Path, ns: str) -> int:
-    from morph_core.msgs.records import EpisodeStartRecord
-    from trainer.bag_io import BagReader
+    from morph_core.msgs.records import EpisodeStartRecord, JointStateRecord, PolicyInfoRecord
+    from trainer.bag_io import BagError, BagReader
 
-    reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
-    starts = sum(isinstance(r, EpisodeStartRecord) for r in reader.records())
+    try:
+        reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
+        records = reader.read()
+    except BagError as err:
+        print(f"record_bringup: the bag is not usable: {err}", file=sys.stderr)
+        return 1
+    starts = sum(isinstance(r, EpisodeStartRecord) for r in records)
     counts = ", ".join(f"{k}: {v}" for k, v in sorted(reader.stats.counts.items()))
     print(f"record_bringup: bag {out}: {counts}; {starts} episode announcements", flush=True)
+    first_state = min(r.stamp_ns for r in records if isinstance(r, JointStateRecord))
+    first_info = min(r.stamp_ns for r in records if isinstance(r, PolicyInfoRecord))
+    if first_info > first_state:
+        # DDS matches each pair of nodes on its own: the sim can hear the policy before the recorder does.
+        print(
+            f"record_bringup: warning: policy_info recorded from t={first_info * 1e-9:.2f} s of sim time on "
+            f"(states from t={first_state * 1e-9:.2f} s): the first steps have no policy data",
+            flush=True,
+        )
     for w in reader.stats.warnings:
         print(f"record_bringup: warning: {w}", flush=True)
     return 0
