@@ -8,6 +8,7 @@ network namespace (``scripts/test.sh``).
 from __future__ import annotations
 
 import csv
+import os
 import signal
 import subprocess
 import sys
@@ -158,3 +159,57 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(probe, namespa
     assert any(r.cause == "steps" for r in records) and any(r.cause == "reset" for r in records)
     assert len({r.num_joints for r in records}) >= 2 and all(2 <= r.num_joints <= 10 for r in records)
     assert "dropped its partial episode" in Path(tmp_path / "trainer.log").read_text()
+
+
+@pytest.fixture
+def second_host():
+    """A second network namespace joined to this one by a veth pair (10.77.0.1 here, 10.77.0.2 there): two hosts
+    on one link. Yields the command prefix that runs a process over there. Needs ``unshare -n``, ``nsenter`` and
+    ``ip`` from iproute2, which work without root inside ``scripts/in_netns.sh``'s user namespace."""
+    import shutil
+    import time
+
+    if not all(shutil.which(t) for t in ("unshare", "nsenter", "ip")):
+        pytest.skip("needs unshare, nsenter and ip (util-linux, iproute2)")
+    holder = subprocess.Popen(["unshare", "-n", "sleep", "3600"])
+    there = ["nsenter", "-t", str(holder.pid), "-n", "--preserve-credentials"]
+
+    def sh(cmd: str, prefix=()) -> None:
+        subprocess.run([*prefix, "sh", "-c", cmd], check=True, capture_output=True)
+
+    try:
+        deadline = time.monotonic() + 10
+        here = os.readlink("/proc/self/ns/net")
+        while os.readlink(f"/proc/{holder.pid}/ns/net") == here:  # until the holder has its own namespace
+            assert time.monotonic() < deadline, "unshare -n did not make a network namespace"
+            time.sleep(0.02)
+        sh("ip link add vA type veth peer name vB netns " + str(holder.pid))
+        sh("ip addr add 10.77.0.1/24 dev vA && ip link set vA multicast on && ip link set vA up")
+        sh("ip link set lo up && ip addr add 10.77.0.2/24 dev vB && ip link set vB multicast on && ip link set vB up "
+           "&& ip route add 224.0.0.0/4 dev vB", there)  # fmt: skip
+        yield there
+    finally:
+        subprocess.run(["ip", "link", "del", "vA"], capture_output=True)
+        holder.kill()
+        holder.wait()
+
+
+@pytest.mark.timeout(400)
+def test_trainer_on_another_host_over_a_veth_link(second_host, probe, namespace, tmp_path, untrained_checkpoint):
+    """The pairs here, the trainer in another network namespace: the veth link is the only path between them.
+    (The link exists before the probe starts: a DDS participant uses the interfaces it found at start.)"""
+    p0 = f"{namespace}/p0"
+    out = tmp_path / "run"
+    weights = WeightsWatch(probe, p0)
+    procs = [Trainer([p0], out, tmp_path / "trainer.log", prefix=second_host)]
+    procs += start_pair(p0, 0, untrained_checkpoint, tmp_path).values()
+    try:
+        probe.spin_until(lambda: weights.version >= 2, STARTUP, f"2 updates over the link:\n{procs[0].log()}")
+        rows = progress(out)
+        assert len(rows) >= 2 and all(int(r["batch_size"]) >= 128 for r in rows)
+        # the trainer really is elsewhere: its namespace has no vA, only vB
+        links = subprocess.run([*second_host, "ip", "-o", "link"], capture_output=True, text=True).stdout
+        assert "vB" in links and "vA" not in links
+    finally:
+        for p in procs:
+            p.stop()
