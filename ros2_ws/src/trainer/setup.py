@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "trainer"
@@ -9,6 +11,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["morph_core", "matplotlib", "numpy", "rosbags"],
     zip_safe=True,
@@ -26,6 +29,7 @@ setup(
             "morph-theory = trainer.theory_cli:main",
             "morph-gait = trainer.gait_cli:main",
             "morph-record = trainer.record:main",
+            "morph-bag = trainer.bag_cli:main",
         ],
     },
 )
