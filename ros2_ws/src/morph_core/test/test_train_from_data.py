@@ -200,3 +200,22 @@ def test_digest_tells_data_apart(behaviour):
     changed["reward"] = changed["reward"].copy()
     changed["reward"][5] += 1e-9
     assert data_digest(TransitionBatch.from_arrays(changed)) != data_digest(data)
+
+
+def test_steps_without_policy_info_feed_the_advantages_but_never_an_update(tmp_path, behaviour):
+    init, data = behaviour
+    arrays = data.arrays()
+    lost = [5, 41, 42]  # a policy_info lost in recording, or another controller acting for a moment
+    arrays["has_policy_info"] = arrays["has_policy_info"].copy()
+    arrays["log_prob"] = arrays["log_prob"].copy()
+    arrays["has_policy_info"][lost], arrays["log_prob"][lost] = False, np.nan
+    partial = TransitionBatch.from_arrays(arrays)
+    cfg = TrainConfig(**{**SMALL, "num_steps": 128})  # one batch holds every usable step
+    run = train_from_data(cfg, partial, tmp_path / "run", init=init)
+    (row,) = _rows(run)
+    assert (row["data_steps"], row["usable_steps"], row["batch_size"]) == ("100", "97", "97")
+    # Their rewards still reach the steps before them: the advantages are those of the whole data.
+    policy = GraphActorCritic.load(init)
+    _, adv_partial, _ = Samples(partial, 10).advantages(policy, 0.98, 0.98)
+    _, adv_whole, _ = Samples(data, 10).advantages(policy, 0.98, 0.98)
+    torch.testing.assert_close(adv_partial, adv_whole, rtol=0, atol=0)

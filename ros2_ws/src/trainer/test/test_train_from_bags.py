@@ -200,7 +200,7 @@ def test_ppo_from_a_bag_changes_the_policy_and_logs_per_dimension(tmp_path, init
 def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampled, capsys):
     bag = write_bag(tmp_path / "bag", sampled)
     other = write_bag(tmp_path / "other", sampled[: len(sampled) // 2], "sqlite3")
-    args = ["--from-bags", str(bag), "--init", str(init), "--iterations", "400", "--seed", "5", *SMALL]
+    args = ["--from-bags", str(bag), "--init", str(init), "--iterations", "200", "--seed", "5", *SMALL]
     ref = tmp_path / "ref"
     subprocess.run([*CLI, *args, "--out", str(ref)], check=True, capture_output=True, timeout=600)
     run = tmp_path / "killed"
@@ -214,7 +214,7 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     killed_at = run_state(run)["done"]
-    assert killed_at < 400, "the run finished before it could be killed; make it longer"
+    assert killed_at < 200, "the run finished before it could be killed; make it longer"
 
     # Other bags, as a resume or as new data while updates are left: refused, nothing changed.
     assert main(["--from-bags", str(other), "--out", str(run), "--resume", *SMALL]) == 1
@@ -229,7 +229,7 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
 
     subprocess.run([*CLI, "--from-bags", str(bag), "--out", str(run), "--resume"], check=True, timeout=600)
     (w_ref, c_ref), (w_run, c_run) = _weights(ref), _weights(run)
-    assert c_ref == c_run and c_ref["iteration"] == 400
+    assert c_ref == c_run and c_ref["iteration"] == 200
     assert w_ref.keys() == w_run.keys()
     for k in w_ref:
         assert torch.equal(w_ref[k], w_run[k]), k  # weights, Adam moments, generator, pass order
@@ -296,3 +296,16 @@ def test_options_of_bag_training_need_from_bags(tmp_path, capsys):
     assert "--new-data continues a run: pass --resume too" in capsys.readouterr().err
     assert main(["--from-bags", "b", "--out", str(tmp_path / "x"), "--resume"]) == 1
     assert "no run to resume" in _error(capsys)
+
+
+def test_a_few_lost_policy_infos_are_warned_about_and_left_out_of_the_updates(tmp_path, sampled, capsys):
+    infos = [i for i, r in enumerate(sampled) if isinstance(r, PolicyInfoRecord)]
+    dropped = {infos[10], infos[70], infos[71]}  # the efforts of those steps are there: the steps stay
+    bag = write_bag(tmp_path / "bag", [r for i, r in enumerate(sampled) if i not in dropped])
+    run = tmp_path / "run"
+    one_batch = ["--num-envs", "1", "--num-steps", "256", *SMALL[4:]]  # every usable step in one update
+    assert main(["--from-bags", str(bag), "--out", str(run), *one_batch]) == 0
+    captured = capsys.readouterr()
+    assert "morph-train: warning: 3 of 150 steps have no policy_info" in captured.err
+    (row,) = _rows(run)
+    assert (row["data_steps"], row["usable_steps"], row["batch_size"]) == ("150", "147", "147")

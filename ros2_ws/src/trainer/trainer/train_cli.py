@@ -141,11 +141,17 @@ def _train_from_bags(args) -> None:
     if not len(data):
         skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
         raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {skipped or 'none'})")
-    try:
-        data.require_policy_info()
-    except MissingPolicyInfoError as err:
-        raise CliError(f"{err}; record with morph_policy_node deterministic:=false (scripts/record.sh does)") from None
-    updates = args.iterations or passes_cut(len(data), cfg.batch_size)
+    missing = int((~data.has_policy_info).sum())
+    if missing == len(data):
+        try:
+            data.require_policy_info()
+        except MissingPolicyInfoError as err:
+            hint = "record with morph_policy_node deterministic:=false (scripts/record.sh does)"
+            raise CliError(f"{err}; {hint}") from None
+    if missing:
+        print(f"morph-train: warning: {missing} of {len(data)} steps have no policy_info (lost, or another "
+              "controller acted): they enter the advantages, not the updates", file=sys.stderr)  # fmt: skip
+    updates = args.iterations or passes_cut(len(data) - missing, cfg.batch_size)
     print(
         f"morph-train: {len(data)} steps ({data.num_episodes} episodes, chains of {int(np.min(data.num_joints))}.."
         f"{data.max_joints} joints) from {len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "

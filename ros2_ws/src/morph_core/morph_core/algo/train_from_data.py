@@ -9,10 +9,14 @@ sampling policy took, each with the behaviour log-prob it published
    (``algo.ppo.compute_gae``; a truncated step is bootstrapped on
    gamma * V(next state), as the simulator trainer does; the recorded steps
    are never terminal);
-2. takes its batch: all the data if they hold at most ``batch_size``
-   (num_envs * num_steps, 6144 by default) samples, else the next part of a
-   seeded random permutation cut into ceil(steps / batch_size) near-equal
-   parts (``iterations`` defaults to one pass: each step once);
+2. takes its batch: all the steps with a behaviour log-prob if they are at
+   most ``batch_size`` (num_envs * num_steps, 6144 by default), else the
+   next part of a seeded random permutation cut into ceil(steps /
+   batch_size) near-equal parts (``iterations`` defaults to one pass: each
+   step once). A step without policy_info (its message lost, or another
+   controller acting) has no behaviour log-prob: it still carries its
+   episode's rewards and values into GAE, but never enters an update; data
+   with none at all are refused (``MissingPolicyInfoError``);
 3. runs the one PPO update every data source uses (``algo.update``) under
    the run's trust-region rule, with the decoupled objective below.
 
@@ -149,7 +153,8 @@ class EpisodeReturns:
 def log_columns(cfg: TrainConfig) -> list[str]:
     per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
-        "global_step", "iteration", "data_round", "round_iteration", "env_steps", "data_steps", "batch_size",
+        "global_step", "iteration", "data_round", "round_iteration", "env_steps", "data_steps", "usable_steps",
+        "batch_size",
         "wall_time", "sps", "prepare_s", "update_s", "learning_rate",
         "episodes", "return_mean", *[f"return_d{d}" for d in cfg.dims], "reward_rate",
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
@@ -258,12 +263,13 @@ def off_policy_stats(batch: RolloutBatch, cap: float) -> dict[str, float]:
 
 
 def check_data(data: TransitionBatch, cfg: TrainConfig) -> None:
-    """Raise unless PPO can train on ``data`` under ``cfg``: steps there, every one with its behaviour
+    """Raise unless PPO can train on ``data`` under ``cfg``: steps there, some with their behaviour
     log-prob (``MissingPolicyInfoError``), chains within the config's range (``DataMismatchError``: the
     log's per-dimension columns come from it), whole episodes."""
     if not len(data):
         raise ValueError("no transitions to train on")
-    data.require_policy_info()
+    if not data.has_policy_info.any():
+        data.require_policy_info()  # raises, saying what is missing
     lo, hi = int(data.num_joints.min()), int(data.num_joints.max())
     if lo < cfg.min_joints or hi > cfg.max_joints:
         raise DataMismatchError(
@@ -306,7 +312,7 @@ def train_from_data(
 ) -> Path:
     """PPO updates on ``data`` into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors).
 
-    ``iterations``: updates on these data (default: one pass, ceil(steps / batch_size); on ``resume`` the
+    ``iterations``: updates on these data (default: one pass, ceil(usable steps / batch_size); on ``resume`` the
     number the data set was started with). ``init``: a policy checkpoint (.safetensors beside its .json) to
     start a new run from, else a fresh policy seeded with ``cfg.seed``. ``resume``: continue the run in
     ``run_dir`` on the same data (else ``DataMismatchError``); with ``new_data`` too, train it further on
@@ -327,7 +333,8 @@ def train_from_data(
         init = json.loads((run_dir / "init.json").read_text())["init"]  # killed before its first checkpoint
     check_data(data, cfg)
     digest = data_digest(data)
-    one_pass = passes_cut(len(data), cfg.batch_size)
+    usable = torch.from_numpy(np.flatnonzero(data.has_policy_info))  # the steps an update may take
+    one_pass = passes_cut(len(usable), cfg.batch_size)
 
     torch.set_num_threads(1)  # before init, as algo.train (the orthogonal init's QR depends on it)
     if init is not None:
@@ -392,12 +399,12 @@ def train_from_data(
         values, advantages, returns = samples.advantages(policy, cfg.gamma, cfg.gae_lambda)
         # 2. This update's samples: all, or the next part of this pass's permutation.
         if one_pass == 1:
-            index = torch.arange(len(data))
+            index = usable
         else:
             part = current.done % one_pass
             if part == 0 or current.order is None:
-                current.order = torch.randperm(len(data), generator=gen).numpy()
-            index = torch.tensor_split(torch.from_numpy(current.order), one_pass)[part]
+                current.order = torch.randperm(len(usable), generator=gen).numpy()
+            index = usable[torch.tensor_split(torch.from_numpy(current.order), one_pass)[part]]
         batch = with_proximal(policy, samples.batch(index, values, advantages, returns))
         prepare_s = time.perf_counter() - t0
 
@@ -419,6 +426,7 @@ def train_from_data(
             "round_iteration": current.done,
             "env_steps": counters["env_steps"],
             "data_steps": len(data),
+            "usable_steps": len(usable),
             "batch_size": batch.size,
             "wall_time": time.time(),
             "sps": batch.size / (prepare_s + update_s),
