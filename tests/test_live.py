@@ -213,3 +213,106 @@ def test_trainer_on_another_host_over_a_veth_link(second_host, probe, namespace,
     finally:
         for p in procs:
             p.stop()
+
+
+# -- the policy node's side: weights adopted, late joiners, bad weights ---------------------------------------------
+def _policy_node_takes_weights() -> bool:
+    import morph_policy_node.policy_node as m
+
+    return WEIGHTS_TOPIC in Path(m.__file__).read_text()
+
+
+needs_weights = pytest.mark.skipif(
+    not _policy_node_takes_weights(), reason="morph_policy_node does not subscribe to policy_weights yet"
+)
+
+
+def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int = 0, damage: str = ""):
+    """A weights message for a fresh policy whose log-std is ``log_std`` (visible in every policy_info)."""
+    import dataclasses
+
+    import torch
+    from safetensors.torch import save as torch_save
+    from std_msgs.msg import MultiArrayDimension
+
+    from morph_core.msgs.policy_weights import pack_policy_weights
+    from morph_core.policy.actor_critic import GraphActorCritic
+
+    torch.manual_seed(seed)
+    policy = GraphActorCritic()
+    with torch.no_grad():
+        policy.log_std.fill_(log_std)
+    tensors = {k: v.detach().clone().contiguous() for k, v in policy.state_dict().items()}
+    dims, data = pack_policy_weights(version, dataclasses.asdict(policy.config), torch_save(tensors), {"run": run})
+    if damage == "nan":
+        first = next(iter(tensors))
+        tensors[first].view(-1)[0] = float("nan")
+        data = torch_save(tensors)
+        dims[0] = ("safetensors", len(data), len(data))
+    elif damage == "shape":
+        first = next(iter(tensors))
+        tensors[first] = torch.zeros(2, 2)
+        data = torch_save(tensors)
+        dims[0] = ("safetensors", len(data), len(data))
+    elif damage == "json":
+        dims[1] = ("{not json", 0, 0)
+    msg = UInt8MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
+    msg.data = data
+    return msg
+
+
+class InfoWatch:
+    """(version tag, log-std) of each policy_info a namespace publishes."""
+
+    def __init__(self, probe, ns: str):
+        from trajectory_msgs.msg import JointTrajectory
+
+        from morph_core.msgs.policy_weights import parse_policy_version
+
+        self.got: list[tuple[int | None, float]] = []
+        self._parse = parse_policy_version
+        probe.node.create_subscription(JointTrajectory, f"{ns}/policy_info", self._on, 100)
+
+    def _on(self, msg) -> None:
+        self.got.append((self._parse(msg.header.frame_id), float(msg.points[0].accelerations[0])))
+
+    def shows(self, version: int, log_std: float) -> bool:
+        return bool(self.got) and self.got[-1][0] == version and abs(self.got[-1][1] - log_std) < 1e-6
+
+
+@needs_weights
+@pytest.mark.timeout(300)
+def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_out(
+    probe, namespace, tmp_path, untrained_checkpoint
+):
+    spaces = [f"{namespace}/p{i}" for i in range(3)]
+    pubs = [probe.node.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS) for ns in spaces]
+    infos = [InfoWatch(probe, ns) for ns in spaces]
+    procs = []
+    try:
+        for i, ns in enumerate(spaces[:2]):
+            procs += start_pair(ns, i, untrained_checkpoint, tmp_path).values()
+        probe.spin_until(lambda: all(w.got for w in infos[:2]), STARTUP, "both policies answering")
+        # pushed: both adopt version 1 between two answers; policy_info says so
+        for pub in pubs:
+            pub.publish(weights_msg(1, -1.25))
+        probe.spin_until(lambda: all(w.shows(1, -1.25) for w in infos[:2]), 30, "version 1 in both policy_info")
+        # a late policy node (the third pair) gets the latest weights from the latched topic
+        procs += start_pair(spaces[2], 2, untrained_checkpoint, tmp_path).values()
+        probe.spin_until(lambda: infos[2].shows(1, -1.25), STARTUP, "the late node running version 1")
+        # malformed weights: rejected, version 1 kept
+        for damage in ("nan", "shape", "json"):
+            pubs[0].publish(weights_msg(5, -0.5, damage=damage))
+        probe.spin_for(2.0)
+        n = len(infos[0].got)
+        probe.spin_until(lambda: len(infos[0].got) > n + 20, 30, "more answers")
+        assert all(w == (1, -1.25) for w in infos[0].got[n:]), infos[0].got[n:][:5]
+        # an old version of the same run is ignored; the next good one is taken
+        pubs[0].publish(weights_msg(0, -2.0))
+        pubs[0].publish(weights_msg(2, -0.75))
+        probe.spin_until(lambda: infos[0].shows(2, -0.75), 30, "version 2 after the bad ones")
+        assert not any(w == (0, -2.0) for w in infos[0].got)
+    finally:
+        for p in procs:
+            p.stop()

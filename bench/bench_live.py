@@ -1,0 +1,166 @@
+"""Live training's cost to the pairs and what it collects, for K = 1, 2, 4 lockstep sim+policy pairs, in one run.
+
+    bash scripts/in_netns.sh .venv/bin/python bench/bench_live.py [--pairs 1 2 4] [--seconds 30] [--out FILE]
+
+Per K: the pairs start (chains of 2..10 joints, sampling policies), their loop rate is measured with no trainer
+(env-steps/s summed over the pairs, counted from ``/clock``, which each sim publishes once per step: a listener
+on one small topic, the same in both phases), then ``morph-train --live`` starts (the paper's batch of 6,144) and
+the same rate is measured again, beside the rate the trainer collects (its ``progress.csv``: env_steps between
+updates over wall time) and its update time. Prints a Markdown table (and writes it to ``--out``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _proc(cmd: list[str], log: Path) -> subprocess.Popen:
+    return subprocess.Popen(cmd, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
+
+
+def _node(module: str, ns: str, params: dict, log: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={ns}"]
+    for k, v in params.items():
+        cmd += ["-p", f"{k}:={v}"]
+    return _proc(cmd, log)
+
+
+def _stop(procs) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+class ClockCounter:
+    """Counts ``/clock`` messages (one per sim step, from every sim)."""
+
+    def __init__(self):
+        import rclpy
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+
+        self.node = rclpy.create_node("bench_live_clock")
+        self.count = 0
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.node.create_subscription(Clock, "/clock", self._on, qos)
+
+    def _on(self, _msg) -> None:
+        self.count += 1
+
+    def rate(self, seconds: float) -> float:
+        import rclpy
+
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:  # settle
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+            if self.count:
+                break
+        c0, t0 = self.count, time.monotonic()
+        while time.monotonic() < t0 + seconds:
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+        return (self.count - c0) / (time.monotonic() - t0)
+
+
+def _collected(run: Path) -> tuple[float, float, int]:
+    """(env-steps/s collected between the first and last update, mean update seconds, updates)."""
+    path = run / "progress.csv"
+    rows = list(csv.DictReader(open(path))) if path.exists() else []
+    if len(rows) < 2:
+        return float("nan"), float(rows[0]["update_s"]) if rows else float("nan"), len(rows)
+    steps = int(rows[-1]["env_steps"]) - int(rows[0]["env_steps"])
+    wall = float(rows[-1]["wall_time"]) - float(rows[0]["wall_time"])
+    upd = sum(float(r["update_s"]) + float(r["prepare_s"]) for r in rows) / len(rows)
+    return steps / wall, upd, len(rows)
+
+
+def bench(k: int, seconds: float, work: Path, counter: ClockCounter) -> dict:
+    namespaces = [f"/bench{k}_{i}" for i in range(k)]
+    procs = []
+    try:
+        for i, ns in enumerate(namespaces):
+            sim = {"lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0, "min_joints": 2,
+                   "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
+            procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim{k}_{i}.log"))
+            procs.append(_node("morph_policy_node.policy_node", ns, {"deterministic": "false", "seed": i,
+                               "checkpoint": "''"}, work / f"policy{k}_{i}.log"))  # fmt: skip
+        counter.rate(min(5.0, seconds))  # warm-up: nodes up and looping
+        alone = counter.rate(seconds)
+        run = work / f"run{k}"
+        cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
+               "--compile", "false", "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
+        trainer = _proc(cmd, work / f"trainer{k}.log")
+        procs.insert(0, trainer)
+        counter.rate(min(5.0, seconds))
+        with_trainer = counter.rate(2 * seconds)
+        deadline = time.monotonic() + 6 * seconds
+        while _collected(run)[2] < 3 and time.monotonic() < deadline:
+            counter.rate(1.0)
+        collected, update_s, updates = _collected(run)
+    finally:
+        _stop(procs)
+    return {"K": k, "alone": alone, "with": with_trainer, "collected": collected, "update_s": update_s,
+            "updates": updates}  # fmt: skip
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--pairs", type=int, nargs="+", default=[1, 2, 4])
+    ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    import rclpy
+
+    import morph_policy_node
+
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE",
+                          str(Path(morph_policy_node.__file__).parent / "fastdds_profile.xml"))  # fmt: skip
+    rclpy.init()
+    counter = ClockCounter()
+    work = Path(tempfile.mkdtemp(prefix="bench_live_"))
+    results = []
+    try:
+        for k in args.pairs:
+            r = bench(k, args.seconds, work, counter)
+            results.append(r)
+            print(r, flush=True)
+    finally:
+        rclpy.try_shutdown()
+    lines = [
+        f"Live training, {os.cpu_count()} cores; env-steps/s summed over the K pairs (lockstep, sampling, 2..10 "
+        "joints), batch 6,144, updates in the trainer's worker thread.",
+        "",
+        "| K | loop rate, no trainer | loop rate, trainer listening | cost | collected by the trainer | "
+        "update (prepare + PPO) | updates |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        cost = 1 - r["with"] / r["alone"] if r["alone"] else float("nan")
+        lines.append(f"| {r['K']} | {r['alone']:.0f} | {r['with']:.0f} | {100 * cost:.0f}% | {r['collected']:.0f} | "
+                     f"{r['update_s']:.2f} s | {r['updates']} |")  # fmt: skip
+    table = "\n".join(lines)
+    print(table)
+    if args.out:
+        args.out.write_text(table + "\n")
+    shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
