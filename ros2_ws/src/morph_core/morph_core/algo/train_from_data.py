@@ -381,7 +381,7 @@ def train_from_data(
             json.dump(cfg.to_dict(), f, indent=2)
         if init is not None:
             with atomic_writer(run_dir / "init.json") as f:
-                json.dump({"init": str(init)}, f, indent=2)
+                json.dump({"init": str(Path(init).resolve())}, f, indent=2)
     if current is None or new_data:
         current = _Round(digest, len(data), list(source or []), iterations or one_pass)
         counters["data_round"] += 1
