@@ -5,8 +5,9 @@
 Per K: the pairs start (chains of 2..10 joints, sampling policies), their loop rate is measured with no trainer
 (env-steps/s summed over the pairs, counted from ``/clock``, which each sim publishes once per step: a listener
 on one small topic, the same in both phases), then ``morph-train --live`` starts (the paper's batch of 6,144) and
-the same rate is measured again, beside the rate the trainer collects (its ``progress.csv``: env_steps between
-updates over wall time) and its update time. Prints a Markdown table (and writes it to ``--out``).
+the same rate is measured again from its first to its last update, beside the rate the trainer collects over
+that window (its ``progress.csv``: env_steps between updates over wall time) and its update time. Prints a
+Markdown table (and writes it to ``--out``).
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ def _collected(run: Path) -> tuple[float, float, int]:
     return steps / wall, upd, len(rows)
 
 
-def bench(k: int, seconds: float, work: Path, counter: ClockCounter) -> dict:
+def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: int) -> dict:
     namespaces = [f"/bench{k}_{i}" for i in range(k)]
     procs = []
     try:
@@ -107,11 +108,14 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter) -> dict:
                "--compile", "false", "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
         trainer = _proc(cmd, work / f"trainer{k}.log")
         procs.insert(0, trainer)
-        counter.rate(min(5.0, seconds))
-        with_trainer = counter.rate(2 * seconds)
-        deadline = time.monotonic() + 6 * seconds
-        while _collected(run)[2] < 3 and time.monotonic() < deadline:
+        # The loop rate with the trainer over the same window as the collection: from its first update on.
+        deadline = time.monotonic() + 20 * seconds
+        while _collected(run)[2] < 1 and time.monotonic() < deadline:
             counter.rate(1.0)
+        c0, t0 = counter.count, time.monotonic()
+        while _collected(run)[2] < updates and time.monotonic() < deadline:
+            counter.rate(1.0)
+        with_trainer = (counter.count - c0) / (time.monotonic() - t0)
         collected, update_s, updates = _collected(run)
     finally:
         _stop(procs)
@@ -123,6 +127,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
+    ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over (>= 2)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     import rclpy
@@ -137,7 +142,7 @@ def main() -> int:
     results = []
     try:
         for k in args.pairs:
-            r = bench(k, args.seconds, work, counter)
+            r = bench(k, args.seconds, work, counter, args.updates)
             results.append(r)
             print(r, flush=True)
     finally:
