@@ -229,7 +229,11 @@ class LiveTrainer(Node):
             self._updating.start()
 
     def _update(self, pool, active: int) -> None:
-        row = self.learner.update(pool, pairs=active)
+        try:
+            row = self.learner.update(pool, pairs=active)
+        except Exception as err:  # noqa: BLE001 - a bad pool costs that pool, not the run
+            self.get_logger().error(f"update failed, its {len(pool[0])} episodes dropped: {type(err).__name__}: {err}")
+            return
         self._updates_here += 1
         self.get_logger().info(
             f"update {row['iteration']}: version {row['version']}, {row['batch_size']} samples "
