@@ -215,6 +215,7 @@ class LiveLearner:
             "round_iteration": 1,
             "env_steps": c["env_steps"],
             "data_steps": len(data),
+            "usable_steps": len(data),  # every pooled step has its behaviour log-prob (add_episode)
             "batch_size": batch.size,
             "wall_time": time.time(),
             "sps": batch.size / (prepare_s + update_s),
