@@ -101,7 +101,10 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: in
             procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim{k}_{i}.log"))
             procs.append(_node("morph_policy_node.policy_node", ns, {"deterministic": "false", "seed": i,
                                "checkpoint": "''"}, work / f"policy{k}_{i}.log"))  # fmt: skip
-        counter.rate(min(5.0, seconds))  # warm-up: nodes up and looping
+        # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
+        deadline = time.monotonic() + 180
+        while counter.rate(2.0) < 10 * k and time.monotonic() < deadline:
+            pass
         alone = counter.rate(seconds)
         run = work / f"run{k}"
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
