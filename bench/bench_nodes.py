@@ -25,8 +25,8 @@ import numpy as np
 import torch
 
 from morph_core.msgs.joint_state import chain_batch, validate_joint_state
+from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
-from morph_policy_node.policy_node import load_policy
 
 BIN = Path(sys.executable).parent
 PROFILE = Path(__file__).resolve().parents[1] / "ros2_ws/src/morph_policy_node/morph_policy_node/fastdds_profile.xml"
@@ -61,7 +61,8 @@ def inference_alone(samples: int) -> tuple[dict[int, np.ndarray], dict[int, np.n
     """Per-call time [ms] of what the node does per message besides DDS (validate, graph, GNN, clip),
     with the NumPy batch-1 forward the node runs and, beside it, the torch forward."""
     torch.set_num_threads(1)
-    policy = load_policy("")
+    torch.manual_seed(0)
+    policy = GraphActorCritic().eval()
     fast = NumpyPolicy(policy)
     out_np, out_torch = {}, {}
     rng = np.random.default_rng(0)
@@ -90,7 +91,7 @@ def policy_latency(samples: int) -> dict[int, np.ndarray]:
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    proc = start("morph_policy_node", checkpoint="''")
+    proc = start("morph_policy_node", checkpoint="''", allow_untrained="true")
     node = rclpy.create_node("bench_latency")
     ex = SingleThreadedExecutor()
     ex.add_node(node)

@@ -9,7 +9,9 @@ own, so a straggler from an earlier test can never answer for a later one.
 from __future__ import annotations
 
 import itertools
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +19,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
+import safetensors.numpy
 
 import morph_policy_node
 
@@ -142,3 +146,100 @@ def untrained_checkpoint(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("policy") / "untrained.safetensors"
     GraphActorCritic().save(path, metadata={"note": "untrained, for tests"})
     return path
+
+
+# -- checkpoints that must be refused ----------------------------------------------------------------
+def _copy(good: Path, dest: Path) -> Path:
+    shutil.copyfile(good, dest)
+    shutil.copyfile(good.with_suffix(".json"), dest.with_suffix(".json"))
+    return dest
+
+
+def _arrays(good: Path) -> dict[str, np.ndarray]:
+    return safetensors.numpy.load(good.read_bytes())
+
+
+def write_bad_checkpoints(directory: Path, good: Path) -> dict[str, tuple[Path, tuple[str, ...]]]:
+    directory.mkdir(parents=True, exist_ok=True)
+    cases: dict[str, tuple[Path, tuple[str, ...]]] = {}
+
+    cases["missing"] = (directory / "missing.safetensors", ("no such file",))
+
+    p = _copy(good, directory / "truncated.safetensors")
+    p.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    cases["truncated"] = (p, ("safetensors",))
+
+    p = _copy(good, directory / "garbage.safetensors")
+    p.write_bytes(b"this is not a tensor file at all" * 10)
+    cases["not_safetensors"] = (p, ("safetensors",))
+
+    p = _copy(good, directory / "pickle.safetensors")
+    import torch  # only to write what torch.save writes
+
+    torch.save({k: torch.from_numpy(v) for k, v in _arrays(good).items()}, p)
+    cases["pickle"] = (p, ("pickle",))
+
+    p = _copy(good, directory / "no_config.safetensors")
+    p.with_suffix(".json").unlink()
+    cases["config_missing"] = (p, ("no_config.json", "missing"))
+
+    p = _copy(good, directory / "bad_json.safetensors")
+    p.with_suffix(".json").write_text("{not json")
+    cases["config_not_json"] = (p, ("JSON",))
+
+    p = _copy(good, directory / "unknown_field.safetensors")
+    meta = json.loads(good.with_suffix(".json").read_text())
+    meta["policy"]["wings"] = 2
+    p.with_suffix(".json").write_text(json.dumps(meta))
+    cases["config_wrong"] = (p, ("wings",))
+
+    p = _copy(good, directory / "wrong_shapes.safetensors")
+    meta = json.loads(good.with_suffix(".json").read_text())
+    meta["policy"]["conv1_channels"] = 8  # the file holds 24 channels
+    p.with_suffix(".json").write_text(json.dumps(meta))
+    cases["wrong_shapes"] = (p, ("shape",))
+
+    p = _copy(good, directory / "nan.safetensors")
+    arrays = _arrays(good)
+    arrays["actor_head.2.weight"][3, 5] = np.nan
+    p.write_bytes(safetensors.numpy.save(arrays))
+    cases["nan_weights"] = (p, ("NaN", "actor_head.2.weight"))
+
+    p = _copy(good, directory / "missing_tensor.safetensors")
+    arrays = _arrays(good)
+    del arrays["critic_head.4.bias"]
+    p.write_bytes(safetensors.numpy.save(arrays))
+    cases["missing_tensor"] = (p, ("critic_head.4.bias",))
+
+    p = _copy(good, directory / "float64.safetensors")
+    arrays = {k: v.astype(np.float64) for k, v in _arrays(good).items()}
+    p.write_bytes(safetensors.numpy.save(arrays))
+    cases["wrong_dtype"] = (p, ("float64",))
+
+    cases["not_safetensors_suffix"] = (_copy(good, directory / "policy.pt"), (".safetensors",))
+    return cases
+
+
+def write_overflowing_checkpoint(path: Path, good: Path) -> Path:
+    """Finite weights whose output is not: the last hidden layer saturated at tanh = 1 and the action
+    layer's weights at float32's largest value, so the 64-term sum overflows to inf for every state."""
+    _copy(good, path)
+    arrays = _arrays(good)
+    arrays["actor_head.2.weight"][:] = 0.0
+    arrays["actor_head.2.bias"][:] = 100.0
+    arrays["actor_head.4.weight"][:] = np.finfo(np.float32).max
+    assert all(np.isfinite(v).all() for v in arrays.values())
+    path.write_bytes(safetensors.numpy.save(arrays))
+    return path
+
+
+@pytest.fixture(scope="session")
+def bad_checkpoints(tmp_path_factory, untrained_checkpoint) -> dict[str, tuple[Path, tuple[str, ...]]]:
+    """{case: (path, words its refusal must contain)}, one case per way a checkpoint can be unusable."""
+    return write_bad_checkpoints(tmp_path_factory.mktemp("bad_checkpoints"), untrained_checkpoint)
+
+
+@pytest.fixture(scope="session")
+def overflowing_checkpoint(tmp_path_factory, untrained_checkpoint) -> Path:
+    path = tmp_path_factory.mktemp("overflow") / "overflow.safetensors"
+    return write_overflowing_checkpoint(path, untrained_checkpoint)

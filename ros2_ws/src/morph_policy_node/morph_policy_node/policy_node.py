@@ -20,21 +20,38 @@ Outputs
 - ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
   a trainer needs, stamped with the state's stamp; layout in ``morph_core.msgs.policy_info``.
 
-No valid ``joint_states`` for ``input_timeout`` -> zero efforts at 25 Hz for
-the last chain seen. Malformed messages are rejected, counted and logged
-(throttled); the node keeps answering good ones.
+No state answered for ``input_timeout`` -> zero efforts at 25 Hz for the last
+chain seen. Malformed messages are rejected, counted and logged (throttled);
+so is a state for which the policy's output is not finite (nothing is
+published for it, so the zero efforts follow); the node keeps answering good
+ones.
+
+Policy (``policy_choice``): ``checkpoint`` (default: the shipped model) is
+loaded with NumPy alone, without torch; a file that cannot be loaded stops
+the node at start-up with one line naming it and the reason (exit code 1),
+and is refused at runtime with the reason in the ``SetParametersResult``
+while the current policy keeps running. An untrained policy runs only with
+``checkpoint:=''`` and ``allow_untrained:=true``; its efforts then carry a
+second ``layout.dim`` labelled ``untrained_policy``.
+
+QoS: every input is read best effort, keep last (``joint_states`` and
+``odom`` depth 5 as sensor data, ``episode_start`` depth 10, volatile): it
+matches reliable and best-effort publishers, never queues stale states, and
+a reliable reader in Fast DDS 2.14 can be driven into a take that never
+returns by a peer's fragmented sample and a GAP (see docs). Outputs are
+reliable, volatile, keep last 10.
 """
 
 from __future__ import annotations
 
 import array
 import math
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import rclpy
-import torch
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
@@ -48,17 +65,17 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
-    chain_batch,
     global_features,
     validate_joint_state,
 )
 from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.stamps import answer_tag, to_ns
-from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import CheckpointError, PolicyWeights
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.pairing import StatePairing
+from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
@@ -69,18 +86,8 @@ EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, du
 
 
 def default_checkpoint() -> str:
-    """The shipped model if it is installed beside this module, else '' (untrained policy)."""
+    """The shipped model if it is installed beside this module, else '' (which needs allow_untrained)."""
     return str(SHIPPED_MODEL) if SHIPPED_MODEL.is_file() else ""
-
-
-def load_policy(checkpoint: str) -> GraphActorCritic:
-    """The policy at ``checkpoint``; '' gives a freshly initialised one (seeded, so runs repeat)."""
-    if checkpoint:
-        policy = GraphActorCritic.load(checkpoint)
-    else:
-        torch.manual_seed(0)
-        policy = GraphActorCritic()
-    return policy.eval()
 
 
 class MorphPolicyNode(Node):
@@ -89,7 +96,9 @@ class MorphPolicyNode(Node):
         self.declare_parameter(
             "checkpoint",
             default_checkpoint(),
-            ParameterDescriptor(description="policy .safetensors (config .json beside it); '' = untrained policy"),
+            ParameterDescriptor(
+                description="policy .safetensors (config .json beside it); '' = untrained (needs allow_untrained)"
+            ),
         )
         self.declare_parameter(
             "deterministic",
@@ -100,26 +109,34 @@ class MorphPolicyNode(Node):
             "input_timeout",
             0.5,
             ParameterDescriptor(
-                description="wall seconds without valid joint_states before publishing zero efforts",
+                description="wall seconds without a state answered before publishing zero efforts",
                 floating_point_range=[FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)],
             ),
         )
         self.declare_parameter(
-            "seed", 0, ParameterDescriptor(description="seed of the action sampling", read_only=True)
+            "allow_untrained",
+            False,
+            ParameterDescriptor(
+                description="with checkpoint '': run a freshly initialised policy (efforts marked untrained_policy)",
+                read_only=True,
+            ),
         )
-        self._candidate: GraphActorCritic | None = None
+        self.declare_parameter(
+            "seed",
+            0,
+            ParameterDescriptor(description="seed of the action sampling and of an untrained policy", read_only=True),
+        )
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        torch.set_num_threads(1)  # NNConv's scatter stalls with 2 threads on a loaded 2-core machine
-        checkpoint = self.get_parameter("checkpoint").value
-        self.policy = self._load_or_untrained(checkpoint)
-        self._mean_of = NumpyPolicy(self.policy)  # batch-1 mean action without torch's per-op overhead
-        self._deterministic = self.get_parameter("deterministic").value
-        self._input_timeout = self.get_parameter("input_timeout").value
-        self._generator = torch.Generator().manual_seed(self.get_parameter("seed").value)
-        # Warm up (lazy allocations, first-call dispatch) so the first real state is answered promptly.
-        self.policy.act(chain_batch(np.zeros(3), np.zeros(3), np.zeros(4)), deterministic=True)
+        p = self.get_parameter
+        self._allow_untrained = p("allow_untrained").value
+        self._seed = p("seed").value
+        self._candidate: PolicyWeights | None = None
+        self._use(choose_policy(p("checkpoint").value, self._allow_untrained, self._seed))  # CheckpointError: main()
+        self._deterministic = p("deterministic").value
+        self._input_timeout = p("input_timeout").value
+        self._rng = np.random.default_rng(self._seed)
 
         self._effort_pub = self.create_publisher(Float64MultiArray, "effort_commands", 10)
         self._info_pub = self.create_publisher(JointTrajectory, "policy_info", 10)
@@ -136,21 +153,19 @@ class MorphPolicyNode(Node):
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
         self._names: list[str] = []  # joints of the last chain answered
-        self._last_input = time.monotonic()
+        self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
         self._silent = False
 
-    # -- parameters -------------------------------------------------------------
-    def _load_or_untrained(self, checkpoint: str) -> GraphActorCritic:
-        if not checkpoint:
-            self.get_logger().warn("no checkpoint (and no shipped model): running an UNTRAINED policy")
-            return load_policy("")
-        try:
-            policy = load_policy(checkpoint)
-        except (OSError, ValueError, KeyError, RuntimeError) as err:
-            self.get_logger().error(f"cannot load checkpoint {checkpoint!r} ({err}); running an UNTRAINED policy")
-            return load_policy("")
-        self.get_logger().info(f"policy loaded from {checkpoint}")
-        return policy
+    # -- policy and parameters ---------------------------------------------------
+    def _use(self, weights: PolicyWeights) -> None:
+        self._weights = weights
+        self._policy = NumpyPolicy(weights)
+        if weights.trained:
+            self.get_logger().info(f"policy loaded from {weights.source}")
+        else:
+            self.get_logger().warn(
+                f"running an UNTRAINED policy ({weights.source}); every effort is marked {UNTRAINED_LABEL!r}"
+            )
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for param in params:
@@ -158,9 +173,9 @@ class MorphPolicyNode(Node):
                 if param.type_ != Parameter.Type.STRING:
                     return SetParametersResult(successful=False, reason="checkpoint must be a string path")
                 try:
-                    self._candidate = load_policy(param.value)
-                except (OSError, ValueError, KeyError, RuntimeError) as err:
-                    return SetParametersResult(successful=False, reason=f"cannot load {param.value!r}: {err}")
+                    self._candidate = choose_policy(param.value, self._allow_untrained, self._seed)
+                except CheckpointError as err:
+                    return SetParametersResult(successful=False, reason=f"refused checkpoint {err}")
             elif param.name == "input_timeout":
                 if param.type_ != Parameter.Type.DOUBLE or not (math.isfinite(param.value) and param.value > 0):
                     return SetParametersResult(successful=False, reason="input_timeout must be a finite double > 0")
@@ -171,9 +186,8 @@ class MorphPolicyNode(Node):
     def _apply_parameters(self, params: list[Parameter]) -> None:
         for param in params:
             if param.name == "checkpoint" and self._candidate is not None:
-                self.policy, self._candidate = self._candidate, None
-                self._mean_of = NumpyPolicy(self.policy)
-                self.get_logger().info(f"policy replaced by {param.value or 'an untrained one'}")
+                self._use(self._candidate)
+                self._candidate = None
             elif param.name == "deterministic":
                 self._deterministic = param.value
             elif param.name == "input_timeout":
@@ -214,9 +228,8 @@ class MorphPolicyNode(Node):
         except JointStateError as err:
             self._reject("joint_states", err)
             return
-        self._last_input = time.monotonic()
         stamp_ns = to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
-        for ready in self._pairing.state(stamp_ns, (msg, list(msg.name), pos, vel), self._last_input):
+        for ready in self._pairing.state(stamp_ns, (msg, list(msg.name), pos, vel), time.monotonic()):
             self._act(*ready)
 
     def _on_watchdog(self) -> None:
@@ -227,15 +240,14 @@ class MorphPolicyNode(Node):
                 "no odometry with the joint state's stamp: using the latest one", throttle_duration_sec=_LOG_THROTTLE
             )
             self._act(*late)
-        if now - self._last_input > self._input_timeout and self._names:
+        if now - self._last_answer > self._input_timeout and self._names:
             if not self._silent:
-                self.get_logger().warn(f"no joint_states for {self._input_timeout} s: publishing zero efforts")
+                self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
-            self._effort_pub.publish(Float64MultiArray(data=array.array("d", bytes(8 * len(self._names)))))
+            self._publish_efforts(np.zeros(len(self._names)), None)
 
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
-        self._silent = False
         stamp = msg.header.stamp
         new_episode = self._episodes.state(to_ns(stamp.sec, stamp.nanosec))
         if names != self._names or new_episode:
@@ -246,23 +258,31 @@ class MorphPolicyNode(Node):
         else:
             quat, body, wz = self._odom
             glob = global_features(quat, body, wz, self._unwrap)
-        if self._deterministic:
-            efforts = np.clip(self._mean_of.mean(pos, vel, glob), -1.0, 1.0).astype(np.float64)
-        else:
-            batch = chain_batch(pos, vel, glob)
-            action, _, _, mean = self.policy.act(batch, generator=self._generator)
-            efforts = np.clip(action[0].numpy(), -1.0, 1.0).astype(np.float64)
-        out = Float64MultiArray(data=array.array("d", efforts.tobytes()))
+        try:
+            out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng)
+        except PolicyOutputError as err:
+            self._reject("joint_states", err)  # nothing goes out: the watchdog's zero efforts follow
+            return
+        self._silent = False
+        self._last_answer = time.monotonic()
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
-        out.layout.dim = [
-            MultiArrayDimension(label=answer_tag(stamp.sec, stamp.nanosec), size=len(names), stride=len(names))
-        ]
-        self._effort_pub.publish(out)
-        if not self._deterministic:
-            self._publish_info(msg, names, action[0], mean[0])
+        self._publish_efforts(out.efforts, answer_tag(stamp.sec, stamp.nanosec))
+        if out.mean is not None:
+            self._publish_info(msg, names, out.action, out.mean)
 
-    def _publish_info(self, msg: JointState, names: list[str], action: torch.Tensor, mean: torch.Tensor) -> None:
-        fields = pack_policy_info(action.double().numpy(), mean.double().numpy(), float(self.policy.log_std.detach()))
+    def _publish_efforts(self, efforts: np.ndarray, tag: str | None) -> None:
+        n = len(efforts)
+        msg = Float64MultiArray(data=array.array("d", np.asarray(efforts, dtype=np.float64).tobytes()))
+        if tag is not None:
+            msg.layout.dim = [MultiArrayDimension(label=tag, size=n, stride=n)]
+        if not self._weights.trained:
+            if not msg.layout.dim:
+                msg.layout.dim = [MultiArrayDimension(label="", size=n, stride=n)]
+            msg.layout.dim.append(MultiArrayDimension(label=UNTRAINED_LABEL, size=1, stride=1))
+        self._effort_pub.publish(msg)
+
+    def _publish_info(self, msg: JointState, names: list[str], action: np.ndarray, mean: np.ndarray) -> None:
+        fields = pack_policy_info(action, mean, self._policy.log_std)
         point = JointTrajectoryPoint()
         for field, values in fields.items():
             setattr(point, field, array.array("d", values.tobytes()))
@@ -274,12 +294,16 @@ class MorphPolicyNode(Node):
         self._info_pub.publish(info)
 
 
-def main(args=None):
+def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
     try:
         node = MorphPolicyNode()
         rclpy.spin(node)
+    except CheckpointError as err:
+        # One line, no traceback: the file and why it cannot run (or that none was given).
+        rclpy.logging.get_logger("morph_policy").fatal(f"cannot start with checkpoint {err}")
+        return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -291,7 +315,8 @@ def main(args=None):
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import numbers
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
-import mujoco
+if TYPE_CHECKING:
+    import mujoco
 
 MIN_JOINTS = 1
 MAX_JOINTS = 64
@@ -110,4 +112,6 @@ def swimmer_model(num_joints: int) -> mujoco.MjModel:
     The cached model is shared: callers must treat it as read-only and keep
     their state in their own ``MjData``.
     """
+    import mujoco  # here, not at the top: the joint limits above serve nodes that never simulate
+
     return mujoco.MjModel.from_xml_string(swimmer_mjcf(num_joints))

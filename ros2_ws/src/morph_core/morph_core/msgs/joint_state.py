@@ -11,7 +11,8 @@ world ("odom") frame and whose twist is, by the ROS convention, in the body
 features: yaw from the orientation quaternion, unwrapped across messages;
 linear velocity rotated from body to world by that yaw.
 
-Nothing here imports ROS: callers pass plain sequences and numbers.
+Nothing here imports ROS: callers pass plain sequences and numbers. Nor torch,
+unless ``chain_batch`` (a torch batch) is called: the nodes run without it.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
 
 
 class JointStateError(ValueError):
@@ -127,8 +128,10 @@ def global_features(
     return np.array([yaw, wz, vx, vy], dtype=np.float64)
 
 
-def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray) -> ChainBatch:
-    """A batch of one chain, joints in the given order (joint 0 next to the torso)."""
+def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray):
+    """A torch ``ChainBatch`` of one chain, joints in the given order (joint 0 next to the torso)."""
+    from morph_core.policy.chains import ChainBatch  # torch, only for callers that run the torch policy
+
     n = len(positions)
     glob = np.asarray(global_feats, dtype=np.float32).reshape(1, NUM_GLOBAL_FEATURES)
     return ChainBatch.from_padded(

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -29,48 +29,9 @@ from torch import nn
 
 from morph_core.policy.chain_conv import BACKENDS, ChainConv
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.config import PolicyConfig
 from morph_core.policy.gaussian import entropy_per_joint, log_density_per_joint
 from morph_core.util.atomic import atomic_write_bytes, atomic_writer
-
-
-@dataclass
-class PolicyConfig:
-    """Architecture of the graph actor-critic."""
-
-    conv1_channels: int = 24
-    """channels of the first NNConv layer"""
-    embed_channels: int = 16
-    """channels of the second NNConv layer and of the global embedding they are added to"""
-    global_hidden: int = 128
-    """hidden width of the global-state MLP"""
-    head_hidden: int = 64
-    """width of the two tanh layers in the actor and critic heads"""
-    bidirectional: bool = True
-    """messages flow both ways along the chain, tail-to-torso through its own edge network;
-    False is the reference's torso-to-tail only (exactly the paper's 4,376-parameter extractor)"""
-    log_std_init: float = 0.0
-    """initial log standard deviation of every joint's Gaussian"""
-    ortho_init: bool = True
-    """orthogonal init as in Stable-Baselines3 (the reference's base): gain sqrt(2) for hidden
-    linear layers, 0.01 for the action output (initial means ~0), 1 for the value output"""
-
-    def __post_init__(self):
-        for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
-            if getattr(self, f) < 1:
-                raise ValueError(f"{f} must be >= 1, got {getattr(self, f)}")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> PolicyConfig:
-        d = dict(d)
-        # Files written before the execution backend left the architecture carry it: accept and drop it.
-        legacy_backend = d.pop("backend", "dense")
-        if legacy_backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {legacy_backend!r}")
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown policy config fields: {sorted(unknown)}")
-        return cls(**d)
 
 
 def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequential:

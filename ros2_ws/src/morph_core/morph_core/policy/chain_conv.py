@@ -31,8 +31,7 @@ from torch import nn
 from torch_geometric.nn import NNConv
 
 from morph_core.policy.chains import NUM_EDGE_FEATURES
-
-BACKENDS = ("dense", "pyg")
+from morph_core.policy.config import BACKENDS
 
 
 def _nnconv(in_channels: int, out_channels: int, root: bool) -> NNConv:

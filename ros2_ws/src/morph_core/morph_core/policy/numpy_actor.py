@@ -1,4 +1,4 @@
-"""Inference of a GraphActorCritic in NumPy, for controllers and for rollouts.
+"""Inference of the graph actor-critic in NumPy, for controllers and for rollouts.
 
 A node answers one chain at a time and a rollout steps six swimmers at a
 time; for a network this small torch spends most of such a forward pass on
@@ -6,26 +6,42 @@ per-operation overhead (about 0.45 ms against 0.1 ms here). This is the
 same computation as the torch policy (``chain_conv``'s form on the chains
 laid end to end, ``chains.PackedChains``) on NumPy copies of its weights,
 tested equal to it to 1e-5. Gradients and updates stay in torch.
+
+No torch here: the weights come from a torch policy handed in by the
+trainer (its state dict, copied) or from ``weights.load_checkpoint`` (a
+controller, which then never imports torch).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
-from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.chain_conv import message_weights
 from morph_core.policy.gaussian import log_density_from_norm
+from morph_core.policy.weights import PolicyWeights
 
 
-def _numpy(t) -> np.ndarray:
-    """A C-ordered NumPy copy of a parameter (or a product of parameters)."""
-    return t.detach().numpy().copy()
+def _state_arrays(source) -> Mapping[str, np.ndarray]:
+    """Name -> array of a torch policy's state dict (copied now), a ``PolicyWeights`` or a mapping."""
+    if isinstance(source, PolicyWeights):
+        return source.arrays
+    if hasattr(source, "state_dict"):  # a torch module: its parameters as they are now
+        return {k: v.detach().cpu().numpy().copy() for k, v in source.state_dict().items()}
+    return source
 
 
-def _linear(layer) -> tuple[np.ndarray, np.ndarray]:
-    return _numpy(layer.weight.T), _numpy(layer.bias)
+def _edge_blocks(weight: np.ndarray, bias: np.ndarray, c_in: int, c_out: int) -> np.ndarray:
+    # W_e: [C_in*C_out, E] viewed [C_in, C_out, E]: the (in, out) order of PyG's view(-1, C_in, C_out).
+    a = weight.reshape(c_in, c_out, -1).transpose(2, 0, 1)
+    # C order as torch's copy had it: a matmul's rounding can depend on the operand's layout.
+    return np.array(np.concatenate([a, bias.reshape(1, c_in, c_out)]).reshape(-1, c_out), order="C")
+
+
+def _linear(state: Mapping[str, np.ndarray], prefix: str) -> tuple[np.ndarray, np.ndarray]:
+    """(W^T, b) of a linear layer, C-ordered copies."""
+    return np.array(state[f"{prefix}.weight"].T, order="C"), np.array(state[f"{prefix}.bias"], order="C")
 
 
 def _tanh_mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
@@ -36,19 +52,27 @@ def _tanh_mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.
 
 
 class NumpyPolicy:
-    """Mean action, value and Gaussian samples of a snapshot of a torch policy (copied at construction)."""
+    """Mean action, value and Gaussian samples of a policy's weights (copied at construction).
 
-    def __init__(self, policy: GraphActorCritic):
-        f = policy.features
+    ``source``: a torch ``GraphActorCritic`` (the trainer's; its parameters as they are now), a
+    ``weights.PolicyWeights`` (a checkpoint or an untrained policy), or its state dict as arrays.
+    """
+
+    def __init__(self, source):
+        state = _state_arrays(source)
         self.layers = []
-        for conv in (f.conv1, f.conv2):
-            bwd = _numpy(message_weights(conv.bwd)) if conv.bwd is not None else None
-            root = _numpy(conv.fwd.lin.weight.T)
-            self.layers.append((_numpy(message_weights(conv.fwd)), bwd, root, _numpy(conv.fwd.bias)))
-        self.global_mlp = [_linear(f.global_mlp[0]), _linear(f.global_mlp[2])]
-        self.actor = [_linear(policy.actor_head[i]) for i in (0, 2, 4)]
-        self.critic = [_linear(policy.critic_head[i]) for i in (0, 2, 4)]
-        self.log_std = float(policy.log_std.detach())
+        for conv in ("features.conv1", "features.conv2"):
+            root = state[f"{conv}.fwd.lin.weight"]  # [C_out, C_in]
+            c_out, c_in = root.shape
+            fwd = _edge_blocks(state[f"{conv}.fwd.nn.weight"], state[f"{conv}.fwd.nn.bias"], c_in, c_out)
+            bwd = None
+            if f"{conv}.bwd.nn.weight" in state:
+                bwd = _edge_blocks(state[f"{conv}.bwd.nn.weight"], state[f"{conv}.bwd.nn.bias"], c_in, c_out)
+            self.layers.append((fwd, bwd, np.array(root.T, order="C"), np.array(state[f"{conv}.fwd.bias"], order="C")))
+        self.global_mlp = [_linear(state, "features.global_mlp.0"), _linear(state, "features.global_mlp.2")]
+        self.actor = [_linear(state, f"actor_head.{i}") for i in (0, 2, 4)]
+        self.critic = [_linear(state, f"critic_head.{i}") for i in (0, 2, 4)]
+        self.log_std = float(state["log_std"])
 
     def mean(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> np.ndarray:
         """[N] mean action of one chain of N joints (torso to tail)."""
@@ -57,6 +81,13 @@ class NumpyPolicy:
         coef[:, 0], coef[:, 1] = joint_pos, joint_vel
         z = self._links(coef)[1:] + self._global(global_feats[None])
         return _tanh_mlp(z, self.actor)[:, 0]
+
+    def sample(
+        self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One chain's Gaussian sample: (action [N], mean [N]) as float64, a = mean + sigma * z, z ~ N(0, I)."""
+        mean = self.mean(joint_pos, joint_vel, global_feats).astype(np.float64)
+        return mean + math.exp(self.log_std) * rng.standard_normal(mean.shape[0]), mean
 
     def forward(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[np.ndarray, np.ndarray]:
         """Padded batch [B, J] (zero padding beyond each chain) -> mean [B, J] (zero at padding), value [B]."""

@@ -1,0 +1,66 @@
+"""The graph actor-critic's architecture, without torch.
+
+Read by the torch policy (``actor_critic``) and by the torch-free loader a
+controller uses (``weights``), so a checkpoint's JSON means the same to both.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass, fields
+
+NUM_EDGE_FEATURES = 2
+"""per joint: angle, angular velocity (the same as ``chains.NUM_EDGE_FEATURES``, which needs torch)"""
+NUM_GLOBAL_FEATURES = 4
+"""of the torso: yaw, yaw rate, vx, vy (the same as ``chains.NUM_GLOBAL_FEATURES``)"""
+BACKENDS = ("dense", "pyg")
+"""how the torch policy's chain convolutions execute (``chain_conv``); not part of the architecture"""
+
+
+@dataclass
+class PolicyConfig:
+    """Architecture of the graph actor-critic."""
+
+    conv1_channels: int = 24
+    """channels of the first NNConv layer"""
+    embed_channels: int = 16
+    """channels of the second NNConv layer and of the global embedding they are added to"""
+    global_hidden: int = 128
+    """hidden width of the global-state MLP"""
+    head_hidden: int = 64
+    """width of the two tanh layers in the actor and critic heads"""
+    bidirectional: bool = True
+    """messages flow both ways along the chain, tail-to-torso through its own edge network;
+    False is the reference's torso-to-tail only (exactly the paper's 4,376-parameter extractor)"""
+    log_std_init: float = 0.0
+    """initial log standard deviation of every joint's Gaussian"""
+    ortho_init: bool = True
+    """orthogonal init as in Stable-Baselines3 (the reference's base): gain sqrt(2) for hidden
+    linear layers, 0.01 for the action output (initial means ~0), 1 for the value output"""
+
+    def __post_init__(self):
+        for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
+            value = getattr(self, f)
+            # bool is an int subclass: True would pass as a width of 1.
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{f} must be an integer >= 1, got {value!r}")
+        for f in ("bidirectional", "ortho_init"):
+            if not isinstance(getattr(self, f), bool):
+                raise ValueError(f"{f} must be true or false, got {getattr(self, f)!r}")
+        if isinstance(self.log_std_init, bool) or not isinstance(self.log_std_init, numbers.Real):
+            raise ValueError(f"log_std_init must be a number, got {self.log_std_init!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PolicyConfig:
+        if not isinstance(d, dict):
+            raise ValueError(f"the policy config must be a JSON object, got {type(d).__name__}")
+        d = dict(d)
+        # Files written before the execution backend left the architecture carry it: accept and drop it.
+        legacy_backend = d.pop("backend", "dense")
+        if legacy_backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {legacy_backend!r}")
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown policy config fields: {sorted(unknown)}")
+        return cls(**d)
