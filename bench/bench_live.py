@@ -99,8 +99,8 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: in
             sim = {"lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0, "min_joints": 2,
                    "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
             procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim{k}_{i}.log"))
-            procs.append(_node("morph_policy_node.policy_node", ns, {"deterministic": "false", "seed": i,
-                               "checkpoint": "''"}, work / f"policy{k}_{i}.log"))  # fmt: skip
+            policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
+            procs.append(_node("morph_policy_node.policy_node", ns, policy, work / f"policy{k}_{i}.log"))
         # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
         deadline = time.monotonic() + 180
         while counter.rate(2.0) < 10 * k and time.monotonic() < deadline:

@@ -24,6 +24,7 @@ def _nodes(context):
         cmd.append("--resume")
     cmd += value("train_args").split()
     actions = [ExecuteProcess(cmd=cmd, output="screen", name="morph_live_trainer")]
+    policy = {"deterministic": False, "checkpoint": "", "allow_untrained": True}  # the trainer's weights follow
     for i, ns in enumerate(namespaces):
         actions.append(Node(package="swimmer_sim_node", executable="swimmer_sim_node", name="swimmer_sim",
                             namespace=ns, output="screen",
@@ -32,7 +33,7 @@ def _nodes(context):
                                          "max_joints": int(value("max_joints")), "seed": i}]))  # fmt: skip
         actions.append(Node(package="morph_policy_node", executable="morph_policy_node", name="morph_policy",
                             namespace=ns, output="screen",
-                            parameters=[{"deterministic": False, "seed": i}]))  # fmt: skip
+                            parameters=[{**policy, "seed": i}]))  # fmt: skip
     return actions
 
 

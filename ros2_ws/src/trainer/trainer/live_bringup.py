@@ -40,6 +40,8 @@ def pair_params(index: int, min_joints: int, max_joints: int, checkpoint: str | 
     policy = {"deterministic": "false", "seed": index}
     if checkpoint is not None:
         policy["checkpoint"] = checkpoint if checkpoint else "''"
+        if not checkpoint:  # the node runs an untrained policy only when asked; the trainer's weights follow
+            policy["allow_untrained"] = "true"
     return sim, policy
 
 
