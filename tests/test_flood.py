@@ -53,6 +53,10 @@ def _flood(probe, send_huge, send_small, seconds=FLOOD_SECONDS) -> int:
     return rounds
 
 
+MAX_GAP = 3.0
+"""longest silence [s] allowed while flooded: a wedge is forever, a loaded 2-core machine can pause a second"""
+
+
 def _longest_gap(stamps: list[float], start: float, end: float) -> float:
     inside = [start] + [t for t in stamps if start <= t <= end] + [end]
     return float(np.max(np.diff(inside)))
@@ -107,7 +111,7 @@ def test_sim_survives_huge_effort_commands(probe, launch):
     n = len(states)
     probe.spin_until(lambda: len(states) > n + 10, 10.0, "joint states after the flood")
     assert rounds > 20
-    assert _longest_gap(stamps, start, time.monotonic()) < 1.0, "the sim stopped publishing"
+    assert _longest_gap(stamps, start, time.monotonic()) < MAX_GAP, "the sim stopped publishing"
     applied = {tuple(s.effort) for s in states}
     assert applied <= {(0.0, 0.0, 0.0), *map(tuple, valid)}, "an effort nobody sent valid was applied"
     assert set(map(tuple, valid)) & applied, "no valid command was applied"
@@ -124,7 +128,7 @@ def test_sim_survives_huge_parameter_requests(probe, launch, namespace):
     _flood_parameter_service(probe, f"{namespace}/swimmer_sim")
     n = len(states)
     probe.spin_until(lambda: len(states) > n + 10, 10.0, "joint states after the flood")
-    assert _longest_gap(stamps, start, time.monotonic()) < 1.0, "the sim stopped publishing"
+    assert _longest_gap(stamps, start, time.monotonic()) < MAX_GAP, "the sim stopped publishing"
     _stops_on_sigterm(proc)
 
 
@@ -157,7 +161,7 @@ def _flood_policy(probe, proc, state_pub, efforts, stamps, send_huge) -> None:
         state_pub.publish(_valid_state(10**6 + i))
         probe.spin_for(0.02)
     probe.spin_until(lambda: len(efforts) > n, 10.0, "answers after the flood")
-    assert _longest_gap(stamps, start, time.monotonic()) < 1.0, "the policy stopped answering"
+    assert _longest_gap(stamps, start, time.monotonic()) < MAX_GAP, "the policy stopped answering"
     assert {len(e.data) for e in efforts} == {3}, "something answered the huge message"
     assert proc.alive()
     _stops_on_sigterm(proc)
@@ -210,7 +214,7 @@ def test_policy_survives_huge_parameter_requests(probe, launch, namespace, untra
     _flood(probe, lambda: client.call_async(huge), answer_some)
     n = len(efforts)
     probe.spin_until(lambda: len(efforts) > n or answer_some(), 10.0, "answers after the flood")
-    assert _longest_gap(stamps, start, time.monotonic()) < 1.0, "the policy stopped answering"
+    assert _longest_gap(stamps, start, time.monotonic()) < MAX_GAP, "the policy stopped answering"
     future = client.call_async(huge)
     probe.spin_until(future.done, 20.0, "an answer to a huge request")
     assert not future.result().results[0].successful

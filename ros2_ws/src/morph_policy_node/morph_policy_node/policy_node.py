@@ -46,15 +46,13 @@ from __future__ import annotations
 
 import array
 import math
-import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
-import rclpy
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -76,6 +74,7 @@ from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.pairing import StatePairing
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
+from swimmer_sim_node import node_runner
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
@@ -294,29 +293,10 @@ class MorphPolicyNode(Node):
         self._info_pub.publish(info)
 
 
-def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MorphPolicyNode()
-        rclpy.spin(node)
-    except CheckpointError as err:
-        # One line, no traceback: the file and why it cannot run (or that none was given).
-        rclpy.logging.get_logger("morph_policy").fatal(f"cannot start with checkpoint {err}")
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        # A callback that was publishing when SIGINT/SIGTERM shut the context down
-        # fails on the dead context: that is still a normal end.
-        if rclpy.ok():
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+def main(args=None) -> NoReturn:
+    # A checkpoint that cannot be loaded (or none without allow_untrained) is one line and exit 1.
+    node_runner.run(MorphPolicyNode, "morph_policy", args, startup_errors=(CheckpointError,))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

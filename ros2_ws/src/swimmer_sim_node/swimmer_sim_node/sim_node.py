@@ -74,8 +74,8 @@ from __future__ import annotations
 import array
 import math
 import time
+from typing import NoReturn
 
-import rclpy
 from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import (
@@ -84,7 +84,6 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -100,6 +99,7 @@ from morph_core.msgs.stamps import from_ns, parse_answer_tag
 from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
+from swimmer_sim_node import node_runner
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.
@@ -413,23 +413,9 @@ class SwimmerSimNode(Node):
         self._gate.published(stamp_ns, now)
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SwimmerSimNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        # A callback that was publishing when SIGINT/SIGTERM shut the context down
-        # fails on the dead context: that is still a normal end.
-        if rclpy.ok():
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> NoReturn:
+    # A bad parameter combination (e.g. the joint range) is one line and exit 1.
+    node_runner.run(SwimmerSimNode, "swimmer_sim", args, startup_errors=(ValueError,))
 
 
 if __name__ == "__main__":
