@@ -105,7 +105,8 @@ def main(argv=None) -> int:
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
     if args.checkpoint is None and not SHIPPED_MODEL.is_file():
-        print(f"bringup: no shipped policy at {SHIPPED_MODEL}: the policy node runs an UNTRAINED policy", flush=True)
+        print(f"bringup: no shipped policy at {SHIPPED_MODEL}: give --checkpoint", flush=True)
+        return 2
     r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout)
     print(
         f"swim speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
