@@ -213,9 +213,26 @@ def test_steps_without_policy_info_feed_the_advantages_but_never_an_update(tmp_p
     cfg = TrainConfig(**{**SMALL, "num_steps": 128})  # one batch holds every usable step
     run = train_from_data(cfg, partial, tmp_path / "run", init=init)
     (row,) = _rows(run)
-    assert (row["data_steps"], row["usable_steps"], row["batch_size"]) == ("100", "97", "97")
+    # 97 = 6 x 16 + 1: the update leaves the last one out rather than normalise a lone advantage
+    assert (row["data_steps"], row["usable_steps"], row["batch_size"]) == ("100", "97", "96")
     # Their rewards still reach the steps before them: the advantages are those of the whole data.
     policy = GraphActorCritic.load(init)
     _, adv_partial, _ = Samples(partial, 10).advantages(policy, 0.98, 0.98)
     _, adv_whole, _ = Samples(data, 10).advantages(policy, 0.98, 0.98)
     torch.testing.assert_close(adv_partial, adv_whole, rtol=0, atol=0)
+
+
+def test_a_batch_never_leaves_one_sample_for_its_last_minibatch(tmp_path, behaviour):
+    # 33 steps in minibatches of 16: a last minibatch of one sample would normalise its advantage to 0/0
+    # and turn every weight NaN; the update takes 32.
+    init, _ = behaviour
+    data = record(SamplingController(GraphActorCritic.load(init), seed=4), ((3, 33),))
+    assert len(data) == 33
+    run = train_from_data(TrainConfig(**{**SMALL, "num_steps": 64}), data, tmp_path / "run", init=init)
+    (row,) = _rows(run)
+    assert row["batch_size"] == "32" and np.isfinite(float(row["policy_loss"]))
+    tensors, _ = _state(run)
+    assert all(torch.isfinite(v).all() for k, v in tensors.items() if k.startswith(("policy.", "optim.")))
+    single = record(SamplingController(GraphActorCritic.load(init), seed=4), ((3, 1),))
+    with pytest.raises(ValueError, match="too few"):
+        train_from_data(TrainConfig(**SMALL), single, tmp_path / "one")

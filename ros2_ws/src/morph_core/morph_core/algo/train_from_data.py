@@ -13,10 +13,13 @@ sampling policy took, each with the behaviour log-prob it published
    most ``batch_size`` (num_envs * num_steps, 6144 by default), else the
    next part of a seeded random permutation cut into ceil(steps /
    batch_size) near-equal parts (``iterations`` defaults to one pass: each
-   step once). A step without policy_info (its message lost, or another
-   controller acting) has no behaviour log-prob: it still carries its
-   episode's rewards and values into GAE, but never enters an update; data
-   with none at all are refused (``MissingPolicyInfoError``);
+   step once). A batch that would leave a single sample for its last
+   minibatch leaves that sample out (its advantage, normalised within the
+   minibatch, would be 0/0 and turn the weights NaN). A step without
+   policy_info (its message lost, or another controller acting) has no
+   behaviour log-prob: it still carries its episode's rewards and values
+   into GAE, but never enters an update; data with none at all are refused
+   (``MissingPolicyInfoError``);
 3. runs the one PPO update every data source uses (``algo.update``) under
    the run's trust-region rule, with the decoupled objective below.
 
@@ -270,6 +273,8 @@ def check_data(data: TransitionBatch, cfg: TrainConfig) -> None:
         raise ValueError("no transitions to train on")
     if not data.has_policy_info.any():
         data.require_policy_info()  # raises, saying what is missing
+    if data.has_policy_info.sum() < 2:
+        raise ValueError("one step with its behaviour log-prob is too few to train on (advantages are normalised)")
     lo, hi = int(data.num_joints.min()), int(data.num_joints.max())
     if lo < cfg.min_joints or hi > cfg.max_joints:
         raise DataMismatchError(
@@ -405,6 +410,8 @@ def train_from_data(
             if part == 0 or current.order is None:
                 current.order = torch.randperm(len(usable), generator=gen).numpy()
             index = usable[torch.tensor_split(torch.from_numpy(current.order), one_pass)[part]]
+        if len(index) % cfg.minibatch_size == 1:
+            index = index[:-1]  # a last minibatch of one sample: its normalised advantage would be NaN
         batch = with_proximal(policy, samples.batch(index, values, advantages, returns))
         prepare_s = time.perf_counter() - t0
 
