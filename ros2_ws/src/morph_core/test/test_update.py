@@ -168,3 +168,13 @@ def test_bad_batches_are_refused_with_the_field_named():
         RolloutBatch(**{**good, "num_joints": torch.tensor([0, 3])})
     with pytest.raises(ValueError, match="unknown trust-region rule"):
         _config("adaptive")
+
+
+def test_minibatch_cuts_never_leave_one_sample_alone():
+    from morph_core.algo.update import minibatch_cuts
+
+    assert minibatch_cuts(6144, 256) == list(range(0, 6145, 256))  # the paper's split, unchanged
+    assert minibatch_cuts(40, 16) == [0, 16, 32, 40]
+    assert minibatch_cuts(33, 16) == [0, 16, 33]  # the lone 33rd sample joins the last minibatch
+    with pytest.raises(ValueError, match="at least 2 samples"):
+        minibatch_cuts(1, 16)

@@ -133,9 +133,9 @@ class UpdateConfig:
 
     def __post_init__(self):
         get_rule(self.rule)  # a clear error for an unknown name
-        if self.update_epochs < 1 or self.minibatch_size < 1:
-            raise ValueError(f"update_epochs and minibatch_size must be >= 1, got {self.update_epochs}, "
-                             f"{self.minibatch_size}")  # fmt: skip
+        if self.update_epochs < 1 or self.minibatch_size < 2:
+            raise ValueError(f"need update_epochs >= 1 and minibatch_size >= 2 (advantages are normalised within a "
+                             f"minibatch), got {self.update_epochs}, {self.minibatch_size}")  # fmt: skip
         if self.proximal_weight_cap <= 0:
             raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
 
@@ -185,6 +185,20 @@ class UpdateStats:
         }
 
 
+def minibatch_cuts(size: int, minibatch_size: int) -> list[int]:
+    """Boundaries of the minibatches of one epoch: ``minibatch_size`` samples each, the remainder last.
+
+    A remainder of one sample joins the minibatch before it: advantages are normalised within a
+    minibatch, and the standard deviation of one sample is undefined (it made every weight NaN).
+    """
+    if size < 2:
+        raise ValueError(f"an update needs at least 2 samples (advantages are normalised), got {size}")
+    cuts = [*range(0, size, minibatch_size), size]
+    if len(cuts) > 2 and cuts[-1] - cuts[-2] == 1:
+        del cuts[-2]
+    return cuts
+
+
 def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: torch.Generator) -> UpdateStats:
     """Epochs of shuffled minibatch steps on ``batch`` under ``cfg.rule``; ``generator`` shuffles."""
     rule = get_rule(cfg.rule)
@@ -197,14 +211,15 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
     else:
         old_log_prob = batch.proximal_log_prob
         weight = torch.clamp(torch.exp(batch.proximal_log_prob - batch.log_prob), max=cfg.proximal_weight_cap)
+    cuts = minibatch_cuts(batch.size, cfg.minibatch_size)
     mb_losses, mb_index, mb_log_ratio = [], [], []
     epochs = 0
     for _ in range(cfg.update_epochs):
         epochs += 1
         perm = torch.randperm(batch.size, generator=generator)
         epoch_log_ratio = []
-        for start in range(0, batch.size, cfg.minibatch_size):
-            mb = perm[start : start + cfg.minibatch_size]
+        for start, stop in zip(cuts[:-1], cuts[1:], strict=True):
+            mb = perm[start:stop]
             chains, actions = batch.minibatch(mb)
             loss, pg_loss, v_loss, entropy, log_ratio = loss_fn(
                 learner.policy,
