@@ -15,20 +15,18 @@ import torch
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from morph_core.env.sim import SwimmerSim
 from morph_core.msgs.records import (
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
     OdometryRecord,
-    PolicyInfoRecord,
 )
-from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.protocol.loopback import LoopbackRecording, MeanController, SamplingController
+from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import assemble
 from trainer.bag_cli import main
+from trainer.bag_messages import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -49,74 +47,12 @@ def policy():
     return GraphActorCritic().eval()
 
 
-def loop_records(controller, episodes, seed=0):
-    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
-    for i, (n, steps) in enumerate(episodes):
-        if i:
-            loop.new_episode(n)
-        loop.run(steps)
-    loop.finish()
-    return loop.records
-
-
 # -- records as the nodes' messages --------------------------------------------------------------
-def _time(ns):
-    sec, nanosec = from_ns(ns)
-    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-
-
-def _header(ns, frame_id=""):
-    return T["std_msgs/msg/Header"](stamp=_time(ns), frame_id=frame_id)
-
-
-def _vector(x=0.0, y=0.0, z=0.0):
-    return T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
-
-
 def message(r):
-    """(topic, message) a node publishes for a record."""
-    if isinstance(r, JointStateRecord):
-        msg = T["sensor_msgs/msg/JointState"](
-            header=_header(r.stamp_ns), name=list(r.names), position=r.position, velocity=r.velocity, effort=r.effort
-        )
-        return "joint_states", msg
-    if isinstance(r, OdometryRecord):
-        pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](*r.orientation_xyzw),
-        )
-        twist = T["geometry_msgs/msg/Twist"](linear=_vector(*r.body_linear_xy), angular=_vector(z=r.angular_z))
-        msg = T["nav_msgs/msg/Odometry"](
-            header=_header(r.stamp_ns, "odom"),
-            child_frame_id="torso",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
-        )
-        return "odom", msg
-    if isinstance(r, EffortRecord):
-        n = r.effort.size
-        dims = (
-            []
-            if r.answers_ns is None
-            else [T["std_msgs/msg/MultiArrayDimension"](label=answer_tag(*from_ns(r.answers_ns)), size=n, stride=n)]
-        )
-        layout = T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
-        return "effort_commands", T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
-    if isinstance(r, PolicyInfoRecord):
-        point = T["trajectory_msgs/msg/JointTrajectoryPoint"](
-            positions=r.action,
-            velocities=r.mean,
-            accelerations=r.log_std,
-            effort=r.log_prob_per_joint,
-            time_from_start=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-        )
-        msg = T["trajectory_msgs/msg/JointTrajectory"](
-            header=_header(r.stamp_ns), joint_names=list(r.names), points=[point]
-        )
-        return "policy_info", msg
+    """(topic, message) a node publishes for a record; the announcement as another recorder's stamped Header."""
     if isinstance(r, EpisodeStartRecord):
-        return "episode_start", _header(r.stamp_ns, f"episode={r.episode} num_joints={r.num_joints}")
-    raise TypeError(r)
+        return "episode_start", header(r.stamp_ns, f"episode={r.episode} num_joints={r.num_joints}")
+    return record_message(r)
 
 
 def write_bag(path, records, storage="mcap", with_clock=True):
@@ -128,7 +64,7 @@ def write_bag(path, records, storage="mcap", with_clock=True):
         for r in records:
             name, msg = message(r)
             if with_clock and name == "joint_states":
-                tick = T["rosgraph_msgs/msg/Clock"](clock=_time(r.stamp_ns))
+                tick = T["rosgraph_msgs/msg/Clock"](clock=stamp(r.stamp_ns))
                 w.write(clock, r.log_ns - 1, TS.serialize_cdr(tick, "rosgraph_msgs/msg/Clock"))
             w.write(conns[name], r.log_ns, TS.serialize_cdr(msg, msg.__msgtype__))
     return path
@@ -136,7 +72,7 @@ def write_bag(path, records, storage="mcap", with_clock=True):
 
 @pytest.fixture(scope="module")
 def sampled_records(policy):
-    return loop_records(SamplingController(policy, seed=1), ((3, 20), (6, 15)))
+    return record_episodes(SamplingController(policy, seed=1), ((3, 20), (6, 15)))
 
 
 # -- export --------------------------------------------------------------------------------------
@@ -158,7 +94,7 @@ def test_export_equals_the_transitions_of_the_recorded_messages(tmp_path, sample
 
 
 def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, policy):
-    other = loop_records(SamplingController(policy, seed=2), ((4, 12),), seed=5)
+    other = record_episodes(SamplingController(policy, seed=2), ((4, 12),), seed=5)
     a = write_bag(tmp_path / "a", sampled_records)
     b = write_bag(tmp_path / "b", other, "sqlite3")
     out = tmp_path / "both.npz"
@@ -171,7 +107,7 @@ def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, poli
 
 
 def test_without_policy_info_export_says_so_and_can_refuse(tmp_path, policy, capsys):
-    records = loop_records(MeanController(policy), ((3, 10),))
+    records = record_episodes(MeanController(policy), ((3, 10),))
     bag = write_bag(tmp_path / "deterministic", records)
     out = tmp_path / "t.npz"
     assert main(["export", str(bag), "--out", str(out), "--require-policy-info"]) == 1

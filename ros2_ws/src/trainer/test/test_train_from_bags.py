@@ -19,18 +19,12 @@ from rosbags.typesys import Stores, get_typestore
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train_from_data import run_state
-from morph_core.env.sim import SwimmerSim
 from morph_core.msgs.records import (
-    EffortRecord,
-    EpisodeStartRecord,
-    JointStateRecord,
-    OdometryRecord,
     PolicyInfoRecord,
 )
-from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
-from morph_core.protocol.loopback import LoopbackRecording, MeanController, SamplingController
+from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
+from trainer.bag_messages import record_message
 from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
 from trainer.train_cli import main
 
@@ -52,71 +46,6 @@ CLI = [sys.executable, "-m", "trainer.train_cli"]
 
 
 # -- a lockstep recording as the nodes' messages, in a bag ----------------------------------------
-def loop_records(controller, episodes, seed=0):
-    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
-    for i, (n, steps) in enumerate(episodes):
-        if i:
-            loop.new_episode(n)
-        loop.run(steps)
-    loop.finish()
-    return loop.records
-
-
-def _time(ns):
-    sec, nanosec = from_ns(ns)
-    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-
-
-def _header(ns, frame_id=""):
-    return T["std_msgs/msg/Header"](stamp=_time(ns), frame_id=frame_id)
-
-
-def _dim(label, size):
-    return T["std_msgs/msg/MultiArrayDimension"](label=label, size=size, stride=size)
-
-
-def message(r):
-    """(topic, message) the sim, the policy node or the recorder's announcement source publishes for a record."""
-    if isinstance(r, JointStateRecord):
-        msg = T["sensor_msgs/msg/JointState"](
-            header=_header(r.stamp_ns), name=list(r.names), position=r.position, velocity=r.velocity, effort=r.effort
-        )
-        return "joint_states", msg
-    if isinstance(r, OdometryRecord):
-        pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](*r.orientation_xyzw),
-        )
-        vec = T["geometry_msgs/msg/Vector3"]
-        twist = T["geometry_msgs/msg/Twist"](linear=vec(*r.body_linear_xy, 0.0), angular=vec(0.0, 0.0, r.angular_z))
-        msg = T["nav_msgs/msg/Odometry"](
-            header=_header(r.stamp_ns, "odom"),
-            child_frame_id="torso",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
-        )
-        return "odom", msg
-    if isinstance(r, EffortRecord):
-        n = r.effort.size
-        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(answer_tag(*from_ns(r.answers_ns)), n)], data_offset=0)
-        return "effort_commands", T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
-    if isinstance(r, PolicyInfoRecord):
-        point = T["trajectory_msgs/msg/JointTrajectoryPoint"](
-            positions=r.action, velocities=r.mean, accelerations=r.log_std, effort=r.log_prob_per_joint,
-            time_from_start=T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-        )  # fmt: skip
-        msg = T["trajectory_msgs/msg/JointTrajectory"](
-            header=_header(r.stamp_ns), joint_names=list(r.names), points=[point]
-        )
-        return "policy_info", msg
-    if isinstance(r, EpisodeStartRecord):
-        cause = EpisodeCause.START if r.episode == 0 else EpisodeCause.STEPS
-        label, data = pack_episode_start(r.episode, r.stamp_ns, r.num_joints, cause)
-        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(label, len(data))], data_offset=0)
-        return "episode_start", T["std_msgs/msg/Int64MultiArray"](layout=layout, data=np.array(data, np.int64))
-    raise TypeError(r)
-
-
 def write_bag(path, records, storage="mcap", types=None, chunk_size=256 * 1024):
     """A bag as morph-record writes it; ``types`` overrides a topic's type (a message of that type is made by
     ``message`` unless the override is for a topic left out: type None drops the topic)."""
@@ -124,7 +53,7 @@ def write_bag(path, records, storage="mcap", types=None, chunk_size=256 * 1024):
     with BagWriter(path, WriterOptions(storage=storage, chunk_size=chunk_size)) as w:
         ids = {name: w.add_topic(BagTopic(f"{NS}/{name}", ty)) for name, ty in types.items() if ty is not None}
         for r in records:
-            name, msg = message(r)
+            name, msg = record_message(r)
             if name in ids:
                 w.write(ids[name], r.log_ns, TS.serialize_cdr(msg, msg.__msgtype__))
     return path
@@ -144,7 +73,7 @@ def init(tmp_path_factory):
 @pytest.fixture(scope="module")
 def sampled(init):
     """Records of three episodes of 3, 6 and 9 joints sampled by the init policy (150 steps)."""
-    return loop_records(SamplingController(GraphActorCritic.load(init), seed=1), ((3, 60), (6, 50), (9, 40)))
+    return record_episodes(SamplingController(GraphActorCritic.load(init), seed=1), ((3, 60), (6, 50), (9, 40)))
 
 
 def _rows(run):
@@ -239,7 +168,7 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
 
 # -- bad input -----------------------------------------------------------------------------------
 def test_a_bag_without_policy_info_is_refused_naming_what_is_missing(tmp_path, init, capsys):
-    records = loop_records(MeanController(GraphActorCritic.load(init)), ((3, 20),))
+    records = record_episodes(MeanController(GraphActorCritic.load(init)), ((3, 20),))
     bag = write_bag(tmp_path / "deterministic", records, types={"policy_info": None})
     run = tmp_path / "run"
     assert main(["--from-bags", str(bag), "--out", str(run), *SMALL]) == 1

@@ -212,3 +212,14 @@ class LoopbackRecording:
         if info is not None:
             out.append(unpack_policy_info(self._log(), stamp, self._names, **info))
         return out
+
+
+def record_episodes(controller: Controller, episodes, seed: int = 0) -> list:
+    """Records of consecutive episodes ``((num_joints, steps), ...)`` of one seeded sim under ``controller``."""
+    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
+    for i, (n, steps) in enumerate(episodes):
+        if i:
+            loop.new_episode(n)
+        loop.run(steps)
+    loop.finish()
+    return loop.records
