@@ -74,7 +74,7 @@ from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.pairing import StatePairing
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
-from swimmer_sim_node import node_runner
+from morph_ros_util import node_runner
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent

@@ -99,7 +99,7 @@ from morph_core.msgs.stamps import from_ns, parse_answer_tag
 from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
-from swimmer_sim_node import node_runner
+from morph_ros_util import node_runner
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.
