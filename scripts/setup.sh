@@ -20,5 +20,5 @@ echo "setup: installing into .venv (once; about a minute)" >&2
 .venv/bin/python -m pip install --quiet --upgrade "pip>=24"
 .venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
     -e ros2_ws/src/morph_core -e ros2_ws/src/morph_ros_util -e ros2_ws/src/swimmer_sim_node \
-    -e ros2_ws/src/morph_policy_node -e ros2_ws/src/trainer
+    -e ros2_ws/src/morph_policy_node -e "ros2_ws/src/trainer[onnx]"
 echo "$want" > "$stamp"
