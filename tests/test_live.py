@@ -236,17 +236,6 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(probe, namespa
 
 
 # -- the policy node's side: weights adopted, late joiners, bad weights ---------------------------------------------
-def _policy_node_takes_weights() -> bool:
-    import morph_policy_node.policy_node as m
-
-    return WEIGHTS_TOPIC in Path(m.__file__).read_text()
-
-
-needs_weights = pytest.mark.skipif(
-    not _policy_node_takes_weights(), reason="morph_policy_node does not subscribe to policy_weights yet"
-)
-
-
 def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int = 0, damage: str = ""):
     """A weights message for a fresh policy whose log-std is ``log_std`` (visible in every policy_info)."""
     import dataclasses
@@ -301,38 +290,67 @@ class InfoWatch:
         return bool(self.got) and self.got[-1][0] == version and abs(self.got[-1][1] - log_std) < 1e-6
 
 
-@needs_weights
+class Pusher:
+    """Weights on each namespace as the live trainer sends them: published now, then again every half second
+    (policy nodes read best effort, so re-publication is how a late node gets them)."""
+
+    def __init__(self, probe, spaces: list[str]):
+        self.pubs = {ns: probe.node.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS)
+                     for ns in spaces}  # fmt: skip
+        self.latest: dict[str, UInt8MultiArray] = {}
+        probe.node.create_timer(0.5, self._again)
+
+    def push(self, ns: str, msg, keep: bool = True) -> None:
+        self.pubs[ns].publish(msg)
+        if keep:
+            self.latest[ns] = msg
+
+    def _again(self) -> None:
+        for ns, msg in self.latest.items():
+            self.pubs[ns].publish(msg)
+
+
 @pytest.mark.timeout(300)
 def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_out(
     probe, namespace, tmp_path, untrained_checkpoint
 ):
     spaces = [f"{namespace}/p{i}" for i in range(3)]
-    pubs = [probe.node.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS) for ns in spaces]
+    pusher = Pusher(probe, spaces)
     infos = [InfoWatch(probe, ns) for ns in spaces]
     procs = []
     try:
         for i, ns in enumerate(spaces[:2]):
-            procs += start_pair(ns, i, untrained_checkpoint, tmp_path).values()
+            procs.append(start_pair(ns, i, untrained_checkpoint, tmp_path))
         probe.spin_until(lambda: all(w.got for w in infos[:2]), STARTUP, "both policies answering")
+        assert all(w.got[-1][0] is None for w in infos[:2])  # a checkpoint file: no weights version
         # pushed: both adopt version 1 between two answers; policy_info says so
-        for pub in pubs:
-            pub.publish(weights_msg(1, -1.25))
+        for ns in spaces:
+            pusher.push(ns, weights_msg(1, -1.25))
         probe.spin_until(lambda: all(w.shows(1, -1.25) for w in infos[:2]), 30, "version 1 in both policy_info")
-        # a late policy node (the third pair) gets the latest weights from the latched topic
-        procs += start_pair(spaces[2], 2, untrained_checkpoint, tmp_path).values()
+        # a late policy node (the third pair) gets the latest weights
+        procs.append(start_pair(spaces[2], 2, untrained_checkpoint, tmp_path))
         probe.spin_until(lambda: infos[2].shows(1, -1.25), STARTUP, "the late node running version 1")
-        # malformed weights: rejected, version 1 kept
-        for damage in ("nan", "shape", "json"):
-            pubs[0].publish(weights_msg(5, -0.5, damage=damage))
-        probe.spin_for(2.0)
+        # malformed weights: each rejected with its reason, version 1 kept
+        policy0 = procs[0]["policy"]
+        for damage, reason in (("nan", "NaN or inf"), ("shape", "has shape"), ("json", "not JSON")):
+            bad = weights_msg(5, -0.5, damage=damage)
+            for _ in range(40):  # best effort: sent until the node has said why it refused it
+                pusher.push(spaces[0], bad, keep=False)
+                probe.spin_for(0.5)
+                if reason in policy0.log():
+                    break
+            assert reason in policy0.log(), policy0.log()[-2000:]
         n = len(infos[0].got)
         probe.spin_until(lambda: len(infos[0].got) > n + 20, 30, "more answers")
         assert all(w == (1, -1.25) for w in infos[0].got[n:]), infos[0].got[n:][:5]
+        assert "current policy kept" in policy0.log()
         # an old version of the same run is ignored; the next good one is taken
-        pubs[0].publish(weights_msg(0, -2.0))
-        pubs[0].publish(weights_msg(2, -0.75))
+        pusher.push(spaces[0], weights_msg(0, -2.0), keep=False)
+        pusher.push(spaces[0], weights_msg(2, -0.75))
         probe.spin_until(lambda: infos[0].shows(2, -0.75), 30, "version 2 after the bad ones")
         assert not any(w == (0, -2.0) for w in infos[0].got)
+        assert infos[1].shows(1, -1.25)  # pushed to p0 only
     finally:
-        for p in procs:
-            p.stop()
+        for pair in procs:
+            for p in pair.values():
+                p.stop()

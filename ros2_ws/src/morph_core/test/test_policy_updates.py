@@ -13,6 +13,8 @@ from safetensors.torch import save as torch_save
 from morph_core.msgs.joint_state import chain_batch
 from morph_core.msgs.policy_weights import PolicyWeights, pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import weights_from_arrays
 from morph_core.protocol.policy_updates import PolicyUpdates
 
 
@@ -108,3 +110,48 @@ def test_bad_weights_rejected_and_current_policy_kept(damage):
     assert updates.offer(*message(p1, 10)).outcome == "pending"
     updates.current()
     assert updates.version == 10
+
+
+def numpy_build(w: PolicyWeights) -> NumpyPolicy:
+    """The policy node's builder: no torch, the checkpoint's checks (``weights_from_arrays``)."""
+    return NumpyPolicy(weights_from_arrays(w.config, w.tensors, f"policy_weights version {w.version}"))
+
+
+@pytest.mark.parametrize("damage", ["missing", "extra", "shape", "config"])
+def test_numpy_builder_refuses_what_a_checkpoint_would_and_names_the_version(damage):
+    p0, p1 = policies(2)
+    updates = PolicyUpdates(numpy_build, NumpyPolicy(p0))
+    state = {k: v.detach().clone().contiguous() for k, v in p1.state_dict().items()}
+    name = next(iter(state))
+    if damage == "missing":
+        del state[name]
+    elif damage == "extra":
+        state["surplus.weight"] = torch.zeros(2)
+    elif damage == "shape":
+        state[name] = torch.zeros(3, 3)
+    labels, sizes, data = message(p1, 7, tensors=state)
+    if damage == "config":
+        labels[1] = labels[1].replace('"conv1_channels": 24', '"conv1_channels": "many"')
+    offer = updates.offer(labels, sizes, data)
+    expected = {"missing": "missing", "extra": "unexpected", "shape": "has shape", "config": "config"}[damage]
+    assert offer.outcome == "rejected" and expected in offer.reason and "version 7" in offer.reason, offer.reason
+    pos, vel, glob = np.linspace(-0.3, 0.3, 4), np.zeros(4), np.array([0.1, 0.0, 0.2, 0.0])
+    np.testing.assert_array_equal(updates.current().mean(pos, vel, glob), NumpyPolicy(p0).mean(pos, vel, glob))
+
+
+def test_numpy_builder_runs_the_pushed_policy_as_torch_does():
+    p0, p1 = policies(2)
+    updates = PolicyUpdates(numpy_build, NumpyPolicy(p0))
+    assert updates.offer(*message(p1, 1)).outcome == "pending"
+    np.testing.assert_allclose(updates.current().mean(np.linspace(-0.3, 0.3, 4), np.zeros(4),
+                                                      np.array([0.1, 0.0, 0.2, 0.0])),
+                               mean_action(p1)[0], atol=1e-5)  # fmt: skip
+
+
+def test_replace_drops_a_pending_policy_and_restarts_the_version():
+    p0, p1, p2 = policies(3)
+    updates = PolicyUpdates(build, p0, version=4, run="r1")
+    updates.offer(*message(p1, 5))
+    updates.replace(p2)  # a checkpoint set by hand after the offer: the newest action wins
+    assert updates.current() is p2 and (updates.version, updates.run, updates.adopted) == (None, "", 0)
+    assert updates.offer(*message(p1, 1)).outcome == "pending"  # any trainer version is newer than a file

@@ -34,12 +34,26 @@ while the current policy keeps running. An untrained policy runs only with
 ``checkpoint:=''`` and ``allow_untrained:=true``; its efforts then carry a
 second ``layout.dim`` labelled ``untrained_policy``.
 
+Live training (``accept_weights``, default true): a trainer publishes each
+new policy on ``policy_weights`` (``morph_core.msgs.policy_weights``: the
+safetensors bytes, the config and a version). The node checks it as it
+checks a checkpoint (``protocol.policy_updates``, ``policy.weights``) and
+adopts it between two answers, never within one; anything wrong is
+rejected, counted and logged, and the current policy keeps running. Every
+``policy_info`` says which weights produced it: ``header.frame_id`` is
+``weights@<version>`` ('' for a checkpoint file). Setting ``checkpoint``
+replaces pushed weights (and vice versa: the newest action wins).
+
 QoS: every input is read best effort, keep last (``joint_states`` and
 ``odom`` depth 5 as sensor data, ``episode_start`` depth 10, volatile): it
 matches reliable and best-effort publishers, never queues stale states, and
 a reliable reader in Fast DDS 2.14 can be driven into a take that never
-returns by a peer's fragmented sample and a GAP (see docs). Outputs are
-reliable, volatile, keep last 10.
+returns by a peer's fragmented sample and a GAP (see docs). That holds for
+``policy_weights`` too (best effort, keep last 1): the trainer's writer is
+reliable and transient local for tools that record it, and it re-publishes
+the latest weights every second, which is how a node that starts late gets
+them (a best-effort reader is sent no history). Outputs are reliable,
+volatile, keep last 10.
 """
 
 from __future__ import annotations
@@ -57,7 +71,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.msgs.joint_state import (
@@ -67,21 +81,38 @@ from morph_core.msgs.joint_state import (
     validate_joint_state,
 )
 from morph_core.msgs.policy_info import pack_policy_info
+from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
+from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
+from morph_core.msgs.policy_weights import policy_version_frame_id
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.numpy_actor import NumpyPolicy
-from morph_core.policy.weights import CheckpointError, PolicyWeights
+from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.pairing import StatePairing
+from morph_core.protocol.policy_updates import PolicyUpdates
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
 from morph_ros_util import node_runner
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
 _LOG_THROTTLE = 5.0
+_WEIGHTS_LOG_THROTTLE = 1.0
 # Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
 # no publisher can make this reader wait on repairs.
 EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+# The newest weights only; best effort for the same reason as every input (the trainer re-publishes).
+WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+
+
+def pushed_policy(weights: WeightsMessage) -> tuple[PolicyWeights, NumpyPolicy]:
+    """A trainer's weights, checked like a checkpoint (``CheckpointError``, a ``ValueError``, if they do not fit
+    their config), and the NumPy policy that runs them."""
+    checked = weights_from_arrays(
+        weights.config, weights.tensors, f"policy_weights version {weights.version}", trained=weights.version > 0,
+        metadata=weights.metadata,
+    )  # fmt: skip
+    return checked, NumpyPolicy(checked)
 
 
 def default_checkpoint() -> str:
@@ -125,6 +156,14 @@ class MorphPolicyNode(Node):
             0,
             ParameterDescriptor(description="seed of the action sampling and of an untrained policy", read_only=True),
         )
+        self.declare_parameter(
+            "accept_weights",
+            True,
+            ParameterDescriptor(
+                description=f"adopt policies a live trainer publishes on {WEIGHTS_TOPIC} (checked; bad ones refused)",
+                read_only=True,
+            ),
+        )
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -132,6 +171,7 @@ class MorphPolicyNode(Node):
         self._allow_untrained = p("allow_untrained").value
         self._seed = p("seed").value
         self._candidate: PolicyWeights | None = None
+        self._updates: PolicyUpdates[tuple[PolicyWeights, NumpyPolicy]] | None = None
         self._use(choose_policy(p("checkpoint").value, self._allow_untrained, self._seed))  # CheckpointError: main()
         self._deterministic = p("deterministic").value
         self._input_timeout = p("input_timeout").value
@@ -144,6 +184,8 @@ class MorphPolicyNode(Node):
         self.create_subscription(Int64MultiArray, "episode_start", self._on_episode_start, EPISODE_QOS)
         self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
+        if p("accept_weights").value:
+            self.create_subscription(UInt8MultiArray, WEIGHTS_TOPIC, self._on_weights, WEIGHTS_QOS)
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
 
         self.rejected = 0
@@ -157,8 +199,13 @@ class MorphPolicyNode(Node):
 
     # -- policy and parameters ---------------------------------------------------
     def _use(self, weights: PolicyWeights) -> None:
-        self._weights = weights
-        self._policy = NumpyPolicy(weights)
+        """Run a checkpoint (or an untrained policy) from now on; pushed weights newer than nothing follow."""
+        running = (weights, NumpyPolicy(weights))
+        if self._updates is None:
+            self._updates = PolicyUpdates(pushed_policy, running)
+        else:
+            self._updates.replace(running)
+        self._weights, self._policy = running
         if weights.trained:
             self.get_logger().info(f"policy loaded from {weights.source}")
         else:
@@ -196,6 +243,20 @@ class MorphPolicyNode(Node):
     def _reject(self, what: str, err: Exception) -> None:
         self.rejected += 1
         self.get_logger().warn(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
+
+    def _on_weights(self, msg: UInt8MultiArray) -> None:
+        labels, sizes = [d.label for d in msg.layout.dim], [d.size for d in msg.layout.dim]
+        offer = self._updates.offer(labels, sizes, msg.data)
+        if offer.outcome == "rejected":
+            # Counted with the other rejections; logged on its own (weights come about once a second, so a
+            # second's throttle shows each bad one a trainer sends, yet a flood cannot fill the log).
+            self.rejected += 1
+            self.get_logger().warn(
+                f"rejected policy_weights ({self._updates.rejected_total} so far), current policy kept: {offer.reason}",
+                throttle_duration_sec=_WEIGHTS_LOG_THROTTLE,
+            )
+        elif offer.outcome == "pending":
+            self.get_logger().info(f"weights version {offer.version} received: adopted at the next state")
 
     def _on_episode_start(self, msg: Int64MultiArray) -> None:
         label = msg.layout.dim[0].label if msg.layout.dim else ""
@@ -248,6 +309,10 @@ class MorphPolicyNode(Node):
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
         stamp = msg.header.stamp
+        adopted = self._updates.adopted
+        self._weights, self._policy = self._updates.current()  # new weights between two answers only
+        if self._updates.adopted != adopted:
+            self.get_logger().info(f"running weights version {self._updates.version} ({self._weights.source})")
         new_episode = self._episodes.state(to_ns(stamp.sec, stamp.nanosec))
         if names != self._names or new_episode:
             self._names = names
@@ -287,7 +352,7 @@ class MorphPolicyNode(Node):
             setattr(point, field, array.array("d", values.tobytes()))
         info = JointTrajectory()
         info.header.stamp = msg.header.stamp
-        info.header.frame_id = msg.header.frame_id
+        info.header.frame_id = policy_version_frame_id(self._updates.version)
         info.joint_names = names
         info.points = [point]
         self._info_pub.publish(info)

@@ -12,7 +12,9 @@ weights version of each step (``policy_info``'s ``header.frame_id``); once it
 holds a batch it updates (in a worker thread, so the subscriptions keep
 draining) and the new policy is published on every namespace's
 ``policy_weights`` (``msgs.policy_weights``; reliable, transient local, keep
-last 1: a policy node that starts or restarts late gets the latest).
+last 1, for tools that record it), and re-published every ``weights_period``
+seconds: policy nodes read it best effort, so a node that starts or restarts
+late gets the latest within a period.
 
 Episodes: when a pair appears (at start, or back after a fault) the trainer
 sets its sim's ``episode_steps`` and calls its ``~/reset`` service, so the
@@ -57,6 +59,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.train import TrainConfig
+from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
 from morph_core.protocol.transitions import SkipCounts, StreamStats, Transition, TransitionAssembler
@@ -84,7 +87,6 @@ WEIGHTS_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 """the weights topic: the latest policy kept for late joiners"""
-WEIGHTS_TOPIC = "policy_weights"
 SIM_NODE = "swimmer_sim"
 _VERSIONS_KEPT = 4096  # stamps whose policy_info version is remembered, per pair
 
@@ -141,6 +143,9 @@ class LiveTrainer(Node):
         self.publish_weights()
         self.create_timer(0.05, self._on_timer)
         self.create_timer(10.0, self._report)
+        # Policy nodes read the weights best effort (immune to the Fast DDS wedge, docs/design.md), so they get
+        # no history: the latest weights go out again periodically for nodes that start late or lost a sample.
+        self.create_timer(options.weights_period, self._republish_weights)
         what = "resumed at" if self.learner.resumed else "started with"
         self.get_logger().info(
             f"live training {what} version {self.learner.version} on {len(self.pairs)} pairs "
@@ -251,12 +256,19 @@ class LiveTrainer(Node):
         return self._done
 
     def publish_weights(self) -> None:
+        """Publish the current weights (after an update; at start, the initial or resumed version)."""
         dims, data = self.learner.weights_message()
         msg = UInt8MultiArray()
         msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
         msg.data = data
+        self._weights_msg = msg
         for pub in self._weights_pubs:
             pub.publish(msg)
+
+    def _republish_weights(self) -> None:
+        if self._updating is None:  # between an update and its publication the old version is not re-sent
+            for pub in self._weights_pubs:
+                pub.publish(self._weights_msg)
 
     def skips(self) -> tuple[SkipCounts, StreamStats]:
         skips, stats = SkipCounts(), StreamStats()

@@ -77,6 +77,9 @@ class LiveOptions:
     """seconds without a new state before a pair is dropped (its partial episode thrown away)"""
     max_updates: int = 0
     """stop after this many updates in this process (0: run until total_timesteps)"""
+    weights_period: float = 1.0
+    """seconds between re-publications of the current weights (how a late policy node, reading best effort,
+    gets them)"""
 
     def __post_init__(self):
         if not self.namespaces:
@@ -87,6 +90,8 @@ class LiveOptions:
             raise ValueError("episode_steps, max_staleness and max_updates must be >= 0")
         if not self.silence_timeout > 0:
             raise ValueError(f"silence_timeout must be > 0, got {self.silence_timeout}")
+        if not self.weights_period > 0:
+            raise ValueError(f"weights_period must be > 0, got {self.weights_period}")
 
 
 LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]

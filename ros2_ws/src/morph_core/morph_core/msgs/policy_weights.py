@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+TOPIC = "policy_weights"
+"""the weights topic's name, relative to a pair's namespace"""
 FORMAT = "morph_policy_weights/1"
 DATA_LABEL = "safetensors"
 MAX_WEIGHTS_BYTES = 64 * 1024 * 1024

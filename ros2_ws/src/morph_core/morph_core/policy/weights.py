@@ -109,6 +109,22 @@ def load_checkpoint(path: str | Path) -> PolicyWeights:
     return PolicyWeights(config, arrays, str(path), trained=True, metadata=metadata)
 
 
+def weights_from_arrays(
+    config: dict, arrays: dict[str, np.ndarray], source: str, trained: bool = True, metadata: dict | None = None
+) -> PolicyWeights:
+    """Weights that arrived otherwise than as files (a trainer's ``policy_weights`` message), checked as a
+    checkpoint is: the config parses and every tensor has the config's name, shape, dtype and finite values.
+
+    Raises ``CheckpointError`` naming ``source`` and the reason.
+    """
+    try:
+        policy_config = PolicyConfig.from_dict(config)
+    except (ValueError, TypeError) as err:
+        raise CheckpointError(source, f"its config is wrong ({err})") from None
+    _check_arrays(source, arrays, parameter_shapes(policy_config))
+    return PolicyWeights(policy_config, arrays, source, trained=trained, metadata=dict(metadata or {}))
+
+
 def _read_config(path: Path) -> tuple[PolicyConfig, dict]:
     meta_path = path.with_suffix(".json")
     try:
@@ -131,7 +147,7 @@ def _read_config(path: Path) -> tuple[PolicyConfig, dict]:
     return config, metadata if isinstance(metadata, dict) else {}
 
 
-def _check_arrays(path: Path, arrays: dict[str, np.ndarray], expected: dict[str, tuple[int, ...]]) -> None:
+def _check_arrays(path: Path | str, arrays: dict[str, np.ndarray], expected: dict[str, tuple[int, ...]]) -> None:
     missing = sorted(set(expected) - set(arrays))
     extra = sorted(set(arrays) - set(expected))
     if missing or extra:

@@ -83,6 +83,13 @@ class PolicyUpdates(Generic[P]):
         self.last_error = detail
         return Offer("rejected", None, detail)
 
+    def replace(self, policy: P, version: int | None = None, run: str = "") -> None:
+        """Run ``policy`` from now on (a checkpoint the node was told to load), dropping a pending one; pushed
+        weights are then taken again when newer than ``version`` of ``run``."""
+        with self._lock:
+            self._policy, self.version, self.run = policy, version, run
+            self._pending = None
+
     def current(self) -> P:
         """The policy to act with now, after adopting a pending one."""
         with self._lock:
