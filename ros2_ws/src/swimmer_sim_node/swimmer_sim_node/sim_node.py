@@ -24,6 +24,8 @@ Wire conventions
   ``joint_states`` order, clipped to [-1, 1].
 - ``~/reset`` (std_srvs/Trigger): end the episode now; the next one's first
   state is published (and announced) at once; the response names it.
+- ``robot_description`` (std_msgs/String, latched URDF) and ``markers``
+  (visualization_msgs/MarkerArray, frame ``odom``): see ``chain_viz``.
 Odometry is published before the joint state of the same stamp, so a
 controller that acts on joint states finds the matching odometry first.
 
@@ -100,6 +102,7 @@ from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
+from swimmer_sim_node.chain_viz import ChainViz
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.
@@ -224,6 +227,8 @@ class SwimmerSimNode(Node):
         self._episode_pub = self.create_publisher(Int64MultiArray, "episode_start", EPISODE_QOS)
         self.create_subscription(Float64MultiArray, "effort_commands", self._on_efforts, COMMAND_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
+        self._viz = ChainViz(self)  # robot_description and markers (see chain_viz)
+        self._viz.describe(self.sim.num_joints, self._prefix)
 
         self._pacer = RealTimePacer(self._rtf)
         self._gate = LockstepGate(resend_after=p("effort_timeout").value)
@@ -386,6 +391,7 @@ class SwimmerSimNode(Node):
             self._announce(stamp_ns)
         stamp = _time(stamp_ns)
         torso = self.sim.torso()
+        self._viz.describe(self.sim.num_joints, self._prefix)  # a changed chain's URDF before its first state
 
         self._clock_pub.publish(Clock(clock=stamp))
 
@@ -408,6 +414,7 @@ class SwimmerSimNode(Node):
         state.velocity = _doubles(self.sim.joint_velocities)
         state.effort = _doubles(self.sim.applied)
         self._state_pub.publish(state)
+        self._viz.markers(self.sim, self._prefix, stamp)
 
         self._started = True
         self._gate.published(stamp_ns, now)

@@ -1,0 +1,135 @@
+"""The swimmer's URDF and planar segment poses against the compiled MuJoCo model.
+
+The URDF goes through a real URDF parser (urdf_parser_py, ROS's own); its
+forward kinematics, written here from the URDF's joint origins, axes and
+visual origins, must put every capsule where ``mj_kinematics`` does for
+random bends, and its names, limits and lengths must be the MJCF's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+from urdf_parser_py.urdf import URDF
+
+from morph_core.env.model import GEAR, HINGE_RANGE_DEG, SEGMENT_LENGTH, SEGMENT_RADIUS, swimmer_model
+from morph_core.env.segments import segment_poses
+from morph_core.env.sim import SwimmerSim
+from morph_core.env.urdf import swimmer_urdf
+
+LENGTHS = [1, 6, 64]
+
+
+def _rpy_matrix(rpy) -> np.ndarray:
+    r, p, y = rpy
+    rx = np.array([[1, 0, 0], [0, math.cos(r), -math.sin(r)], [0, math.sin(r), math.cos(r)]])
+    ry = np.array([[math.cos(p), 0, math.sin(p)], [0, 1, 0], [-math.sin(p), 0, math.cos(p)]])
+    rz = np.array([[math.cos(y), -math.sin(y), 0], [math.sin(y), math.cos(y), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def _transform(xyz, rpy) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = _rpy_matrix(rpy or (0, 0, 0))
+    t[:3, 3] = xyz or (0, 0, 0)
+    return t
+
+
+def _axis_rotation(axis, angle) -> np.ndarray:
+    mat = np.empty(9)
+    quat = np.empty(4)
+    mujoco.mju_axisAngle2Quat(quat, np.asarray(axis, dtype=float), angle)
+    mujoco.mju_quat2Mat(mat, quat)
+    t = np.eye(4)
+    t[:3, :3] = mat.reshape(3, 3)
+    return t
+
+
+def _urdf_capsules(robot: URDF, root_pose: np.ndarray, angles: dict[str, float]) -> dict[str, np.ndarray]:
+    """Link name -> world transform of its visual cylinder, by the URDF's own kinematics."""
+    link_pose = {robot.get_root(): root_pose}
+    pending = list(robot.joints)
+    while pending:  # parents before children, whatever order the file lists joints in
+        joint = next(j for j in pending if j.parent in link_pose)
+        pending.remove(joint)
+        t = link_pose[joint.parent] @ _transform(joint.origin.xyz, joint.origin.rpy)
+        link_pose[joint.child] = t @ _axis_rotation(joint.axis, angles[joint.name])
+    return {
+        link.name: link_pose[link.name] @ _transform(link.visual.origin.xyz, link.visual.origin.rpy)
+        for link in robot.links
+    }
+
+
+@pytest.mark.parametrize("joints", LENGTHS)
+def test_urdf_matches_the_mujoco_model(joints):
+    m = swimmer_model(joints)
+    robot = URDF.from_xml_string(swimmer_urdf(joints))
+    revolute = [j for j in robot.joints if j.type == "revolute"]
+
+    assert [j.name for j in revolute] == SwimmerSim(num_joints=joints).joint_names()
+    assert [link.name for link in robot.links] == [
+        mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in range(1, m.nbody)
+    ]
+    assert robot.get_root() == "torso"
+    assert len(robot.joints) == len(revolute) == joints
+    for joint in revolute:
+        j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, joint.name)
+        assert (joint.limit.lower, joint.limit.upper) == pytest.approx(tuple(m.jnt_range[j]), abs=1e-15)
+        assert joint.limit.upper == pytest.approx(math.radians(HINGE_RANGE_DEG))
+        assert joint.limit.effort == pytest.approx(GEAR)
+        assert joint.parent == mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, m.body_parentid[m.jnt_bodyid[j]])
+    for link in robot.links:
+        b = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, link.name)
+        assert link.visual.geometry.length == pytest.approx(SEGMENT_LENGTH)
+        assert link.visual.geometry.radius == pytest.approx(SEGMENT_RADIUS)
+        assert link.inertial.mass == pytest.approx(m.body_mass[b])
+
+    # Random bends and torso poses: every capsule where MuJoCo puts it, pointing the same way.
+    rng = np.random.default_rng(joints)
+    d = mujoco.MjData(m)
+    for _ in range(5):
+        d.qpos[:2] = rng.uniform(-5, 5, 2)
+        d.qpos[2] = rng.uniform(-math.pi, math.pi)
+        d.qpos[3:] = rng.uniform(*m.jnt_range[3], joints)
+        mujoco.mj_kinematics(m, d)
+        root = _transform([d.qpos[0], d.qpos[1], 0.0], [0.0, 0.0, d.qpos[2]])
+        capsules = _urdf_capsules(robot, root, dict(zip([j.name for j in revolute], d.qpos[3:], strict=True)))
+        for name, t in capsules.items():
+            g = np.flatnonzero(m.geom_bodyid == mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name))[0]
+            np.testing.assert_allclose(t[:3, 3], d.geom_xpos[g], atol=1e-9)
+            np.testing.assert_allclose(t[:3, :3], d.geom_xmat[g].reshape(3, 3), atol=1e-9)
+
+
+def test_urdf_prefix_names_every_link_and_joint():
+    robot = URDF.from_xml_string(swimmer_urdf(2, prefix="left/"))
+    assert [link.name for link in robot.links] == ["left/torso", "left/mid", "left/back"]
+    assert [j.name for j in robot.joints] == SwimmerSim(num_joints=2).joint_names("left/")
+    assert [(j.parent, j.child) for j in robot.joints] == [("left/torso", "left/mid"), ("left/mid", "left/back")]
+
+
+@pytest.mark.parametrize("bad", [0, 65, 2.0, "6"])
+def test_urdf_refuses_a_bad_length(bad):
+    with pytest.raises((ValueError, TypeError), match="num_joints"):
+        swimmer_urdf(bad)
+
+
+@pytest.mark.parametrize("joints", LENGTHS)
+def test_segment_poses_are_mujoco_kinematics(joints):
+    m = swimmer_model(joints)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(100 + joints)
+    for _ in range(5):
+        d.qpos[:2] = rng.uniform(-5, 5, 2)
+        d.qpos[2] = rng.uniform(-10, 10)  # continuous yaw, many turns
+        d.qpos[3:] = rng.uniform(*m.jnt_range[3], joints)
+        mujoco.mj_kinematics(m, d)
+        poses = segment_poses(d.qpos[0], d.qpos[1], d.qpos[2], d.qpos[3:])
+        np.testing.assert_allclose(poses.centers, d.geom_xpos[1:, :2], atol=1e-9)
+        axes = d.geom_xmat[1:].reshape(-1, 3, 3)[:, :, 2]  # a capsule's axis is its local z
+        heading = np.stack([np.cos(poses.headings), np.sin(poses.headings), np.zeros(joints + 1)], axis=1)
+        np.testing.assert_allclose(np.abs(np.sum(axes * heading, axis=1)), 1.0, atol=1e-9)
+        np.testing.assert_allclose(poses.lengths, 2 * m.geom_size[1:, 1])
+        np.testing.assert_allclose(poses.radii, m.geom_size[1:, 0])

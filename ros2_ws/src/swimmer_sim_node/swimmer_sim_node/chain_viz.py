@@ -1,0 +1,91 @@
+"""What the sim node shows to RViz and Foxglove: ``robot_description`` (URDF) and ``markers``.
+
+- ``robot_description`` (std_msgs/String): the chain as URDF
+  (``morph_core.env.urdf``), joint names as in ``joint_states``, links named
+  ``<joint_prefix><MJCF body>``; reliable, transient local, keep last 1, as
+  robot_state_publisher publishes it, so a viewer that starts late gets it.
+  Published at start and again whenever the chain changes (``num_joints``
+  set, a new length drawn at a reset, ``joint_prefix`` set); a new episode
+  with the same chain leaves it alone.
+- ``markers`` (visualization_msgs/MarkerArray): one CYLINDER per segment
+  (torso first, ids 0..N, namespace ``<joint_prefix>swimmer``) in frame
+  ``odom`` with the state's stamp, placed from the published state
+  (``morph_core.env.segments``), so the swimmer shows without TF. When the
+  chain's length changes the array starts with a DELETEALL, so no segment of
+  a longer chain lingers. Built only while someone subscribes: the sim can
+  run thousands of steps a second and 65 markers a step would cost more than
+  the physics. QoS as ``joint_states`` (reliable, volatile, keep last 10).
+"""
+
+from __future__ import annotations
+
+import math
+
+from geometry_msgs.msg import Quaternion
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import ColorRGBA, String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from morph_core.env.segments import segment_poses
+from morph_core.env.sim import SwimmerSim
+from morph_core.env.urdf import swimmer_urdf
+
+DESCRIPTION_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""robot_description: latched, as robot_state_publisher's"""
+MARKER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+SEGMENT_COLOR = ColorRGBA(r=0.8, g=0.6, b=0.4, a=1.0)  # the MJCF's segment colour
+_HALF_TURN = math.sqrt(0.5)
+
+
+def _lying(heading: float) -> Quaternion:
+    """A marker cylinder (axis z) laid in the plane along ``heading``: yaw about z after 90 deg about y."""
+    c, s = math.cos(heading / 2), math.sin(heading / 2)
+    # q_z(heading) * q_y(pi/2), expanded
+    return Quaternion(w=c * _HALF_TURN, x=-s * _HALF_TURN, y=c * _HALF_TURN, z=s * _HALF_TURN)
+
+
+class ChainViz:
+    """The two publishers: ``describe`` before each published state, ``markers`` after it."""
+
+    def __init__(self, node: Node):
+        self._description_pub = node.create_publisher(String, "robot_description", DESCRIPTION_QOS)
+        self._marker_pub = node.create_publisher(MarkerArray, "markers", MARKER_QOS)
+        self._described: tuple[int, str] | None = None
+        self._marked_joints = -1  # chain length of the last marker array published
+
+    def describe(self, num_joints: int, prefix: str) -> None:
+        """Publish the URDF of this chain unless it is the one already published."""
+        if self._described != (num_joints, prefix):
+            self._description_pub.publish(String(data=swimmer_urdf(num_joints, prefix)))
+            self._described = (num_joints, prefix)
+
+    def markers(self, sim: SwimmerSim, prefix: str, stamp) -> None:
+        """The current state's segments, if anyone listens."""
+        if self._marker_pub.get_subscription_count() == 0:
+            self._marked_joints = -1  # a new listener gets a DELETEALL first
+            return
+        torso = sim.torso()
+        poses = segment_poses(torso.x, torso.y, torso.yaw, sim.joint_positions)
+        markers = []
+        if sim.num_joints != self._marked_joints:
+            clear = Marker(action=Marker.DELETEALL)
+            clear.header.frame_id = "odom"
+            clear.header.stamp = stamp
+            markers.append(clear)
+        for k in range(sim.num_joints + 1):
+            m = Marker(ns=f"{prefix}swimmer", id=k, type=Marker.CYLINDER, action=Marker.ADD, color=SEGMENT_COLOR)
+            m.header.frame_id = "odom"
+            m.header.stamp = stamp
+            m.pose.position.x, m.pose.position.y = float(poses.centers[k, 0]), float(poses.centers[k, 1])
+            m.pose.orientation = _lying(float(poses.headings[k]))
+            m.scale.x = m.scale.y = 2 * float(poses.radii[k])
+            m.scale.z = float(poses.lengths[k])
+            markers.append(m)
+        self._marker_pub.publish(MarkerArray(markers=markers))
+        self._marked_joints = sim.num_joints
