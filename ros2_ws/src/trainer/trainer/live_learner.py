@@ -125,6 +125,7 @@ class LiveLearner:
             tensors, meta = load_training_state(self.state_path)
             self.policy.load_state_dict(sub_dict(tensors, "policy."))
             restore_optimizer(self.learner.optimizer, tensors, meta)
+            self.learner.restore_state(tensors)  # the rule's state, e.g. the KL penalty's beta
             self.gen.set_state(tensors["rng.torch"])
             self.counters = meta["counters"]
             self.run_id = meta["env"]["run"]
@@ -250,7 +251,7 @@ class LiveLearner:
 
     def _save_state(self) -> None:
         save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, {"run": self.run_id}, {},
-                            dict(self.counters))  # fmt: skip
+                            dict(self.counters), self.learner.state_tensors())  # fmt: skip
 
     def weights_message(self) -> tuple[list[tuple[str, int, int]], bytes]:
         """The current policy as the weights topic carries it (``msgs.policy_weights``)."""

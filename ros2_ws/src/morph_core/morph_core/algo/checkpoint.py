@@ -1,4 +1,4 @@
-"""Full training state in one safetensors file: weights, optimizer, RNGs, env states.
+"""Full training state in one safetensors file: weights, optimizer, learner state, RNGs, env states.
 
 Tensors go in the file's tensor section, everything else (step counters,
 optimizer hyper-parameters, NumPy RNG states) as JSON in its metadata, so
@@ -27,8 +27,15 @@ def save_training_state(
     env_meta: dict,
     env_arrays: dict[str, np.ndarray],
     counters: dict,
+    learner_state: dict[str, torch.Tensor] | None = None,
 ) -> None:
+    """``learner_state``: further tensors by their full key (``update.Learner.state_tensors``, e.g. the
+    KL penalty's beta), stored bit for bit and given back by ``load_training_state`` as they are."""
     tensors = {f"policy.{k}": v.detach().contiguous() for k, v in policy.state_dict().items()}
+    for k, v in (learner_state or {}).items():
+        if k in tensors or not k.startswith("learner."):
+            raise ValueError(f"learner state key {k!r} must start with 'learner.' and be new")
+        tensors[k] = v.detach().contiguous()
     opt = optimizer.state_dict()
     for idx, state in opt["state"].items():
         for name, value in state.items():

@@ -12,7 +12,7 @@ import math
 
 import torch
 
-from morph_core.algo.trust_region import LossContext, TrustRegionRule
+from morph_core.algo.trust_region import LossContext, TrustRegionRule, approx_kl
 
 
 def ppo_loss(
@@ -27,24 +27,32 @@ def ppo_loss(
     vf_coef: float,
     ent_coef: float,
     rule: TrustRegionRule,
+    old_mean=None,
+    old_log_std=None,
+    kl_beta=None,
 ):
     """PPO's loss on one minibatch, with advantages normalised within it.
 
     ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``old_log_prob`` the
     log-probs the ratio is taken against (the proximal policy's, see ``algo.update``), ``clip_range``
     the rule's per-sample clip ranges, ``weight`` each sample's importance weight on the policy term
-    or None (on-policy data: no weight at all, not a weight of one). Returns (loss, policy loss,
-    value loss, entropy, log ratio per sample).
+    or None (on-policy data: no weight at all, not a weight of one). ``old_mean`` [B, J] and
+    ``old_log_std``: the proximal policy's Gaussian, for rules that use it per joint; ``kl_beta``: the
+    KL penalty's coefficient (``trust_region.LossContext``). Returns (loss, policy loss, value loss,
+    entropy, log ratio per sample, the rule's clip share per sample or None).
     """
     mean, log_std, value = policy(batch)
     log_ratio = policy.log_prob(batch, actions, mean) - old_log_prob
     adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    ctx = LossContext(log_ratio, adv, clip_range, batch.num_joints, mean, log_std, actions, batch.mask)
+    ctx = LossContext(
+        log_ratio, adv, clip_range, batch.num_joints, mean, log_std, actions, batch.mask, old_mean, old_log_std, kl_beta
+    )
     surrogate = rule.surrogate(ctx)
     pg_loss = -surrogate.mean() if weight is None else -(weight * surrogate).mean()
     v_loss = torch.nn.functional.mse_loss(value, returns)
     entropy = policy.entropy(batch).mean()
-    return pg_loss + vf_coef * v_loss - ent_coef * entropy, pg_loss, v_loss, entropy, log_ratio
+    loss = pg_loss + vf_coef * v_loss - ent_coef * entropy
+    return loss, pg_loss, v_loss, entropy, log_ratio, rule.clip_share(ctx)
 
 
 def compute_gae(
@@ -87,7 +95,8 @@ class PerDimensionStats:
     """Sums over an update's minibatches, kept per action dimension d.
 
     Clip fraction: share of samples whose ratio left the trust region (the
-    rule's ``clipped``, e.g. outside their own eps_i). In-eps fraction: share with |log r| <= eps (the base eps), the
+    rule's ``clipped``, e.g. outside their own eps_i; for a per-joint rule
+    the share of the sample's joints, ``clip_share``). In-eps fraction: share with |log r| <= eps (the base eps), the
     quantity the paper's theory predicts. Mean and std of log r estimate
     -|nu|^2/2 and |nu|.
     """
@@ -102,33 +111,38 @@ class PerDimensionStats:
 
     @torch.no_grad()
     def add(self, num_joints, log_ratio, clipped, base_eps: float) -> None:
-        """``clipped``: [B] bool, the sample left the trust region; ``base_eps`` the rule's base eps."""
+        """``clipped``: [B] bool, the sample left the trust region (or the share of it that did, a float);
+        ``base_eps`` the rule's base eps."""
         d = num_joints
         w = log_ratio.double()
-        ratio = log_ratio.exp()
         size = self.n.shape[0]
         self.n += torch.bincount(d, minlength=size)
         self.clipped += torch.bincount(d, weights=clipped.double(), minlength=size)
         self.in_eps += torch.bincount(d, weights=(w.abs() <= base_eps).double(), minlength=size)
         self.logr += torch.bincount(d, weights=w, minlength=size)
         self.logr_sq += torch.bincount(d, weights=w * w, minlength=size)
-        self.kl += torch.bincount(d, weights=((ratio - 1) - log_ratio).double(), minlength=size)
+        self.kl += torch.bincount(d, weights=approx_kl(log_ratio).double(), minlength=size)
 
-    def overall(self) -> dict[str, float]:
-        """Approx KL and clip fraction over all samples, whatever their dimension."""
+    OVERALL = ("approx_kl", "clip_frac")
+    """the columns of ``overall``"""
+    PER_DIM = ("clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl")
+    """the statistics ``summary`` gives per dimension, as columns ``<name><tag>_d<d>``"""
+
+    def overall(self, tag: str = "") -> dict[str, float]:
+        """Approx KL and clip fraction over all samples, whatever their dimension (``<name><tag>``)."""
         n = float(self.n.sum())
-        return {"approx_kl": float(self.kl.sum()) / n, "clip_frac": float(self.clipped.sum()) / n}
+        return {f"approx_kl{tag}": float(self.kl.sum()) / n, f"clip_frac{tag}": float(self.clipped.sum()) / n}
 
-    def summary(self, dims) -> dict[str, float]:
+    def summary(self, dims, tag: str = "") -> dict[str, float]:
         out = {}
         for d in dims:
             n = float(self.n[d])
             if n == 0:
                 continue
             mean = float(self.logr[d]) / n
-            out[f"clip_frac_d{d}"] = float(self.clipped[d]) / n
-            out[f"in_eps_frac_d{d}"] = float(self.in_eps[d]) / n
-            out[f"logr_mean_d{d}"] = mean
-            out[f"logr_std_d{d}"] = math.sqrt(max(float(self.logr_sq[d]) / n - mean * mean, 0.0))
-            out[f"approx_kl_d{d}"] = float(self.kl[d]) / n
+            out[f"clip_frac{tag}_d{d}"] = float(self.clipped[d]) / n
+            out[f"in_eps_frac{tag}_d{d}"] = float(self.in_eps[d]) / n
+            out[f"logr_mean{tag}_d{d}"] = mean
+            out[f"logr_std{tag}_d{d}"] = math.sqrt(max(float(self.logr_sq[d]) / n - mean * mean, 0.0))
+            out[f"approx_kl{tag}_d{d}"] = float(self.kl[d]) / n
         return out

@@ -21,7 +21,7 @@ from morph_core.algo.checkpoint import load_training_state, restore_optimizer, s
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.trust_region import rule_names
-from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, update
+from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, epoch_columns, update
 from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import pad_observations
@@ -70,6 +70,13 @@ class TrainConfig:
     proximal_weight_cap: float = 1.0
     """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples (training from
     recorded data, algo.train_from_data); simulator rollouts are on-policy and carry no weight"""
+    kl_target: float = 0.01
+    """target KL of the kl-* rules: the KL penalty doubles/halves beta when the update's KL is above
+    1.5x / below 1/1.5 of it, KL early stopping ends the epochs above it (per joint for the -per-joint rules)"""
+    kl_beta: float = 1.0
+    """initial beta of the kl-penalty rules"""
+    kl_adaptive: bool = True
+    """adapt the kl-penalty rules' beta to kl_target after each update; false keeps beta = kl_beta"""
     min_joints: int = 2
     """shortest chain drawn at a reset"""
     max_joints: int = 10
@@ -105,6 +112,8 @@ class TrainConfig:
             raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
         if not self.proximal_weight_cap > 0:
             raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
+        if not (self.kl_target > 0 and self.kl_beta > 0):
+            raise ValueError(f"kl_target and kl_beta must be > 0, got {self.kl_target}, {self.kl_beta}")
 
     @property
     def batch_size(self) -> int:
@@ -124,6 +133,9 @@ class TrainConfig:
             ent_coef=self.ent_coef,
             max_grad_norm=self.max_grad_norm,
             proximal_weight_cap=self.proximal_weight_cap,
+            kl_target=self.kl_target,
+            kl_beta=self.kl_beta,
+            kl_adaptive=self.kl_adaptive,
         )
 
     def to_dict(self) -> dict:
@@ -146,6 +158,7 @@ def log_columns(cfg: TrainConfig) -> list[str]:
         *[f"return_d{d}" for d in cfg.dims],
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
+        *epoch_columns(cfg.dims),
     ]  # fmt: skip
 
 
@@ -228,6 +241,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         tensors, meta = load_training_state(state_path)
         policy.load_state_dict(sub_dict(tensors, "policy."))
         restore_optimizer(optimizer, tensors, meta)
+        learner.restore_state(tensors)
         gen.set_state(tensors["rng.torch"])
         envs.set_state(meta["env"], {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()})
         global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
@@ -298,7 +312,9 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             policy.save(ckpt_dir / f"policy_{global_step:08d}.safetensors", metadata={"global_step": global_step})
             env_meta, env_arrays = envs.get_state()
             counters = {"global_step": global_step, "iteration": iteration, "last_ckpt": last_ckpt}
-            save_training_state(state_path, policy, optimizer, gen, env_meta, env_arrays, counters)
+            save_training_state(
+                state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors()
+            )
         if bar is not None:
             bar.update(T * E)
             ret = np.mean([r for _, r, _ in recent]) if recent else float("nan")

@@ -83,7 +83,7 @@ from morph_core.algo.checkpoint import load_training_state, restore_optimizer, s
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.train import TrainConfig
-from morph_core.algo.update import Learner, RolloutBatch, update, with_proximal
+from morph_core.algo.update import Learner, RolloutBatch, epoch_columns, update, with_proximal
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transition_batch import TransitionBatch
@@ -163,6 +163,7 @@ def log_columns(cfg: TrainConfig) -> list[str]:
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         "is_weight_mean", "is_weight_capped_frac", "stale_frac", "behaviour_logr_mean",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
+        *epoch_columns(cfg.dims),
     ]  # fmt: skip
 
 
@@ -357,6 +358,7 @@ def train_from_data(
         tensors, meta = load_training_state(state_path)
         policy.load_state_dict(sub_dict(tensors, "policy."))
         restore_optimizer(learner.optimizer, tensors, meta)
+        learner.restore_state(tensors)
         gen.set_state(tensors["rng.torch"])
         counters = meta["counters"]
         saved = meta["env"]["round"]
@@ -464,7 +466,9 @@ def train_from_data(
 def _save_state(path: Path, learner: Learner, gen: torch.Generator, current: _Round, counters: dict) -> None:
     meta = {"round": {k: getattr(current, k) for k in ("digest", "steps", "source", "iterations", "done")}}
     arrays = {} if current.order is None else {"order": current.order}
-    save_training_state(path, learner.policy, learner.optimizer, gen, meta, arrays, dict(counters))
+    save_training_state(
+        path, learner.policy, learner.optimizer, gen, meta, arrays, dict(counters), learner.state_tensors()
+    )
 
 
 def run_state(run_dir: str | Path) -> dict | None:

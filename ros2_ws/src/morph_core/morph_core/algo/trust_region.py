@@ -6,29 +6,47 @@ comparison plots all read ``RULES``, so a rule added to the table shows up
 in each of them without another edit.
 
 Each sample carries its own action dimension d (its chain's joint count) and
-its ratio is over the joint action, r = pi_new(a|s) / pi_old(a|s). Today's rules:
+its ratio is over the joint action, r = pi_new(a|s) / pi_old(a|s) =
+prod_j rho_j, rho_j the ratio of joint j's Gaussian (the policy is diagonal).
+The rules:
 
-    fixed:        clip r to [1 - eps, 1 + eps]
-    compensated:  clip r to [1 - eps sqrt(d), 1 + eps sqrt(d)]   (the paper's change to PPO)
+    fixed:                 clip r to [1 - eps, 1 + eps]
+    compensated:           clip r to [1 - eps sqrt(d), 1 + eps sqrt(d)]   (the paper's change to PPO)
+    per-joint-clip:        clip each rho_j to [1 - eps, 1 + eps] on its own (DISC, Han and Sung 2019)
+    kl-penalty:            r A - beta KL(pi_old || pi_new)      (the paper's beta-surrogate; beta adaptive)
+    kl-penalty-per-joint:  r A - beta KL / d                    (the same, penalising the KL per joint)
+    kl-stop:               fixed, and the epochs stop once the approximate KL exceeds kl_target
+    kl-stop-per-joint:     the same on the approximate KL per joint, KL / d
 
 A rule's loss hook gets a ``LossContext`` for one minibatch and returns each
 sample's surrogate objective (to be maximised); the update averages it,
-weighting each sample when the data came from an older policy. The context
-carries the new policy's per-joint quantities too, so rules that are not a
-clip range on the joint ratio fit the same hook: per-joint clipping (DISC:
-each joint's ratio clipped on its own) and the KL-penalty objective (KL
-between the old and the new Gaussian per sample) need, besides what is
-here, the old policy's per-joint means, which ``policy_info`` records and
-the proximal policy can compute; KL early stopping uses
-``stop_after_epoch``.
+weighting each sample when the data came from an older policy. Rules that
+need the old policy per joint (``uses_old_gaussian``) get its Gaussian
+means and log-std in the context: the update computes them with the policy
+as it starts (the proximal policy, which is the behaviour policy for
+on-policy data). Rules with state (the KL penalty's beta) keep it in the
+learner (``initial_state``, ``end_update``), which checkpoints it. KL early
+stopping uses ``stop_after_epoch``.
+
+Why KL / d is "per joint": the old and the new policy are products of
+independent per-joint Gaussians, so their KL is the sum of the per-joint
+KLs, and KL / d is their mean. The paper finds the beta-surrogate's step
+shrinking like 1/d (the Fisher grows like d); dividing the penalty by d
+undoes that factor, as eps sqrt(d) undoes the clip's 1/sqrt(d). At d = 1
+every "-per-joint" variant equals its plain rule.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
+
+from morph_core.policy.gaussian import log_density_per_joint
+
+if TYPE_CHECKING:  # the update's config; the update imports this module
+    from morph_core.algo.update import UpdateConfig
 
 
 class LossContext(NamedTuple):
@@ -40,7 +58,8 @@ class LossContext(NamedTuple):
     advantages: torch.Tensor
     """[B] advantages, normalised within the minibatch"""
     clip_range: torch.Tensor
-    """[B] the rule's clip range per sample (``TrustRegionRule.clip_range``), computed outside the loss"""
+    """[B] the rule's clip range per sample (``TrustRegionRule.clip_range``; the base eps for rules
+    that do not clip the joint ratio), computed outside the loss"""
     num_joints: torch.Tensor
     """[B] chain length d of each sample"""
     mean: torch.Tensor
@@ -51,6 +70,38 @@ class LossContext(NamedTuple):
     """[B, J] the actions taken, zero beyond each chain"""
     mask: torch.Tensor
     """[B, J] True where a joint exists"""
+    old_mean: torch.Tensor | None = None
+    """[B, J] the proximal policy's means, zero beyond each chain (rules with ``uses_old_gaussian``)"""
+    old_log_std: torch.Tensor | None = None
+    """the proximal policy's log standard deviation (rules with ``uses_old_gaussian``)"""
+    kl_beta: torch.Tensor | None = None
+    """the KL penalty's coefficient beta, a 0-dim tensor (rules with state ``kl_beta``)"""
+
+
+def joint_log_ratios(ctx: LossContext) -> torch.Tensor:
+    """[B, J] log rho_j = log pi_new(a_j) - log pi_old(a_j) of each joint, zero beyond each chain.
+
+    The policy is a diagonal Gaussian: the joint log ratio is the sum of these over the chain."""
+    new = log_density_per_joint((ctx.actions - ctx.mean) * torch.exp(-ctx.log_std), ctx.log_std)
+    old = log_density_per_joint((ctx.actions - ctx.old_mean) * torch.exp(-ctx.old_log_std), ctx.old_log_std)
+    return (new - old) * ctx.mask
+
+
+def kl_per_joint(ctx: LossContext) -> torch.Tensor:
+    """[B, J] KL(pi_old,j || pi_new,j) of each joint's Gaussian, exactly, zero beyond each chain.
+
+    In the theory's terms (docs/theory.md), nu = (mu_new - mu_old) / sigma_new and eta = sigma_new /
+    sigma_old: KL = log eta + (1/eta^2 + nu^2) / 2 - 1/2, zero iff nu = 0 and eta = 1."""
+    nu = (ctx.mean - ctx.old_mean) * torch.exp(-ctx.log_std)
+    log_eta = ctx.log_std - ctx.old_log_std
+    return (log_eta + 0.5 * (torch.exp(-2.0 * log_eta) + nu * nu) - 0.5) * ctx.mask
+
+
+def approx_kl(log_ratio: torch.Tensor) -> torch.Tensor:
+    """Each sample's estimate (r - 1) - log r of KL(pi_old || pi_new): unbiased under pi_old, never
+    negative (Schulman's k3, CleanRL's approx_kl), from the joint log ratio alone. The statistics
+    (``ppo.PerDimensionStats``) log this very expression."""
+    return (log_ratio.exp() - 1) - log_ratio
 
 
 def _array_module(x):
@@ -63,6 +114,8 @@ class TrustRegionRule:
 
     name: str = ""
     help: str = ""
+    uses_old_gaussian: bool = False
+    """the loss hook needs the proximal policy's per-joint Gaussian (``LossContext.old_mean``)"""
 
     def clip_scale(self, dim):
         """Factor on the base eps for a sample of dimension ``dim`` (float tensor or array), or None
@@ -88,9 +141,26 @@ class TrustRegionRule:
         """[B] bool: the sample's ratio left the trust region (counted as the clip fraction)."""
         return (ratio - 1).abs() > clip_range
 
-    def stop_after_epoch(self, log_ratios: list[torch.Tensor]) -> bool:
-        """Whether the update ends after this epoch, given its minibatches' log ratios (no rule stops today)."""
+    def clip_share(self, ctx: LossContext) -> torch.Tensor | None:
+        """[B] share of the sample's trust region left, for rules that decide it inside the loss (per
+        joint); None: the update counts ``clipped`` on the joint ratio."""
+        return None
+
+    def stop_after_epoch(self, log_ratio: torch.Tensor, num_joints: torch.Tensor, cfg: UpdateConfig) -> bool:
+        """Whether the update ends after this epoch, given the log ratios [N] its minibatches saw
+        (each before its step) and their samples' dimensions [N]."""
         return False
+
+    def initial_state(self, cfg: UpdateConfig) -> dict[str, torch.Tensor]:
+        """The rule's state as training starts (kept by the learner, checkpointed with it)."""
+        return {}
+
+    def end_update(
+        self, state: dict[str, torch.Tensor], kl: torch.Tensor, num_joints: torch.Tensor, cfg: UpdateConfig
+    ) -> dict[str, torch.Tensor]:
+        """The state after an update; ``kl`` [N] each sample's exact KL(pi_prox || pi_new) over its joints
+        after the update (only computed for rules that have state)."""
+        return state
 
 
 class ClippedRatio(TrustRegionRule):
@@ -117,6 +187,112 @@ class CompensatedClip(ClippedRatio):
 
     def clip_scale(self, dim):
         return _array_module(dim).sqrt(dim)
+
+
+class PerJointClip(TrustRegionRule):
+    """DISC's dimension-wise clipping: each joint's ratio rho_j clipped to 1 +- eps on its own.
+
+    Per sample: A + sum_j [min(rho_j A, clip(rho_j, 1 - eps, 1 + eps) A) - A]. Summed, not averaged, over
+    the joints: at rho = 1 the gradient of prod_j rho_j is sum_j grad rho_j, so the sum takes the
+    sample's whole policy gradient, as PPO's joint ratio does, and only the trust region differs; the
+    mean would divide each sample's gradient by its d, a bias against long chains of its own. The
+    constant A - d A (no gradient) makes the objective equal r A to first order, the linearisation
+    prod rho_j ~ 1 + sum (rho_j - 1), so its value compares with the other rules' (policy_loss).
+    """
+
+    name = "per-joint-clip"
+    help = (
+        "clip each joint's ratio to 1 +- eps on its own and sum the per-joint surrogates over the joints "
+        "(DISC, Han and Sung 2019; summed so each sample keeps its whole policy gradient, as with r)"
+    )
+    uses_old_gaussian = True
+
+    def surrogate(self, ctx: LossContext) -> torch.Tensor:
+        rho = joint_log_ratios(ctx).exp()
+        adv, eps = ctx.advantages.unsqueeze(1), ctx.clip_range.unsqueeze(1)
+        per_joint = torch.min((rho - 1.0) * adv, (torch.clamp(rho, 1.0 - eps, 1.0 + eps) - 1.0) * adv)
+        return ctx.advantages + (per_joint * ctx.mask).sum(1)
+
+    def clip_share(self, ctx: LossContext) -> torch.Tensor:
+        """The share of the sample's joints whose ratio left 1 +- eps."""
+        with torch.no_grad():
+            left = (joint_log_ratios(ctx).exp() - 1.0).abs() > ctx.clip_range.unsqueeze(1)
+            return (left & ctx.mask).sum(1).to(ctx.advantages.dtype) / ctx.num_joints.to(ctx.advantages.dtype)
+
+
+class KLPenalty(TrustRegionRule):
+    """The beta-surrogate of Schulman et al. 2017, r A - beta KL(pi_old || pi_new), with their adaptive
+    beta: after each update, beta doubles if the update's mean KL exceeds 1.5 kl_target and halves if
+    it is below kl_target / 1.5 (``UpdateConfig.kl_adaptive``; off: beta stays ``kl_beta``). The KL is
+    exact (Gaussians), over the sample's joints; ``per_joint`` divides it by d, in the penalty and in
+    the adaptation alike."""
+
+    uses_old_gaussian = True
+    per_joint = False
+
+    def penalised_kl(self, kl_joints: torch.Tensor, num_joints: torch.Tensor) -> torch.Tensor:
+        """[B] the KL the rule penalises, from the per-sample KL over the joints."""
+        return kl_joints / num_joints.to(kl_joints.dtype) if self.per_joint else kl_joints
+
+    def surrogate(self, ctx: LossContext) -> torch.Tensor:
+        kl = self.penalised_kl(kl_per_joint(ctx).sum(1), ctx.num_joints)
+        return ctx.log_ratio.exp() * ctx.advantages - ctx.kl_beta * kl
+
+    def initial_state(self, cfg: UpdateConfig) -> dict[str, torch.Tensor]:
+        return {"kl_beta": torch.tensor(cfg.kl_beta, dtype=torch.float64)}
+
+    def end_update(self, state, kl, num_joints, cfg):
+        if not cfg.kl_adaptive:
+            return state
+        mean_kl = float(self.penalised_kl(kl.double(), num_joints).mean())
+        beta = state["kl_beta"]
+        if mean_kl > 1.5 * cfg.kl_target:
+            beta = beta * 2.0
+        elif mean_kl < cfg.kl_target / 1.5:
+            beta = beta / 2.0
+        return {**state, "kl_beta": beta}
+
+
+class KLPenaltyJoint(KLPenalty):
+    name = "kl-penalty"
+    help = (
+        "r A - beta KL(pi_old || pi_new) over the sample's joints, beta adapted to kl_target "
+        "(the paper's beta-surrogate; its step shrinks like 1/d)"
+    )
+
+
+class KLPenaltyPerJoint(KLPenalty):
+    name = "kl-penalty-per-joint"
+    help = (
+        "r A - beta KL / d: the KL per joint penalised, and adapted to kl_target (undoes the "
+        "beta-surrogate's 1/d, as eps*sqrt(d) undoes the clip's 1/sqrt(d))"
+    )
+    per_joint = True
+
+
+class KLStop(FixedClip):
+    """The fixed clip, and the update's epochs stop once the epoch's mean approximate KL exceeds
+    kl_target (CleanRL's target_kl, which tests its last minibatch's value; the mean over the epoch's
+    samples is less noisy). The KL of each minibatch is taken before its step, as logged."""
+
+    per_joint = False
+
+    def stop_after_epoch(self, log_ratio, num_joints, cfg) -> bool:
+        kl = approx_kl(log_ratio).double()
+        if self.per_joint:
+            kl = kl / num_joints.double()
+        return float(kl.mean()) > cfg.kl_target
+
+
+class KLStopJoint(KLStop):
+    name = "kl-stop"
+    help = "fixed clip, and the epochs stop once the approximate KL exceeds kl_target (CleanRL's target_kl)"
+
+
+class KLStopPerJoint(KLStop):
+    name = "kl-stop-per-joint"
+    help = "fixed clip, and the epochs stop once the approximate KL per joint (KL / d) exceeds kl_target"
+    per_joint = True
 
 
 RULES: dict[str, TrustRegionRule] = {}
@@ -157,3 +333,8 @@ def clip_rules() -> tuple[TrustRegionRule, ...]:
 
 register(FixedClip())
 register(CompensatedClip())
+register(PerJointClip())
+register(KLPenaltyJoint())
+register(KLPenaltyPerJoint())
+register(KLStopJoint())
+register(KLStopPerJoint())

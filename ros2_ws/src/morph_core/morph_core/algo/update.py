@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -28,7 +29,7 @@ import torch
 from morph_core.algo.compiled import compiled
 from morph_core.algo.param_buffer import FlatParameters
 from morph_core.algo.ppo import PerDimensionStats, ppo_loss
-from morph_core.algo.trust_region import TrustRegionRule, get_rule
+from morph_core.algo.trust_region import LossContext, TrustRegionRule, get_rule, kl_per_joint
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
 
@@ -130,9 +131,17 @@ class UpdateConfig:
     """global gradient-norm clip"""
     proximal_weight_cap: float = 1.0
     """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples"""
+    kl_target: float = 0.01
+    """target KL of the KL rules: the KL penalty adapts beta to it, KL early stopping stops above it"""
+    kl_beta: float = 1.0
+    """the KL penalty's beta as training starts"""
+    kl_adaptive: bool = True
+    """adapt the KL penalty's beta to kl_target after each update (Schulman et al. 2017); else it stays"""
 
     def __post_init__(self):
         get_rule(self.rule)  # a clear error for an unknown name
+        if not (self.kl_target > 0 and self.kl_beta > 0):  # also refuses NaN
+            raise ValueError(f"kl_target and kl_beta must be > 0, got {self.kl_target}, {self.kl_beta}")
         if self.update_epochs < 1 or self.minibatch_size < 2:
             raise ValueError(f"need update_epochs >= 1 and minibatch_size >= 2 (advantages are normalised within a "
                              f"minibatch), got {self.update_epochs}, {self.minibatch_size}")  # fmt: skip
@@ -142,12 +151,16 @@ class UpdateConfig:
 
 @dataclass
 class Learner:
-    """The policy being trained, its flat parameter buffer and optimizer, and the (compiled) losses."""
+    """The policy being trained, its flat parameter buffer and optimizer, the trust-region rule's state
+    (e.g. the KL penalty's beta) and the (compiled) losses."""
 
     policy: GraphActorCritic
     params: FlatParameters
     optimizer: torch.optim.Optimizer
     compile: bool = True
+    rule_state: dict[str, torch.Tensor] = field(default_factory=dict)
+    """what a rule carries from one update to the next (``TrustRegionRule.initial_state``), by name;
+    empty for rules without state"""
     _losses: dict[str, Callable] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -156,6 +169,18 @@ class Learner:
         optimizer = torch.optim.Adam([params.theta], lr=learning_rate, eps=adam_eps, fused=True)
         return cls(policy, params, params.guard(optimizer), compile)
 
+    STATE_PREFIX = "learner."
+    """prefix of the rule state's tensors in a training-state checkpoint (``algo.checkpoint``)"""
+
+    def state_tensors(self) -> dict[str, torch.Tensor]:
+        """The rule state as checkpoint tensors (none for rules without state: such files are unchanged)."""
+        return {f"{self.STATE_PREFIX}{k}": v for k, v in self.rule_state.items()}
+
+    def restore_state(self, tensors: dict[str, torch.Tensor]) -> None:
+        """Take the rule state back from a checkpoint's tensors (all of them; others are ignored)."""
+        prefix = self.STATE_PREFIX
+        self.rule_state = {k[len(prefix) :]: v.clone() for k, v in tensors.items() if k.startswith(prefix)}
+
     def minibatch_loss(self, rule: TrustRegionRule) -> Callable:
         """``ppo_loss`` under ``rule``, compiled once per rule (``algo.compiled``)."""
         if rule.name not in self._losses:
@@ -163,9 +188,14 @@ class Learner:
         return self._losses[rule.name]
 
 
+EPOCH_TAGS = ("_first", "_last")
+"""the per-epoch statistics' column tags: the update's first and last epoch"""
+
+
 @dataclass
 class UpdateStats:
-    """What one update measured: mean losses over its minibatches and per-dimension ratio statistics."""
+    """What one update measured: mean losses over its minibatches and per-dimension ratio statistics,
+    pooled over all epochs and for the first and the last epoch alone."""
 
     policy_loss: float
     value_loss: float
@@ -173,16 +203,39 @@ class UpdateStats:
     per_dim: PerDimensionStats
     epochs: int
     """epochs run (fewer than configured if the rule stopped early)"""
+    first_epoch: PerDimensionStats | None = None
+    """the statistics of the first epoch alone (its first minibatch has r = 1)"""
+    last_epoch: PerDimensionStats | None = None
+    """the statistics of the last epoch run alone (the one that drifted furthest)"""
+    kl_beta: float = math.nan
+    """the KL penalty's beta during this update (NaN for rules without it)"""
 
     def row(self, dims) -> dict[str, float]:
-        """Log columns: the losses, overall and per-dimension (``dims``) statistics."""
-        return {
+        """Log columns (``epoch_columns`` lists the ones beyond the pooled statistics): the losses,
+        overall and per-dimension (``dims``) statistics, pooled and per epoch."""
+        row = {
             "policy_loss": self.policy_loss,
             "value_loss": self.value_loss,
             "entropy": self.entropy,
             **self.per_dim.overall(),
             **self.per_dim.summary(dims),
+            "epochs": self.epochs,
+            "kl_beta": self.kl_beta,
         }
+        for tag, stats in zip(EPOCH_TAGS, (self.first_epoch, self.last_epoch), strict=True):
+            if stats is not None:
+                row |= stats.overall(tag) | stats.summary(dims, tag)
+        return row
+
+
+def epoch_columns(dims) -> list[str]:
+    """The log columns of ``UpdateStats.row`` beyond the pooled statistics: epochs run, beta, and the
+    first and last epoch's statistics, overall and per dimension (``<name>_first_d<d>``)."""
+    return [
+        "epochs", "kl_beta",
+        *[f"{name}{tag}" for tag in EPOCH_TAGS for name in PerDimensionStats.OVERALL],
+        *[f"{name}{tag}_d{d}" for tag in EPOCH_TAGS for name in PerDimensionStats.PER_DIM for d in dims],
+    ]  # fmt: skip
 
 
 def minibatch_cuts(size: int, minibatch_size: int) -> list[int]:
@@ -211,8 +264,18 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
     else:
         old_log_prob = batch.proximal_log_prob
         weight = torch.clamp(torch.exp(batch.proximal_log_prob - batch.log_prob), max=cfg.proximal_weight_cap)
+    # The rule's state as the learner keeps it (restored from a checkpoint), else as the rule starts it.
+    state = {k: learner.rule_state.get(k, v) for k, v in rule.initial_state(cfg).items()}
+    learner.rule_state = state
+    kl_beta = state.get("kl_beta")
+    extra = {}  # what only some rules need, so the others' loss is called exactly as before
+    if rule.uses_old_gaussian:
+        old_mean, old_log_std = proximal_means(learner.policy, batch)
+        extra = {"old_log_std": old_log_std}
+    if kl_beta is not None:
+        extra["kl_beta"] = kl_beta.to(torch.float32)
     cuts = minibatch_cuts(batch.size, cfg.minibatch_size)
-    mb_losses, mb_index, mb_log_ratio = [], [], []
+    mb_losses, mb_index, mb_log_ratio, mb_clip_share = [], [], [], []
     epochs = 0
     for _ in range(cfg.update_epochs):
         epochs += 1
@@ -221,7 +284,9 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
         for start, stop in zip(cuts[:-1], cuts[1:], strict=True):
             mb = perm[start:stop]
             chains, actions = batch.minibatch(mb)
-            loss, pg_loss, v_loss, entropy, log_ratio = loss_fn(
+            if rule.uses_old_gaussian:
+                extra["old_mean"] = old_mean[mb, : chains.max_joints]
+            loss, pg_loss, v_loss, entropy, log_ratio, clip_share = loss_fn(
                 learner.policy,
                 chains,
                 actions,
@@ -232,6 +297,7 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
                 None if weight is None else weight[mb],
                 cfg.vf_coef,
                 cfg.ent_coef,
+                **extra,
             )
             flat.zero_grad()
             loss.backward()
@@ -241,14 +307,57 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
             mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
             mb_index.append(mb)
             epoch_log_ratio.append(log_ratio.detach())
+            if clip_share is not None:
+                mb_clip_share.append(clip_share.detach())
         mb_log_ratio += epoch_log_ratio
-        if rule.stop_after_epoch(epoch_log_ratio):
+        epoch_log_ratio = torch.cat(epoch_log_ratio)
+        if rule.stop_after_epoch(epoch_log_ratio, batch.num_joints[perm], cfg):  # an epoch covers perm once
             break
     index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
+    clipped = torch.cat(mb_clip_share) if mb_clip_share else rule.clipped(log_ratio.exp(), clip_range[index])
     stats = PerDimensionStats(batch.max_joints)
-    stats.add(batch.num_joints[index], log_ratio, rule.clipped(log_ratio.exp(), clip_range[index]), cfg.clip_eps)
+    stats.add(batch.num_joints[index], log_ratio, clipped, cfg.clip_eps)
+    # Every epoch covers the batch once: the first and the last epoch are the first and last N entries.
+    per_epoch = []
+    for part in (slice(0, batch.size), slice(len(index) - batch.size, len(index))):
+        epoch = PerDimensionStats(batch.max_joints)
+        epoch.add(batch.num_joints[index[part]], log_ratio[part], clipped[part], cfg.clip_eps)
+        per_epoch.append(epoch)
+    if state:
+        kl = exact_kl(learner.policy, batch, old_mean, old_log_std) if rule.uses_old_gaussian else None
+        learner.rule_state = rule.end_update(state, kl, batch.num_joints, cfg)
     pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
-    return UpdateStats(pg_loss, v_loss, entropy, stats, epochs)
+    beta = math.nan if kl_beta is None else float(kl_beta)
+    return UpdateStats(pg_loss, v_loss, entropy, stats, epochs, *per_epoch, kl_beta=beta)
+
+
+@torch.no_grad()
+def proximal_means(policy: GraphActorCritic, batch: RolloutBatch, chunk: int = 1024):
+    """([N, J] Gaussian means, log-std) of ``policy`` as it is now (the proximal policy) on ``batch``'s
+    states, zero beyond each chain; J = the batch's width."""
+    mean = torch.zeros(batch.size, batch.max_joints)
+    for start in range(0, batch.size, chunk):
+        stop = min(start + chunk, batch.size)
+        chains, _ = batch.minibatch(torch.arange(start, stop))
+        mean[start:stop, : chains.max_joints] = policy(chains)[0]
+    return mean, policy.log_std.detach().clone()
+
+
+@torch.no_grad()
+def exact_kl(policy: GraphActorCritic, batch: RolloutBatch, old_mean, old_log_std, chunk: int = 1024) -> torch.Tensor:
+    """[N] KL(pi_old || policy) of each sample over its joints, exact, pi_old the Gaussian
+    (``old_mean`` [N, J], ``old_log_std``) of ``proximal_means``."""
+    out = []
+    for start in range(0, batch.size, chunk):
+        index = torch.arange(start, min(start + chunk, batch.size))
+        chains, actions = batch.minibatch(index)
+        mean, log_std, _ = policy(chains)
+        ctx = LossContext(
+            None, None, None, chains.num_joints, mean, log_std, actions, chains.mask,
+            old_mean[index, : chains.max_joints], old_log_std,
+        )  # fmt: skip
+        out.append(kl_per_joint(ctx).sum(1))
+    return torch.cat(out)
 
 
 @torch.no_grad()
