@@ -13,7 +13,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["morph_core", "matplotlib", "numpy", "rosbags"],
+    install_requires=["morph_core", "matplotlib", "numpy", "rosbags", "pillow", "imageio-ffmpeg"],
     # morph-export: torch's ONNX exporter (onnxscript) and ONNX Runtime to check the graph it writes.
     extras_require={"onnx": ["onnx", "onnxruntime", "onnxscript"]},
     zip_safe=True,
@@ -32,6 +32,7 @@ setup(
             "morph-gait = trainer.gait_cli:main",
             "morph-record = trainer.record:main",
             "morph-bag = trainer.bag_cli:main",
+            "morph-render = trainer.render_cli:main",
             "morph-export = trainer.export_cli:main",
         ],
     },
