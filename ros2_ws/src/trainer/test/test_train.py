@@ -119,3 +119,41 @@ def test_short_training_run_improves_return(tmp_path):
     returns = [float(r["return_mean"]) for r in rows if r["return_mean"] != ""]
     first, last = np.mean(returns[:3]), np.mean(returns[-3:])
     assert last > first + 20.0, (first, last)
+
+
+# The rules beyond fixed/compensated, each end to end and resumed. A tiny kl_target makes the KL rules
+# act at every update: beta doubles each time (learner state that must survive the resume), and KL
+# early stopping ends every update after its first epoch.
+NEW_RULES = {
+    "per-joint-clip": {},
+    "kl-penalty": {"kl_target": 1e-9, "kl_beta": 0.5},
+    "kl-penalty-per-joint": {"kl_target": 1e-9, "kl_beta": 0.5},
+    "kl-stop": {"kl_target": 1e-9},
+    "kl-stop-per-joint": {"kl_target": 1e-9},
+}
+
+
+@pytest.mark.parametrize("rule", list(NEW_RULES))
+def test_each_new_rule_trains_and_resumes_bit_for_bit(tmp_path, rule):
+    small = {**SMALL, **NEW_RULES[rule], "clip_mode": rule, "seed": 4}
+    straight = train(TrainConfig(total_timesteps=384, **small), tmp_path / "a")
+    part = train(TrainConfig(total_timesteps=128, **small), tmp_path / "b")
+    train(TrainConfig(total_timesteps=384, **small), part, resume=True)
+    (wa, step_a), (wb, step_b) = _final_weights(straight), _final_weights(part)
+    assert step_a == step_b == 384 and wa.keys() == wb.keys()
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    timing = {"wall_time", "sps", "rollout_s", "update_s"}
+    ra, rb = _rows(straight), _rows(part)
+    assert [{k: v for k, v in r.items() if k not in timing} for r in ra] == [
+        {k: v for k, v in r.items() if k not in timing} for r in rb
+    ]
+    epochs = [int(r["epochs"]) for r in ra]
+    if rule.startswith("kl-penalty"):
+        assert [float(r["kl_beta"]) for r in ra] == [0.5, 1.0, 2.0]  # the beta each update used
+        assert wa["learner.kl_beta"].dtype == torch.float64 and float(wa["learner.kl_beta"]) == 4.0
+    else:
+        assert {r["kl_beta"] for r in ra} == {""} and not any(k.startswith("learner.") for k in wa)
+    assert epochs == ([1, 1, 1] if rule.startswith("kl-stop") else [2, 2, 2])
+    for r in ra:
+        assert 0.0 <= float(r["clip_frac_first"]) <= 1.0 and float(r["approx_kl_last"]) >= 0.0
