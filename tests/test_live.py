@@ -77,7 +77,7 @@ def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, which=("sim
     if "policy" in which:
         params = dict(deterministic=False, seed=seed, checkpoint=str(checkpoint))
         procs["policy"] = node(
-            "morph_policy_node.policy_node", ns, params, tmp_path / f"policy{ns.replace('/', '_')}.log"
+            "morph_policy_node.policy_node", ns, params, tmp_path / f"policy{ns.replace('/', '_')}.log", prefix
         )
     return procs
 
@@ -137,11 +137,6 @@ def two_hosts():
             h.wait()
 
 
-@pytest.mark.skip(
-    reason="pending: with the pair in a fresh namespace whose only multicast route is the veth, the trainer "
-    "across the link hears the sim's first state but the pair's loop never runs (the policy node's side not yet "
-    "diagnosed); the trainer-in-a-second-namespace variant passed alone but broke discovery for the next test"
-)
 @pytest.mark.timeout(400)
 def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path, untrained_checkpoint):
     """A pair on one host, the trainer on the other: the veth link is the only path between them. The trainer
