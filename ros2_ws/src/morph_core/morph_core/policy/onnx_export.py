@@ -1,0 +1,242 @@
+"""A checkpoint's deterministic actor as an ONNX graph, for controllers that run no Python.
+
+One chain per call, of any length N (a dynamic axis, ``num_joints``):
+
+    inputs   joint_pos [N], joint_vel [N] (torso to tail), global [4] (yaw, yaw rate, vx, vy), float32
+    outputs  action [N]: the policy's mean action (unclipped; the policy node clips to [-1, 1])
+             value [1]: the critic's estimate, only when exported ``with_value``
+
+The graph is torch's own exporter (``torch.onnx.export``, torch.export based) run on
+``SingleChainPolicy``: the policy's modules applied to one chain laid out as arrays, the form
+``numpy_actor`` computes, instead of the batched ``PackedChains`` whose index building
+(``nonzero``) does not trace with a symbolic length. The same parameter tensors, the same
+``ChainConv`` and heads; every export is checked with ONNX Runtime against the torch policy before
+anything is written (``check_against_policy``), so a graph that differs is never left on disk.
+
+A training-side tool: torch is imported here, and ``onnx``/``onnxruntime``/``onnxscript`` (the
+trainer's ``[onnx]`` extra) only when an export runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
+from morph_core.policy.weights import PolicyWeights, load_checkpoint
+from morph_core.util.atomic import atomic_write_bytes
+
+INPUT_NAMES = ("joint_pos", "joint_vel", "global")
+ACTION_OUTPUT = "action"
+VALUE_OUTPUT = "value"
+NUM_JOINTS_AXIS = "num_joints"
+OPSET = 18
+"""ONNX opset of the graph: the oldest torch's exporter writes; ONNX Runtime reads it from 1.14 on"""
+FORMAT = "morph_policy_onnx/1"
+"""``metadata_props['format']`` of an exported graph: what a controller checks before trusting the names above"""
+CHECK_LENGTHS = (1, 2, 3, 7, 10, 20, 64)
+"""chain lengths every export is checked at (1 and 64 are the simulator's extremes)"""
+TOLERANCE = 1e-4
+"""largest ``scaled_difference`` ONNX Runtime - torch accepted on the check's random states. A wiring
+error is off by orders of magnitude more; float32 rounding alone reaches ~2e-5 on the random states'
+extremes (a trained policy, 60 joints), and stays below 3e-6 on the states a swimmer visits (tested)."""
+
+
+class ExportError(RuntimeError):
+    """An export that cannot be done or whose graph does not compute the policy; ``str(err)`` says why."""
+
+
+class SingleChainPolicy(nn.Module):
+    """``policy``'s mean action (and value) of one chain: (joint_pos [N], joint_vel [N], global [4]) -> outputs.
+
+    Applies the policy's own modules as ``GraphFeatureExtractor.forward`` and
+    ``GraphActorCritic.forward`` do, for a batch of one chain: every slot holds a joint (no cuts),
+    so the packed chain is just the joint states in order and the links are N + 1.
+    """
+
+    def __init__(self, policy: GraphActorCritic, with_value: bool):
+        super().__init__()
+        if policy.backend != "dense":
+            raise ExportError(
+                f"only the 'dense' chain convolution traces with a symbolic length, got {policy.backend!r}"
+            )
+        self.policy = policy
+        self.with_value = with_value
+
+    def forward(self, joint_pos: torch.Tensor, joint_vel: torch.Tensor, global_feats: torch.Tensor):
+        features = self.policy.features
+        edge_attr = torch.stack([joint_pos, joint_vel], dim=1)  # slot j holds joint j
+        slot_mask = torch.ones_like(joint_pos, dtype=torch.bool)
+        x = joint_pos.new_ones(joint_pos.shape[0] + 1, 1)  # links carry no state of their own
+        x = torch.relu(features.conv1(x, edge_attr, slot_mask))
+        x = torch.relu(features.conv2(x, edge_attr, slot_mask))
+        z = x[1:] + features.global_mlp(global_feats.unsqueeze(0))  # joint j reads link j + 1
+        action = self.policy.actor_head(z).squeeze(1)
+        if not self.with_value:
+            return action
+        return action, self.policy.critic_head(z.mean(dim=0, keepdim=True)).reshape(1)
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What ``export_checkpoint`` wrote and how closely the graph matched the torch policy."""
+
+    path: Path
+    with_value: bool
+    lengths_checked: tuple[int, ...]
+    max_error: float
+    """largest difference ONNX Runtime - torch over the checked lengths (``check_against_policy``)"""
+    num_nodes: int
+
+
+def policy_from_checkpoint(path: str | Path) -> tuple[GraphActorCritic, PolicyWeights]:
+    """The torch policy of a checkpoint, checked by ``weights.load_checkpoint`` (``CheckpointError`` if unusable)."""
+    weights = load_checkpoint(path)
+    policy = GraphActorCritic(weights.config)
+    policy.load_state_dict({k: torch.from_numpy(v) for k, v in weights.arrays.items()})
+    return policy.eval(), weights
+
+
+def _require(module: str):
+    try:
+        return __import__(module)
+    except ImportError:
+        raise ExportError(
+            f"the ONNX export needs the '{module}' package: install the trainer's [onnx] extra "
+            "(pip install -c constraints.txt -e 'ros2_ws/src/trainer[onnx]')"
+        ) from None
+
+
+@contextlib.contextmanager
+def _quiet_exporter():
+    """The exporter logs about optional packages it skips (torchvision) and warns about its own internals:
+    nothing a user of this command can act on. Real failures still raise."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r".*LeafSpec.*", category=FutureWarning)
+            warnings.filterwarnings("ignore", message=r".*axis name.*will not be used.*")
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def export_model(policy: GraphActorCritic, with_value: bool = False, metadata: dict[str, str] | None = None):
+    """The ONNX ``ModelProto`` of ``policy``'s single-chain actor (and critic), with ``metadata`` in its props."""
+    onnx = _require("onnx")
+    _require("onnxscript")  # torch's exporter imports it itself; fail here with the install hint
+    module = SingleChainPolicy(policy, with_value).eval()
+    example = (torch.zeros(3), torch.zeros(3), torch.zeros(NUM_GLOBAL_FEATURES))
+    n = torch.export.Dim(NUM_JOINTS_AXIS, min=1)
+    outputs = [ACTION_OUTPUT, VALUE_OUTPUT] if with_value else [ACTION_OUTPUT]
+    try:
+        with _quiet_exporter(), torch.no_grad():
+            program = torch.onnx.export(
+                module,
+                example,
+                input_names=list(INPUT_NAMES),
+                output_names=outputs,
+                dynamic_shapes=({0: n}, {0: n}, None),
+                opset_version=OPSET,
+                dynamo=True,
+                external_data=False,
+                verbose=False,
+            )
+    except Exception as err:  # the exporter raises many types; one message naming the step
+        raise ExportError(f"torch's ONNX exporter failed: {type(err).__name__}: {err}") from err
+    model = program.model_proto
+    model.doc_string = (
+        "Graph policy, deterministic actor of one chain: joint_pos [N], joint_vel [N] (torso to tail), "
+        "global [4] (yaw, yaw rate, vx, vy) -> action [N] (mean, unclipped)" + (", value [1]" if with_value else "")
+    )
+    onnx.helper.set_model_props(model, {"format": FORMAT, **(metadata or {})})
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def scaled_difference(got: np.ndarray, want: np.ndarray) -> np.ndarray:
+    """|got - want| / max(1, |want|): absolute within the motors' range [-1, 1], relative beyond it.
+
+    Float32 allows no uniform absolute bound: a trained policy's unclipped means reach ~5 and its
+    values tens, and on extreme states the torch policy differs from its own float64 evaluation by
+    ~1.3e-5 (the shipped model, 60 joints), as much as ONNX Runtime differs from torch.
+    """
+    return np.abs(got - want) / np.maximum(np.abs(want), 1.0)
+
+
+def check_against_policy(
+    model_bytes: bytes, policy: GraphActorCritic, lengths: Sequence[int] = CHECK_LENGTHS, seed: int = 0
+) -> float:
+    """Largest ``scaled_difference`` ONNX Runtime - torch over random states of each chain length in ``lengths``."""
+    ort = _require("onnxruntime")
+    from morph_core.msgs.joint_state import chain_batch  # the policy node's one-chain batch
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    session = ort.InferenceSession(model_bytes, options, providers=["CPUExecutionProvider"])
+    names = [o.name for o in session.get_outputs()]
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for n in lengths:
+        # States of a swimming chain's scale: angles within the joint range, fast joints, a turned torso.
+        pos = rng.uniform(-1.7, 1.7, n).astype(np.float32)
+        vel = rng.normal(0.0, 3.0, n).astype(np.float32)
+        glob = np.array([rng.uniform(-6, 6), *rng.normal(0.0, 1.0, 3)], dtype=np.float32)
+        got = dict(zip(names, session.run(None, dict(zip(INPUT_NAMES, (pos, vel, glob), strict=True))), strict=True))
+        with torch.no_grad():
+            mean, _, value = policy(chain_batch(pos, vel, glob))
+        want = {ACTION_OUTPUT: mean[0].numpy(), VALUE_OUTPUT: value.numpy()}
+        for name, out in got.items():
+            if out.shape != want[name].shape:
+                raise ExportError(f"output {name} has shape {list(out.shape)} for {n} joints, "
+                                  f"expected {list(want[name].shape)}")  # fmt: skip
+            err = float(np.max(scaled_difference(out, want[name]))) if out.size else 0.0
+            worst = max(worst, err if math.isfinite(err) else math.inf)
+    return worst
+
+
+def export_checkpoint(
+    checkpoint: str | Path,
+    out: str | Path,
+    with_value: bool = False,
+    lengths: Sequence[int] = CHECK_LENGTHS,
+    tolerance: float = TOLERANCE,
+) -> ExportResult:
+    """Export ``checkpoint`` to ``out`` (.onnx), written atomically only once ONNX Runtime reproduced the
+    policy to ``tolerance`` at every length in ``lengths``.
+
+    Raises ``CheckpointError`` (a ``ValueError``) for an unusable checkpoint and ``ExportError`` otherwise.
+    """
+    out = Path(out)
+    if out.suffix != ".onnx":
+        raise ExportError(f"the output must be a .onnx file, got {out}")
+    if not lengths or min(lengths) < 1:
+        raise ExportError(f"chain lengths to check must be >= 1, got {list(lengths)}")
+    policy, weights = policy_from_checkpoint(checkpoint)
+    metadata = {
+        "checkpoint": str(checkpoint),
+        "policy_config": json.dumps(asdict(weights.config)),
+        "checkpoint_metadata": json.dumps(weights.metadata),
+        "log_std": repr(float(weights.arrays["log_std"])),
+        "joint_order": "torso to tail (JointState message order)",
+    }
+    model = export_model(policy, with_value, metadata)
+    data = model.SerializeToString()
+    error = check_against_policy(data, policy, lengths)
+    if not error <= tolerance:
+        raise ExportError(f"the exported graph differs from the policy by {error:.3g} (> {tolerance:g}); not written")
+    atomic_write_bytes(out, data)
+    return ExportResult(out, with_value, tuple(lengths), error, len(model.graph.node))

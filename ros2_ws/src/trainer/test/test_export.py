@@ -1,0 +1,225 @@
+"""morph-export: the ONNX graph computes the torch policy (1..64 joints, ONNX Runtime), bad input is refused."""
+
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from morph_core.msgs.joint_state import chain_batch
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.config import PolicyConfig
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.onnx_export import (
+    FORMAT,
+    ExportError,
+    SingleChainPolicy,
+    check_against_policy,
+    export_checkpoint,
+    export_model,
+    scaled_difference,
+)
+from morph_core.policy.weights import CheckpointError
+from trainer import export_cli
+
+SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
+CLI = [sys.executable, "-m", "trainer.export_cli"]
+
+
+def trained_shaped(config: PolicyConfig, seed: int) -> GraphActorCritic:
+    """A policy whose outputs are of a trained one's size: the init's 0.01-gain action layer would give
+    means ~1e-3, where an absolute 1e-5 tolerance tests little. Every parameter gets noise of its own scale."""
+    torch.manual_seed(seed)
+    policy = GraphActorCritic(config)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(torch.randn_like(p) * max(float(p.std()) if p.numel() > 1 else 0.0, 0.3))
+    return policy.eval()
+
+
+def _save(policy: GraphActorCritic, path: Path) -> Path:
+    policy.save(path, metadata={"global_step": 1234})
+    return path
+
+
+def _session(path: Path) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1  # one summation order: the same rounding on every run
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _chain(rng: np.random.Generator, n: int):
+    return (rng.uniform(-1.7, 1.7, n).astype(np.float32), rng.normal(0, 3, n).astype(np.float32),
+            np.array([rng.uniform(-6, 6), *rng.normal(0, 1, 3)], np.float32))  # fmt: skip
+
+
+POLICIES = {
+    "shipped": lambda: GraphActorCritic.load(SHIPPED).eval(),
+    "trained-shaped": lambda: trained_shaped(PolicyConfig(), seed=3),
+    "unidirectional": lambda: trained_shaped(PolicyConfig(bidirectional=False, conv1_channels=8), seed=4),
+}
+
+
+@pytest.fixture(scope="module", params=list(POLICIES))
+def exported(request, tmp_path_factory):
+    """(torch policy, its checkpoint, its exported graph with the value output)."""
+    tmp = tmp_path_factory.mktemp(request.param)
+    policy = POLICIES[request.param]()
+    ckpt = SHIPPED if request.param == "shipped" else _save(policy, tmp / "policy.safetensors")
+    result = export_checkpoint(ckpt, tmp / "policy.onnx", with_value=True)
+    return policy, ckpt, result
+
+
+@pytest.fixture(scope="module")
+def swimmer_states():
+    """n -> states of a real n-joint swimmer (MuJoCo) driven by random efforts, for n = 1..64."""
+    rng = np.random.default_rng(0)
+    states = {}
+    for n in range(1, 65):
+        env = gymnasium.make("MorphSwimmer-v0", num_joints=n)
+        obs, _ = env.reset(seed=n)
+        states[n] = [obs]
+        for _ in range(4):
+            for _ in range(3):
+                obs, *_ = env.step(rng.uniform(-1, 1, n))
+            states[n].append(obs)
+        env.close()
+    return states
+
+
+def test_onnx_graph_equals_the_torch_policy_at_every_length_1_to_64(exported, swimmer_states):
+    policy, ckpt, result = exported
+    session = _session(result.path)
+    assert [i.name for i in session.get_inputs()] == ["joint_pos", "joint_vel", "global"]
+    assert [o.name for o in session.get_outputs()] == ["action", "value"]
+    numpy_policy = NumpyPolicy(policy)
+    scale = worst = 0.0
+    for n, states in swimmer_states.items():
+        for obs in states:
+            pos, vel, glob = (np.asarray(obs[k], np.float32) for k in ("joint_pos", "joint_vel", "global"))
+            action, value = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob})
+            with torch.no_grad():
+                mean, _, v = policy(chain_batch(pos, vel, glob))
+            assert action.shape == (n,) and action.dtype == np.float32 and value.shape == (1,)
+            # 1e-5 on every effort the motors get (|mean| <= 1), relative beyond: a trained policy's unclipped
+            # means reach ~5 and its values tens, where float32 rounding alone moves them by more.
+            worst = max(worst, scaled_difference(action, mean[0].numpy()).max())
+            worst = max(worst, scaled_difference(value, v.numpy()).max())
+            np.testing.assert_allclose(np.clip(action, -1, 1), np.clip(mean[0].numpy(), -1, 1), rtol=0, atol=1e-5)
+            # The controllers' NumPy path computes the same: the three implementations agree.
+            worst = max(worst, scaled_difference(action, numpy_policy.mean(pos, vel, glob)).max())
+            scale = max(scale, float(np.abs(action).max()))
+    assert worst <= 1e-5
+    assert scale > 0.5, "outputs too small for an absolute tolerance to mean anything"
+    # The export's own check, on random states with extremes no swimmer reaches, is looser (TOLERANCE).
+    assert result.max_error <= 1e-4 and result.lengths_checked[0] == 1 and result.lengths_checked[-1] == 64
+
+
+def test_random_states_match_within_float32_rounding(exported):
+    """Beyond the states a swimmer visits (every joint at a random angle, fast): 1e-5 within the motors'
+    range [-1, 1] and relative beyond it, or float32's own error where that is larger (the shipped
+    policy's float32 torch vs its float64 evaluation)."""
+    policy, ckpt, result = exported
+    session = _session(result.path)
+    single = SingleChainPolicy(policy, with_value=False)
+    exact = copy.deepcopy(single).double()
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 7, 20, 33, 64):
+        for _ in range(4):
+            pos, vel, glob = _chain(rng, n)
+            action, _ = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob})
+            with torch.no_grad():
+                want = policy(chain_batch(pos, vel, glob))[0][0].numpy()
+                truth = exact(*(torch.from_numpy(x).double() for x in (pos, vel, glob))).numpy()
+            float32_error = scaled_difference(want, truth).max()
+            assert scaled_difference(action, want).max() <= max(1e-5, 2 * float32_error), f"{n} joints"
+
+
+def test_exported_graph_carries_its_format_and_checkpoint_metadata(exported):
+    policy, ckpt, result = exported
+    model = onnx.load(str(result.path))
+    onnx.checker.check_model(model, full_check=True)
+    props = {p.key: p.value for p in model.metadata_props}
+    assert props["format"] == FORMAT
+    assert props["checkpoint"] == str(ckpt)
+    written = PolicyConfig.from_dict(json.loads(Path(ckpt).with_suffix(".json").read_text())["policy"])
+    assert PolicyConfig(**json.loads(props["policy_config"])) == written
+    assert float(props["log_std"]) == pytest.approx(float(policy.log_std.detach()))
+    dims = [d.dim_param for d in model.graph.input[0].type.tensor_type.shape.dim]
+    assert dims == ["num_joints"]  # one symbolic length, shared by the inputs and the action
+
+
+def test_the_check_detects_a_graph_of_other_weights():
+    a, b = trained_shaped(PolicyConfig(), seed=1), trained_shaped(PolicyConfig(), seed=2)
+    graph = export_model(a).SerializeToString()
+    assert check_against_policy(graph, a) <= 1e-5
+    assert check_against_policy(graph, b) > 1e-2
+
+
+def test_cli_exports_the_actor_alone_by_default(tmp_path):
+    ckpt = _save(trained_shaped(PolicyConfig(), seed=5), tmp_path / "p.safetensors")
+    out = tmp_path / "sub" / "actor.onnx"
+    run = subprocess.run([*CLI, "--onnx", str(ckpt), str(out)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "wrote" in run.stdout and "1, 2, 3, 7, 10, 20, 64 joints" in run.stdout
+    session = _session(out)
+    assert [o.name for o in session.get_outputs()] == ["action"]
+    pos, vel, glob = _chain(np.random.default_rng(0), 9)
+    (action,) = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob})
+    np.testing.assert_allclose(action, NumpyPolicy(GraphActorCritic.load(ckpt)).mean(pos, vel, glob), atol=1e-5)
+    assert [p.name for p in out.parent.iterdir()] == ["actor.onnx"]  # atomic: no temp file left
+
+
+def _bad_checkpoints(tmp: Path) -> dict[str, Path]:
+    good = _save(trained_shaped(PolicyConfig(), seed=6), tmp / "good.safetensors")
+    bad: dict[str, Path] = {"missing file": tmp / "absent.safetensors"}
+    pickled = tmp / "pickled.safetensors"
+    torch.save(GraphActorCritic().state_dict(), pickled)
+    pickled.with_suffix(".json").write_text(good.with_suffix(".json").read_text())
+    bad["torch pickle"] = pickled
+    no_config = tmp / "noconfig.safetensors"
+    no_config.write_bytes(good.read_bytes())
+    bad["config missing"] = no_config
+    other = tmp / "other.safetensors"
+    other.write_bytes(good.read_bytes())
+    meta = json.loads(good.with_suffix(".json").read_text())
+    meta["policy"]["conv1_channels"] = 7  # tensors of the wrong shape for this config
+    other.with_suffix(".json").write_text(json.dumps(meta))
+    bad["shape mismatch"] = other
+    truncated = tmp / "truncated.safetensors"
+    truncated.write_bytes(good.read_bytes()[:500])
+    truncated.with_suffix(".json").write_text(good.with_suffix(".json").read_text())
+    bad["truncated"] = truncated
+    return bad
+
+
+def test_bad_checkpoints_are_refused_with_the_reason_and_nothing_is_written(tmp_path, capsys):
+    out = tmp_path / "out.onnx"
+    for what, ckpt in _bad_checkpoints(tmp_path).items():
+        with pytest.raises(CheckpointError) as err:
+            export_checkpoint(ckpt, out)
+        assert str(ckpt) in str(err.value), what
+        assert not out.exists(), what
+        assert export_cli.main(["--onnx", str(ckpt), str(out)]) == 1, what
+        stderr = capsys.readouterr().err
+        assert stderr.startswith("morph-export: error: ") and str(ckpt) in stderr, what
+        assert not out.exists(), what
+
+
+def test_output_must_be_an_onnx_file(tmp_path, capsys):
+    ckpt = _save(trained_shaped(PolicyConfig(), seed=7), tmp_path / "p.safetensors")
+    with pytest.raises(ExportError, match=r"\.onnx"):
+        export_checkpoint(ckpt, tmp_path / "p.safetensors.out")
+    assert export_cli.main(["--onnx", str(ckpt), str(tmp_path / "p.out")]) == 1
+    assert "must be a .onnx file" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        export_cli.main(["--onnx", str(ckpt)])  # argparse: two paths needed
+    assert exit_.value.code == 2 and "--onnx" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.json", "p.safetensors"]

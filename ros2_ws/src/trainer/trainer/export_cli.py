@@ -1,0 +1,51 @@
+"""``morph-export``: a policy checkpoint's deterministic actor as an ONNX graph, for C++ controllers.
+
+    morph-export --onnx CHECKPOINT.safetensors OUT.onnx [--with-value]
+
+The graph takes one chain of any length N (joint_pos [N], joint_vel [N],
+global [4], float32) and returns the mean action [N] (and, with
+``--with-value``, the critic's value [1]); see ``morph_core.policy.onnx_export``
+and docs/onnx.md. It is checked against the torch policy with ONNX Runtime at
+1..64 joints before it is written (atomically); an unusable checkpoint or a
+graph that differs is refused with exit code 1 and nothing is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+from morph_core.policy.onnx_export import TOLERANCE, ExportError, export_checkpoint
+from morph_core.policy.weights import CheckpointError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="morph-export", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser.add_argument("--onnx", nargs=2, metavar=("CHECKPOINT", "OUT"), required=True,
+                        help="export CHECKPOINT (.safetensors, its .json beside it) to OUT (.onnx)")  # fmt: skip
+    parser.add_argument("--with-value", action="store_true", help="add the critic's value as a second output")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    checkpoint, out = args.onnx
+    torch.set_num_threads(1)  # a network this small gains nothing from threads; the machine is shared
+    try:
+        result = export_checkpoint(checkpoint, out, with_value=args.with_value)
+    except (CheckpointError, ExportError) as err:
+        print(f"morph-export: error: {err}", file=sys.stderr)
+        return 1
+    outputs = "action, value" if result.with_value else "action"
+    lengths = ", ".join(map(str, result.lengths_checked))
+    print(f"wrote {result.path}: inputs joint_pos [N], joint_vel [N], global [4] -> {outputs}; "
+          f"{result.num_nodes} nodes; equal to the torch policy within {result.max_error:.2g} "
+          f"(<= {TOLERANCE:g}) at {lengths} joints")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
