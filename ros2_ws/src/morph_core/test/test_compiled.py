@@ -50,6 +50,36 @@ def test_compiled_loss_and_gradients_equal_eager(weighted):
     assert not fast.fell_back  # it really ran compiled
 
 
+@pytest.mark.parametrize("rule", ["per-joint-clip", "kl-penalty-per-joint"])
+def test_compiled_loss_of_the_per_joint_rules_equals_eager(rule):
+    # These rules take the proximal policy's means and log-std (and beta), and per-joint-clip returns its
+    # clip share from inside the loss: all of it through the compiled graph, for two chain mixes. (It
+    # stays before the test without a compiler: run after that one in the same process, it fell back.)
+    torch.manual_seed(0)
+    policy = GraphActorCritic()
+    rng = np.random.default_rng(1)
+    eager_fn = functools.partial(ppo_loss, rule=get_rule(rule))
+    fast = compiled(eager_fn)
+    for size, max_joints in ((64, 10), (48, 7)):
+        batch, *rest = _minibatch(rng, size, max_joints, weighted=False)
+        with torch.no_grad():
+            old_mean = policy(batch)[0] + torch.as_tensor(rng.normal(0, 0.05, batch.mask.shape), dtype=torch.float32)
+        extra = {"old_mean": old_mean * batch.mask, "old_log_std": torch.tensor(-0.6), "kl_beta": torch.tensor(0.7)}
+        results = []
+        for fn in (eager_fn, fast):
+            policy.zero_grad()
+            out = fn(policy, batch, *rest, 0.5, 0.01, **extra)
+            out[0].backward()
+            results.append((out, [p.grad.clone() for p in policy.parameters()]))
+        (eager, eager_grads), (comp, comp_grads) = results
+        assert (eager[5] is None) == (rule != "per-joint-clip")
+        for a, b in zip(eager, comp, strict=True):
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+        for a, b in zip(eager_grads, comp_grads, strict=True):
+            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    assert not fast.fell_back
+
+
 def test_without_a_cxx_compiler_training_falls_back_to_eager(monkeypatch):
     import torch._inductor.config as inductor_config
 

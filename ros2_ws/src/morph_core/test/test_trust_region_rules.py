@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from morph_core.algo import trust_region
 from morph_core.algo.checkpoint import load_training_state, save_training_state
 from morph_core.algo.trust_region import LossContext, get_rule, joint_log_ratios, kl_per_joint
 from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update
@@ -255,3 +256,13 @@ def test_rules_without_state_save_none():
     learner = Learner.create(policy, 1e-2, 1e-5, compile=False)
     update(learner, batch, _cfg("per-joint-clip"), torch.Generator())
     assert learner.state_tensors() == {}
+
+
+def test_the_theory_covers_one_case_per_clip_range():
+    # kl-stop clips as fixed does (the theory knows no stopping); the per-joint and KL-penalty rules
+    # do not clip the joint ratio at all.
+    names = [r.name for r in trust_region.clip_rules()]
+    assert names[:2] == ["fixed", "compensated"] and "kl-stop" not in names and "kl-stop-per-joint" not in names
+    assert get_rule("kl-stop").clips_joint_ratio and get_rule("kl-stop").clip_range(0.2, 9.0) == 0.2
+    for rule in ("per-joint-clip", "kl-penalty", "kl-penalty-per-joint"):
+        assert not get_rule(rule).clips_joint_ratio and get_rule(rule).uses_old_gaussian

@@ -327,8 +327,17 @@ def get_rule(rule: str | TrustRegionRule) -> TrustRegionRule:
 
 
 def clip_rules() -> tuple[TrustRegionRule, ...]:
-    """The rules that clip the joint ratio to a range, the ones the clip-probability theory covers."""
-    return tuple(r for r in RULES.values() if r.clips_joint_ratio)
+    """The rules that clip the joint ratio to a range, the ones the clip-probability theory covers: one
+    per clip range, the first of the table's rules with it (kl-stop clips as fixed does; the theory
+    knows nothing of stopping, so it would only repeat fixed's case)."""
+    probe = np.arange(1.0, 65.0)
+    rules: list[TrustRegionRule] = []
+    for rule in RULES.values():
+        if rule.clips_joint_ratio and not any(
+            np.array_equal(rule.clip_scale(probe), r.clip_scale(probe)) for r in rules
+        ):
+            rules.append(rule)
+    return tuple(rules)
 
 
 register(FixedClip())
