@@ -108,6 +108,8 @@ class PerDimensionStats:
         self.logr = torch.zeros_like(self.n)
         self.logr_sq = torch.zeros_like(self.n)
         self.kl = torch.zeros_like(self.n)
+        self.samples: list[tuple[torch.Tensor, torch.Tensor]] = []
+        """(dimension, log r) of every sample added, for the run log's histograms (``algo.tb_layout``)"""
 
     @torch.no_grad()
     def add(self, num_joints, log_ratio, clipped, base_eps: float) -> None:
@@ -122,6 +124,7 @@ class PerDimensionStats:
         self.logr += torch.bincount(d, weights=w, minlength=size)
         self.logr_sq += torch.bincount(d, weights=w * w, minlength=size)
         self.kl += torch.bincount(d, weights=approx_kl(log_ratio).double(), minlength=size)
+        self.samples.append((d, log_ratio.detach()))
 
     OVERALL = ("approx_kl", "clip_frac")
     """the columns of ``overall``"""

@@ -2,7 +2,9 @@
 
 A row with a column the log was not opened with is refused (ValueError), not
 dropped: a metric that silently never reaches the CSV is worse than a crash.
-Columns a row leaves out are written empty, like NaN.
+Columns a row leaves out are written empty, like NaN. TensorBoard also gets
+multi-line charts of the per-dimension columns and, through ``histograms``,
+the log-ratio histograms (``algo.tb_layout``).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import csv
 import math
 from pathlib import Path
 
+from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag
 from morph_core.util.atomic import atomic_writer
 
 
@@ -34,7 +37,12 @@ class RunLog:
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step)
+            # TensorBoard hides events at steps >= purge_step: the checkpoint's own row stays (as in the CSV).
+            purge = None if resume_step is None else resume_step + 1
+            self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=purge)
+            layout = custom_scalars_layout(columns)
+            if layout:  # once per writer (a resumed run's new event file carries it again)
+                self.tb.add_custom_scalars(layout)
 
     def _check(self, names, where: str) -> None:
         unknown = [k for k in names if k not in self._known]
@@ -57,7 +65,14 @@ class RunLog:
             step = int(row["global_step"])
             for k, v in row.items():
                 if k not in ("global_step", "wall_time") and isinstance(v, (int, float)) and not math.isnan(v):
-                    self.tb.add_scalar(k.replace("_d", "/d", 1) if "_d" in k else k, v, step)
+                    self.tb.add_scalar(scalar_tag(k), v, step)
+
+    def histograms(self, step: int, values: dict) -> None:
+        """TensorBoard histograms (tag -> 1-D values) at ``step``; empty ones skipped; nothing without TensorBoard."""
+        if self.tb is not None:
+            for tag, v in values.items():
+                if len(v):
+                    self.tb.add_histogram(tag, v, step)
 
     def close(self) -> None:
         if self.tb is not None:

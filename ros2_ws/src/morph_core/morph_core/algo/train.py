@@ -20,6 +20,7 @@ import torch
 from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
+from morph_core.algo.tb_layout import update_histograms
 from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, epoch_columns, update
 from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
@@ -305,6 +306,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             rs = [r for n, r, _ in episodes if n == d]
             row[f"return_d{d}"] = float(np.mean(rs)) if rs else math.nan
         log.log(row)
+        log.histograms(global_step, update_histograms(stats))
         if global_step // cfg.checkpoint_interval > last_ckpt // cfg.checkpoint_interval or (
             global_step >= cfg.total_timesteps
         ):
