@@ -220,3 +220,16 @@ def test_policy_survives_huge_parameter_requests(probe, launch, namespace, untra
     assert not future.result().results[0].successful
     assert proc.alive() and "Traceback" not in proc.log()
     _stops_on_sigterm(proc)
+
+
+@pytest.mark.timeout(180)
+def test_policy_survives_huge_weights(probe, launch, untrained_checkpoint):
+    from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
+
+    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    weights_pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
+    probe.spin_until(lambda: weights_pub.get_subscription_count() > 0, STARTUP, "the policy_weights subscription")
+    huge = UInt8MultiArray(data=bytes(8 * HUGE))  # fragmented on the wire; not a policy
+    huge.layout.dim = [MultiArrayDimension(label="safetensors", size=8 * HUGE, stride=8 * HUGE)]
+    _flood_policy(probe, proc, state_pub, efforts, stamps, lambda: weights_pub.publish(huge))
+    assert "rejected policy_weights" in proc.log()

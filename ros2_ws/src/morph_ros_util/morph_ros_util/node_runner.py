@@ -1,20 +1,28 @@
-"""Run a node so that SIGINT and SIGTERM always end it, whatever its executor is doing.
+"""Run a node so that SIGINT and SIGTERM always end it, and a node stuck in the middleware ends by itself.
 
 A reliable reader in Fast DDS 2.14 can be driven by a peer into a take that
 never returns (a fragmented sample half received, then a GAP for it: the
 history frees the sample but leaves it listed, and the take loop retries it
-forever). A node spinning in the main thread then never sees a signal again:
-Python runs handlers only between bytecodes of the main thread. So the
-executor spins in a worker thread and the main thread only waits for a
-signal; on one it stops the executor, the node and the context cleanly if
-that takes less than ``STOP_GRACE``, and then ends the process at once (a
-stuck take cannot be cancelled, and the interpreter's own teardown of the
-DDS participant took seconds). Shared by both node packages (morph_policy_node depends on this
-one).
+forever). rclpy calls ``rcl_take`` holding the GIL, so such a take stops
+every Python thread of the process, signal handlers included (Python runs
+them in the main thread, between bytecodes).
+
+So the executor spins in a worker thread, and the main thread waits for a
+signal and beats a heart: every ``HEARTBEAT`` s it re-arms
+``faulthandler.dump_traceback_later``, whose timer is a C thread that needs
+no GIL. If the main thread cannot run for ``WEDGE_TIMEOUT`` s (the GIL held
+by a call that does not return) that timer prints every thread's stack (the
+stuck call shows) and ends the process with exit code 1: a node never hangs
+silently, and a supervisor (a launch file's ``respawn``) starts it again.
+On a signal the main thread stops the executor, the node and the context
+cleanly if that takes less than ``STOP_GRACE``, then ends the process at
+once (the interpreter's own teardown of the DDS participant took seconds).
+Shared by both node packages.
 """
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
@@ -32,6 +40,12 @@ from rclpy.signals import SignalHandlerOptions
 STOP_GRACE = 1.2
 """seconds from a signal to the end of the clean stop (executor, node, context); the process exits at
 once when that is over, finished or not"""
+HEARTBEAT = 0.2
+"""seconds between the main thread's re-arming of the wedge timer"""
+WEDGE_TIMEOUT = 2.0
+"""seconds the main thread may go without running before the process is ended as stuck (a SIGTERM to a
+stuck node is thus answered within this time; a switch of the GIL takes milliseconds, so a working node is
+far from it even on a loaded machine)"""
 
 
 def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tuple[type[Exception], ...] = ()) -> int:
@@ -75,8 +89,10 @@ def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tup
 
     worker = threading.Thread(target=spin, name=f"{name}_executor", daemon=True)
     worker.start()
-    while not stop.wait(0.5):  # the main thread stays free to run signal handlers
-        pass
+    while not stop.is_set():  # the main thread stays free to run signal handlers, and beats the heart
+        faulthandler.dump_traceback_later(WEDGE_TIMEOUT, exit=True)
+        stop.wait(HEARTBEAT)
+    faulthandler.dump_traceback_later(STOP_GRACE + WEDGE_TIMEOUT, exit=True)  # the clean stop, stuck or not
     deadline = time.monotonic() + STOP_GRACE
 
     def clean_stop() -> None:

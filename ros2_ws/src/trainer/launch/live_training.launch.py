@@ -27,12 +27,12 @@ def _nodes(context):
     policy = {"deterministic": False, "checkpoint": "", "allow_untrained": True}  # the trainer's weights follow
     for i, ns in enumerate(namespaces):
         actions.append(Node(package="swimmer_sim_node", executable="swimmer_sim_node", name="swimmer_sim",
-                            namespace=ns, output="screen",
+                            namespace=ns, output="screen", respawn=True, respawn_delay=1.0,
                             parameters=[{"lockstep": True, "real_time_factor": 0.0, "effort_timeout": 2.0,
                                          "min_joints": int(value("min_joints")),
                                          "max_joints": int(value("max_joints")), "seed": i}]))  # fmt: skip
         actions.append(Node(package="morph_policy_node", executable="morph_policy_node", name="morph_policy",
-                            namespace=ns, output="screen",
+                            namespace=ns, output="screen", respawn=True, respawn_delay=1.0,
                             parameters=[{**policy, "seed": i}]))  # fmt: skip
     return actions
 

@@ -66,19 +66,29 @@ def run(args, extra: list[str]) -> int:
     node = rclpy.create_node("live_bringup")
     trainer = subprocess.Popen(trainer_command(namespaces, args, extra))
     procs: list[subprocess.Popen] = []
+    specs: list[tuple[str, str, dict]] = []
     try:
         for i, ns in enumerate(namespaces):
             sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint)
-            procs.append(_start("swimmer_sim_node.sim_node", ns, sim))
+            specs.append(("swimmer_sim_node.sim_node", ns, sim))
+            procs.append(_start(*specs[-1]))
             topics = [f"{ns}/{t}" for t in ("joint_states", "effort_commands", "policy_info", "odom")]
             _wait_for_subscriber(node, trainer, topics, TRAINER_NODE, args.startup_timeout)
-            procs.append(_start("morph_policy_node.policy_node", ns, policy))
+            specs.append(("morph_policy_node.policy_node", ns, policy))
+            procs.append(_start(*specs[-1]))
         print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
         deadline = time.monotonic() + args.timeout
         while trainer.poll() is None:
             if time.monotonic() > deadline:
                 print(f"live_bringup: timed out after {args.timeout} s: stopping the trainer", flush=True)
                 break
+            # A node that ended (killed, or stuck in the middleware and ended by its runner) comes back, as
+            # a launch file's respawn would do; the trainer takes its pair back when it answers again.
+            for k, proc in enumerate(procs):
+                if proc.poll() is not None:
+                    module, ns, _ = specs[k]
+                    print(f"live_bringup: {module} in {ns} ended ({proc.returncode}): restarting it", flush=True)
+                    procs[k] = _start(*specs[k])
             time.sleep(0.5)
     finally:
         _stop([trainer])
