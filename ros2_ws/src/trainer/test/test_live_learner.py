@@ -61,6 +61,21 @@ def test_update_needs_a_batch_then_makes_the_next_version(tmp_path, episodes):
         "policy_00000080.json", "policy_00000080.safetensors"]  # fmt: skip
 
 
+def test_an_update_takes_one_batch_of_the_oldest_episodes_and_leaves_the_rest(tmp_path, episodes):
+    learner = LiveLearner(SMALL, tmp_path, max_staleness=1)  # batch_size 64: two 40-step episodes
+    for ep in episodes:
+        learner.add_episode(ep, [0] * 40)
+    assert learner.pool_size == 120
+    pool, versions = learner.take_pool()
+    assert [len(b) for b in pool] == [40, 40] and len(versions) == 80
+    np.testing.assert_array_equal(pool[0].joint_pos[:, :3], np.array([t.joint_pos for t in episodes[0]]))
+    assert learner.pool_size == 40 and not learner.ready()  # the third waits for the next batch
+    learner.add_episode(episodes[0], [0] * 40)
+    assert learner.ready()
+    row = learner.update()
+    assert row["batch_size"] == 80 and row["pool_episodes"] == 2 and learner.pool_size == 0
+
+
 def test_stale_and_unusable_steps_are_cut_from_the_episode_start(tmp_path, episodes):
     learner = LiveLearner(SMALL, tmp_path, max_staleness=1)
     learner.counters["version"] = 5

@@ -184,9 +184,18 @@ class LiveLearner:
 
     # -- learning ---------------------------------------------------------------------
     def take_pool(self) -> tuple[list[TransitionBatch], np.ndarray]:
-        """The pool's episodes and their steps' versions (NaN: unknown), leaving the pool empty."""
-        pool, versions = self._pool, self._pool_versions
-        self._pool, self._pool_versions, self.pool_size = [], [], 0
+        """The pool's oldest episodes, just enough for a batch, and their steps' versions (NaN: unknown).
+
+        Episodes that arrived while the last update ran stay for the next one: an update is one batch
+        whatever it waited for, as in the simulator loop (episodes are whole, so a batch may exceed
+        ``batch_size`` by less than one episode)."""
+        n, taken = 0, 0
+        while n < len(self._pool) and taken < self.cfg.batch_size:
+            taken += len(self._pool[n])
+            n += 1
+        pool, versions = self._pool[:n], self._pool_versions[:n]
+        self._pool, self._pool_versions = self._pool[n:], self._pool_versions[n:]
+        self.pool_size -= taken
         return pool, np.concatenate(versions) if versions else np.zeros(0)
 
     def update(self, pool: tuple[list[TransitionBatch], np.ndarray] | None = None, pairs: int = 0) -> dict:
