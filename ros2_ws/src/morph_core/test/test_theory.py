@@ -250,3 +250,28 @@ def test_run_without_config_falls_back_to_eps_with_a_warning(tmp_path, capsys):
     assert run.clip_eps == 0.2 and "assuming clip_eps=0.2" in capsys.readouterr().err
     with pytest.raises(ValueError, match="config.json"):
         load_run(path)
+
+
+def test_overlay_reads_the_first_or_last_epochs_statistics_of_a_real_run(tmp_path):
+    from morph_core.algo.train import TrainConfig, train
+
+    small = dict(num_envs=2, num_steps=64, minibatch_size=32, update_epochs=3, tensorboard=False,
+                 progress_bar=False, compile=False, total_timesteps=256, clip_mode="fixed", seed=0)  # fmt: skip
+    run = train(TrainConfig(**small), tmp_path / "r")
+    with (run / "progress.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    pooled, first, last = (load_run(run, epoch=e) for e in ("all", "first", "last"))
+    assert first.name.endswith(", first epoch") and pooled.dims == first.dims == last.dims
+    for d in first.dims:
+        for k in ("in_eps_frac", "logr_std", "logr_mean"):
+            for data, tag in ((pooled, ""), (first, "_first"), (last, "_last")):
+                logged = [float(r[f"{k}{tag}_d{d}"]) if r[f"{k}{tag}_d{d}"] else math.nan for r in rows]
+                np.testing.assert_array_equal(data.columns[f"{k}_d{d}"], logged)
+    # the first epoch starts at r = 1 and drifts least: its log ratios spread less than the last epoch's
+    spread = [np.nanmean([np.nanmean(x.columns[f"logr_std_d{d}"]) for d in first.dims]) for x in (first, last)]
+    assert spread[0] < spread[1]
+    with pytest.raises(ValueError, match="run_epoch must be one of"):
+        load_run(run, epoch="middle")
+    old = write_synthetic_run(tmp_path / "old")  # a run logged before the per-epoch statistics
+    with pytest.raises(ValueError, match="missing columns in_eps_frac_first_d2"):
+        load_run(old, epoch="first")

@@ -85,6 +85,11 @@ class TheoryConfig:
         metadata={"help": "progress.csv of a morph-train run (or its run dir); repeat for several runs"},
     )
     run_tail: float = field(default=1.0, metadata={"help": "fraction of the last CSV rows averaged in the overlay"})
+    run_epoch: str = field(
+        default="all",
+        metadata={"help": "log-ratio statistics the overlay reads: 'all' epochs of each update pooled, or only its "
+                  "'first' or 'last' epoch (columns <name>_first_d<d>, <name>_last_d<d>)"},
+    )  # fmt: skip
 
 
 # -- argparse from the dataclass ---------------------------------------------------------------------
@@ -449,14 +454,20 @@ class RunData:
 
 
 RUN_COLUMNS = ("in_eps_frac", "logr_std", "logr_mean")
+RUN_EPOCHS = {"all": "", "first": "_first", "last": "_last"}
+"""``run_epoch`` -> the column tag of those statistics (``algo.update.EPOCH_TAGS``)"""
 
 
-def load_run(path: Path, fallback_eps: float | None = None) -> RunData:
+def load_run(path: Path, fallback_eps: float | None = None, epoch: str = "all") -> RunData:
     """Read ``progress.csv`` (or the one inside a run dir) and the run's ``config.json``.
 
-    Raises ``ValueError`` naming the missing columns or file; empty cells (a dimension absent from
-    a minibatch) become NaN.
+    ``epoch``: the statistics of all epochs pooled, or of each update's first or last epoch alone,
+    returned under the pooled names (``in_eps_frac_d<d>`` ...). Raises ``ValueError`` naming the
+    missing columns or file; empty cells (a dimension absent from a minibatch) become NaN.
     """
+    if epoch not in RUN_EPOCHS:
+        raise ValueError(f"run_epoch must be one of {list(RUN_EPOCHS)}, got {epoch!r}")
+    tag = RUN_EPOCHS[epoch]
     csv_path = path / "progress.csv" if path.is_dir() else path
     if not csv_path.is_file():
         raise ValueError(f"run CSV not found: {csv_path}")
@@ -467,7 +478,7 @@ def load_run(path: Path, fallback_eps: float | None = None) -> RunData:
     dims = sorted(int(c.removeprefix("in_eps_frac_d")) for c in header if c.startswith("in_eps_frac_d"))
     if not dims:
         raise ValueError(f"{csv_path}: no in_eps_frac_d<d> columns (header: {', '.join(header) or 'empty'})")
-    missing = [f"{k}_d{d}" for d in dims for k in RUN_COLUMNS if f"{k}_d{d}" not in header]
+    missing = [f"{k}{tag}_d{d}" for d in dims for k in RUN_COLUMNS if f"{k}{tag}_d{d}" not in header]
     if missing:
         raise ValueError(f"{csv_path}: missing columns {', '.join(missing)}")
     if not records:
@@ -476,7 +487,7 @@ def load_run(path: Path, fallback_eps: float | None = None) -> RunData:
     def column(name: str) -> np.ndarray:
         return np.array([float(r[name]) if r.get(name, "") not in ("", None) else np.nan for r in records])
 
-    columns = {f"{k}_d{d}": column(f"{k}_d{d}") for d in dims for k in RUN_COLUMNS}
+    columns = {f"{k}_d{d}": column(f"{k}{tag}_d{d}") for d in dims for k in RUN_COLUMNS}
     config_path = csv_path.parent / "config.json"
     if config_path.is_file():
         config = json.loads(config_path.read_text())
@@ -488,7 +499,7 @@ def load_run(path: Path, fallback_eps: float | None = None) -> RunData:
         clip_eps, clip_mode = fallback_eps, "unknown"
     else:
         raise ValueError(f"{config_path} missing (needed for clip_eps)")
-    name = f"{csv_path.parent.name} ({clip_mode})"
+    name = f"{csv_path.parent.name} ({clip_mode})" + ("" if epoch == "all" else f", {epoch} epoch")
     return RunData(name, clip_eps, clip_mode, dims, columns)
 
 
@@ -527,7 +538,7 @@ def run_overlay_rows(run: RunData, tail: float) -> list[dict[str, float]]:
 
 
 def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
-    runs = [load_run(p, fallback_eps=cfg.eps) for p in cfg.run_csv]
+    runs = [load_run(p, fallback_eps=cfg.eps, epoch=cfg.run_epoch) for p in cfg.run_csv]
     fig, (ax_p, ax_m) = plt.subplots(1, 2, figsize=(11.0, 4.4))
     all_rows, summary = [], {}
     for k, run in enumerate(runs):
