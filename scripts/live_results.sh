@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Reproduce docs/results.md's "Learning live over DDS": live training from an untrained policy with K=4
+# lockstep sim+policy pairs (scripts/live.sh) against the simulator trainer at the same env-step count,
+# SEEDS seeds of STEPS steps each (paper configuration otherwise), then the curves side by side.
+#   bash scripts/live_results.sh [SEEDS=3] [STEPS=300000] [OUT=runs/live-vs-sim]
+# A run already finished is skipped; an interrupted one resumes.
+set -euo pipefail
+root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$root"
+seeds=${1:-3}
+steps=${2:-300000}
+out=${3:-runs/live-vs-sim}
+bash scripts/setup.sh
+mkdir -p "$out"
+finished() { [ -f "$1/progress.csv" ] && .venv/bin/python -c "import csv, sys
+rows = list(csv.DictReader(open('$1/progress.csv')))
+sys.exit(0 if rows and int(rows[-1]['global_step']) >= $steps else 1)"; }
+for s in $(seq 1 "$seeds"); do
+    run="$out/live-s$s"
+    if finished "$run"; then continue; fi
+    resume=(); [ -f "$run/state.safetensors" ] && resume=(--resume)
+    bash scripts/live.sh --pairs 4 --out "$run" "${resume[@]}" -- --seed "$s" --total-timesteps "$steps" \
+        > "$run.log" 2>&1
+    echo "done $run"
+done
+for s in $(seq 1 "$seeds"); do echo "$s"; done | xargs -P 2 -I{} bash -c '
+    run="$0/simulator-s{}"
+    if [ -f "$run/state.safetensors" ]; then resume=--resume; else resume=; fi
+    .venv/bin/morph-train --seed {} --total-timesteps "$1" --out "$run" --progress-bar false $resume \
+        > "$run.log" 2>&1 && echo "done $run"' "$out" "$steps"
+.venv/bin/python -m trainer.live_compare "$out"/live-s* --simulator "$out"/simulator-s* --plot docs/figures/live
