@@ -104,3 +104,34 @@ def test_wire_round_trip_equals_env_observation():
             strict=True,
         ):
             torch.testing.assert_close(a, b, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "names, reason",
+    [
+        (["a", ""], "joint name 1 has 0 characters"),
+        (["a", "x" * 1_000_000], "joint name 1 has 1000000 characters"),
+        (["gelenk_ä", "b"], "not printable ASCII"),
+        (["a\nb", "c"], "not printable ASCII"),
+    ],
+)
+def test_names_that_are_no_joint_names_are_refused(names, reason):
+    with pytest.raises(JointStateError, match=reason):
+        validate_joint_state(names, [0.0] * len(names), [0.0] * len(names))
+
+
+def test_names_of_the_longest_allowed_length_pass():
+    from morph_core.msgs.joint_state import MAX_NAME_CHARS
+
+    validate_joint_state(["a" * MAX_NAME_CHARS, "b"], [0.0, 0.0], [0.0, 0.0])
+
+
+@pytest.mark.parametrize("quat", [(0, 0, 0, 2.0), (0, 0, 0.1, 0.9), (0.5, 0.5, 0.5, 0.6)])
+def test_non_unit_quaternions_are_refused(quat):
+    with pytest.raises(JointStateError, match="not a unit quaternion"):
+        global_features(quat, (0, 0), 0.0)
+
+
+def test_unit_quaternions_within_float32_rounding_pass():
+    x, y, z, w = (np.float32(v) for v in quaternion_from_yaw(0.7))  # an estimator publishing float32
+    assert global_features((x, y, z, w), (0, 0), 0.0)[0] == pytest.approx(0.7, abs=1e-6)

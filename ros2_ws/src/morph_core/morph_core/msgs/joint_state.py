@@ -30,13 +30,31 @@ class JointStateError(ValueError):
     """A joint state that cannot be turned into a chain; ``str(err)`` is the reason."""
 
 
+MAX_NAME_CHARS = 256
+"""longest joint name taken (URDF names are short; a megabyte-long one is a fault, not a robot)"""
+QUATERNION_NORM_TOLERANCE = 1e-3
+"""|norm - 1| allowed in an odometry's orientation: any estimator's unit quaternion is far closer; a
+non-unit one gives a wrong yaw (``yaw_from_quaternion`` assumes a unit quaternion), so it is refused"""
+
+
+def _name_error(names: Sequence[str]) -> str | None:
+    """Why the names are not a chain's joint names (each 1..MAX_NAME_CHARS printable ASCII), or None."""
+    for i, name in enumerate(names):
+        if not 0 < len(name) <= MAX_NAME_CHARS:
+            return f"joint name {i} has {len(name)} characters, expected 1..{MAX_NAME_CHARS}"
+        if not (name.isascii() and name.isprintable()):
+            return f"joint name {i} {name[:40]!r} is not printable ASCII"
+    return None
+
+
 def validate_joint_state(
     names: Sequence[str], positions: Sequence[float], velocities: Sequence[float], max_joints: int = MAX_JOINTS
 ) -> tuple[np.ndarray, np.ndarray]:
     """Check one joint state and return (positions, velocities) as float64 arrays, message order.
 
     Raises ``JointStateError`` for: no joints, more than ``max_joints``, names /
-    positions / velocities of different lengths, duplicate names, NaN or inf.
+    positions / velocities of different lengths, a name that is empty, longer than
+    ``MAX_NAME_CHARS`` or not printable ASCII (ROS and URDF names are), duplicate names, NaN or inf.
     """
     n = len(names)
     if n == 0:
@@ -45,6 +63,9 @@ def validate_joint_state(
         raise JointStateError(f"{n} joints, more than the maximum of {max_joints}")
     if len(positions) != n or len(velocities) != n:
         raise JointStateError(f"length mismatch: {n} names, {len(positions)} positions, {len(velocities)} velocities")
+    bad_name = _name_error(names)
+    if bad_name is not None:
+        raise JointStateError(bad_name)
     if len(set(names)) != n:
         seen: set[str] = set()
         dups = sorted({x for x in names if x in seen or seen.add(x)})
@@ -112,15 +133,19 @@ def global_features(
 ) -> np.ndarray:
     """[4] float64 (yaw, yaw rate, vx, vy) as in ``MorphSwimmerEnv``, from an odometry's pose and body twist.
 
-    Raises ``JointStateError`` on NaN/inf or a zero-length quaternion.
+    Raises ``JointStateError`` on NaN/inf or a quaternion that is not of unit length
+    (within ``QUATERNION_NORM_TOLERANCE``; a zero one included).
     """
     q = [float(v) for v in orientation_xyzw]
     lin = [float(v) for v in body_linear_xy]
     wz = float(angular_z)
     if not all(math.isfinite(v) for v in (*q, *lin, wz)):
         raise JointStateError("NaN or inf in odometry")
-    if sum(v * v for v in q) < 1e-12:
+    norm = math.sqrt(sum(v * v for v in q))
+    if norm < 1e-6:
         raise JointStateError("odometry orientation is a zero quaternion")
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise JointStateError(f"odometry orientation is not a unit quaternion (norm {norm:.6g})")
     yaw = yaw_from_quaternion(*q)
     if unwrap is not None:
         yaw = unwrap(yaw)

@@ -18,6 +18,10 @@ before its first state (the usual case: it is published first) or after it.
 
 from __future__ import annotations
 
+MAX_PENDING_STARTS = 64
+"""announced starts not reached yet that are kept; a sim announces one episode at a time, so more is a
+faulty or hostile peer, and the farthest ones are dropped to keep memory flat"""
+
 
 class EpisodeTracker:
     """Episode starts announced but not reached yet, and the stamp of the last state handled."""
@@ -48,4 +52,6 @@ class EpisodeTracker:
             self._current_ns = start_ns
             return True
         self._starts.add(start_ns)
+        if len(self._starts) > MAX_PENDING_STARTS:
+            self._starts.remove(max(self._starts))
         return False
