@@ -140,6 +140,34 @@ def _run_lockstep(probe, launch, checkpoint, joints, seed, sim_seconds):
     return {round(_stamp(o) / 0.04): (o.pose.pose.position.x, o.pose.pose.position.y) for o in odoms}
 
 
+@pytest.mark.timeout(120)
+def test_lockstep_sim_never_steps_on_a_controllers_silence_zeros(probe, launch):
+    """A policy node whose input went quiet sends zeros labelled 'silence'; a slow (not dead) lockstep loop
+    must not take them as the answer, or the run stops being the in-process one."""
+    from std_msgs.msg import MultiArrayDimension
+
+    from morph_core.msgs.stamps import SILENCE_TAG, answer_tag
+
+    states = _collect(probe, JointState, "joint_states")
+    pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", DEEP)
+    launch("swimmer_sim_node", num_joints=2, lockstep=True, real_time_factor=0.0, effort_timeout=30.0)
+    probe.spin_until(lambda: states and pub.get_subscription_count() > 0, STARTUP, "the first state")
+    first = states[0].header.stamp
+
+    def efforts(values, label):
+        msg = Float64MultiArray(data=values)
+        msg.layout.dim = [MultiArrayDimension(label=label, size=2, stride=2)]
+        return msg
+
+    for _ in range(3):
+        pub.publish(efforts([0.0, 0.0], SILENCE_TAG))
+    pub.publish(efforts([0.5, -0.5], answer_tag(first.sec, first.nanosec)))
+    probe.spin_until(lambda: any(_stamp(s) > _stamp(states[0]) for s in states), 20.0, "the next state")
+    nxt = next(s for s in states if _stamp(s) > _stamp(states[0]))
+    assert _stamp(nxt) == pytest.approx(_stamp(states[0]) + 0.04)
+    assert list(nxt.effort) == [0.5, -0.5]  # the tagged answer, not the zeros before it
+
+
 @pytest.mark.timeout(180)
 def test_lockstep_loop_is_the_in_process_rollout(probe, launch, untrained_checkpoint):
     """Over DDS, in lockstep, the closed loop is step for step the in-process one (nothing stale, nothing lost)."""

@@ -21,7 +21,9 @@ Outputs
   a trainer needs, stamped with the state's stamp; layout in ``morph_core.msgs.policy_info``.
 
 No state answered for ``input_timeout`` -> zero efforts at 25 Hz for the last
-chain seen. Malformed messages are rejected, counted and logged (throttled);
+chain seen, labelled ``silence`` (``msgs.stamps.SILENCE_TAG``: they answer no
+state, so a lockstep sim never steps on them). Malformed messages are
+rejected, counted and logged (throttled);
 so is a state for which the policy's output is not finite (nothing is
 published for it, so the zero efforts follow); the node keeps answering good
 ones.
@@ -84,7 +86,7 @@ from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
 from morph_core.msgs.policy_weights import policy_version_frame_id
-from morph_core.msgs.stamps import answer_tag, to_ns
+from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, to_ns
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
@@ -304,7 +306,7 @@ class MorphPolicyNode(Node):
             if not self._silent:
                 self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
-            self._publish_efforts(np.zeros(len(self._names)), None)
+            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG)  # answers no state
 
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
@@ -334,14 +336,11 @@ class MorphPolicyNode(Node):
         if out.mean is not None:
             self._publish_info(msg, names, out.action, out.mean)
 
-    def _publish_efforts(self, efforts: np.ndarray, tag: str | None) -> None:
+    def _publish_efforts(self, efforts: np.ndarray, tag: str) -> None:
         n = len(efforts)
         msg = Float64MultiArray(data=array.array("d", np.asarray(efforts, dtype=np.float64).tobytes()))
-        if tag is not None:
-            msg.layout.dim = [MultiArrayDimension(label=tag, size=n, stride=n)]
+        msg.layout.dim = [MultiArrayDimension(label=tag, size=n, stride=n)]
         if not self._weights.trained:
-            if not msg.layout.dim:
-                msg.layout.dim = [MultiArrayDimension(label="", size=n, stride=n)]
             msg.layout.dim.append(MultiArrayDimension(label=UNTRAINED_LABEL, size=1, stride=1))
         self._effort_pub.publish(msg)
 

@@ -68,7 +68,11 @@ answer (``layout.dim[0].label = "joints@<sec>.<nanosec>"``, see
 ``morph_core.msgs.stamps``; morph_policy_node does); in lockstep, tagged
 efforts for any other state are dropped, so a re-sent state answered twice
 cannot shift the loop by a step. Untagged efforts (any other controller) are
-taken as the answer.
+taken as the answer. Efforts labelled ``silence`` (a controller's fail-safe
+zeros after its input went quiet, ``SILENCE_TAG``) answer no state: free
+running they are applied, in lockstep ignored (counted in
+``silence_ignored``): stepping on them would put zeros into a loop that was
+only slow, which made lockstep runs differ from the in-process rollout under load.
 """
 
 from __future__ import annotations
@@ -97,7 +101,7 @@ from std_srvs.srv import Trigger
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
 from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
-from morph_core.msgs.stamps import from_ns, parse_answer_tag
+from morph_core.msgs.stamps import SILENCE_TAG, from_ns, parse_answer_tag
 from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
@@ -235,6 +239,7 @@ class SwimmerSimNode(Node):
         self._announced = -1  # the last episode announced
         self._started = False  # the first state has been published
         self.old_episode_answers = 0
+        self.silence_ignored = 0  # fail-safe efforts a lockstep loop does not step on
         self._timer = None
         self._restart_pacing()
         self._follow_chain()
@@ -367,7 +372,11 @@ class SwimmerSimNode(Node):
     # -- messages ---------------------------------------------------------------
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
-        answers = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
+        label = msg.layout.dim[0].label if msg.layout.dim else ""
+        if self._lockstep and label == SILENCE_TAG:
+            self.silence_ignored += 1  # a controller's fail-safe zeros answer no state: the loop holds still
+            return
+        answers = parse_answer_tag(label)
         if answers is not None and answers < self.sim.episode_start_ns:
             self.old_episode_answers += 1  # for a swimmer that is gone (maybe of another length)
             return

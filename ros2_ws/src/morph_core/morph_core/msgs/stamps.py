@@ -4,6 +4,9 @@ A controller says which state its efforts answer by labelling
 ``layout.dim[0]`` of the ``Float64MultiArray`` ``joints@<sec>.<nanosec>``
 with that state's stamp (nanoseconds as 9 digits). A lockstep sim drops
 answers to states it re-sent; a trainer pairs each effort with its state.
+A controller's fail-safe efforts, sent because no state came in time, are
+labelled ``SILENCE_TAG`` instead: they answer no state, so a lockstep sim
+must not step on them (an untagged message it would take as the answer).
 """
 
 from __future__ import annotations
@@ -26,6 +29,10 @@ def from_ns(ns: int) -> tuple[int, int]:
 def seconds_to_ns(seconds: float) -> int:
     """A sim time in seconds as integer nanoseconds (rounded, so 0.04 * k lands on whole ns)."""
     return int(round(seconds * 1e9))
+
+
+SILENCE_TAG = "silence"
+"""label of ``layout.dim[0]`` on efforts sent because no state arrived in time (they answer none)"""
 
 
 def answer_tag(sec: int, nanosec: int) -> str:
