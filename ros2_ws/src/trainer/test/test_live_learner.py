@@ -130,3 +130,20 @@ def test_options_refuse_nonsense(tmp_path):
     with pytest.raises(ValueError, match="anneal_lr"):
         LiveLearner(TrainConfig(**{**SMALL.to_dict(), "anneal_lr": True}), tmp_path)
     assert np.isfinite(SMALL.batch_size)
+
+
+def test_live_updates_log_the_log_ratio_histograms(tmp_path, episodes):
+    from dataclasses import replace
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    learner = LiveLearner(replace(SMALL, tensorboard=True), tmp_path, max_staleness=1)
+    learner.add_episode(episodes[0], [0] * 40)
+    learner.add_episode(episodes[1], [0] * 40)
+    learner.update()
+    learner.close()
+    acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"histograms": 0})
+    acc.Reload()
+    tags = acc.Tags()["histograms"]
+    assert {"log_ratio/d3", "log_ratio/d6"} <= set(tags), tags
+    assert acc.Histograms("log_ratio/d3")[0].step == 80
