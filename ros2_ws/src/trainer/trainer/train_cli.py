@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.checkpoint import TrainingStateError
 from morph_core.algo.train import TrainConfig, load_run_config, train
 from morph_core.algo.train_from_data import passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
@@ -223,7 +224,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.resume:
         if not (args.out / "config.json").exists():
             parser.error(f"--resume: no run to resume in {args.out} (config.json missing)")
-        cfg = load_run_config(args.out, overrides)
+        try:
+            cfg = load_run_config(args.out, overrides)
+        except (OSError, TypeError, ValueError) as err:  # a hand-edited config.json: said before anything runs
+            print(f"morph-train: error: {args.out / 'config.json'}: {err}", file=sys.stderr)
+            return 1
     else:
         if (args.out / "state.safetensors").exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
@@ -231,7 +236,14 @@ def main(argv: list[str] | None = None) -> int:
             cfg = replace_nested(TrainConfig(), overrides)
         except (TypeError, ValueError) as err:
             parser.error(str(err))
-    train(cfg, args.out, resume=args.resume)
+    try:
+        train(cfg, args.out, resume=args.resume)
+    except TrainingStateError as err:
+        print(f"morph-train: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a full disk: every file is written atomically, so the last checkpoint is intact
+        print(f"morph-train: error: {err}; the run stopped, its last complete checkpoint is kept", file=sys.stderr)
+        return 1
     return 0
 
 

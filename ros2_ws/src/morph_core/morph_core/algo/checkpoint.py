@@ -3,20 +3,50 @@
 Tensors go in the file's tensor section, everything else (step counters,
 optimizer hyper-parameters, NumPy RNG states) as JSON in its metadata, so
 loading never unpickles anything. The file is replaced atomically: a run
-killed at any moment leaves the previous checkpoint intact.
+killed at any moment leaves the previous checkpoint intact, and the one it
+replaces is kept beside it (``previous_state_path``: the last two states
+are always on disk). A SHA-256 of every tensor's bytes travels in the
+metadata, so a file damaged on disk (truncated, bytes flipped) is told from
+a good one; ``resume_training_state`` takes the newest good one and says
+which file it skipped and why.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as safetensors_bytes
 
 from morph_core.util.atomic import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+
+
+class TrainingStateError(ValueError):
+    """No usable training state; ``str(err)`` names each file tried and why it is unusable."""
+
+
+def previous_state_path(path: str | Path) -> Path:
+    """Where the state a new one replaced is kept: ``state.safetensors`` -> ``state.prev.safetensors``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
+def _digest(tensors: dict[str, torch.Tensor]) -> str:
+    h = hashlib.sha256()
+    for key in sorted(tensors):
+        t = tensors[key].detach().contiguous().cpu()
+        h.update(key.encode())
+        h.update(str(t.dtype).encode() + str(list(t.shape)).encode())
+        h.update(t.view(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
 
 
 def save_training_state(
@@ -44,7 +74,8 @@ def save_training_state(
     for k, v in env_arrays.items():
         tensors[f"env.{k}"] = torch.from_numpy(np.ascontiguousarray(v))
     meta = {"param_groups": opt["param_groups"], "env": env_meta, "counters": counters}
-    atomic_write_bytes(path, safetensors_bytes(tensors, metadata={"state": json.dumps(meta)}))
+    metadata = {"state": json.dumps(meta), "sha256": _digest(tensors)}
+    atomic_write_bytes(path, safetensors_bytes(tensors, metadata=metadata), previous=previous_state_path(path))
 
 
 def load_training_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
@@ -53,6 +84,59 @@ def load_training_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict
         meta = json.loads(f.metadata()["state"])
         tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open has no __iter__)
     return tensors, meta
+
+
+def check_training_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict]:
+    """``load_training_state`` of a file that may be damaged: raises ``TrainingStateError`` with the reason
+    (missing, unreadable, truncated, metadata not JSON, no counters, bytes that do not match the digest,
+    NaN/inf in the policy's weights)."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrainingStateError(f"{path}: no such file")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
+        meta = json.loads(header["state"])
+        counters = meta["counters"]
+        [int(counters[k]) for k in ("global_step", "iteration", "last_ckpt")]
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError, SafetensorError) as err:
+        raise TrainingStateError(f"{path}: not a readable training state ({type(err).__name__}: {err})") from None
+    digest = header.get("sha256")
+    if digest is not None and digest != _digest(tensors):
+        raise TrainingStateError(f"{path}: its bytes do not match the checksum written with it (damaged on disk)")
+    for key, t in tensors.items():
+        if key.startswith("policy.") and t.is_floating_point() and not torch.isfinite(t).all():
+            raise TrainingStateError(f"{path}: NaN or inf in {key}")
+    return tensors, meta
+
+
+@dataclass(frozen=True)
+class ResumedState:
+    tensors: dict[str, torch.Tensor]
+    meta: dict
+    path: Path
+    """the file resumed from"""
+    skipped: tuple[str, ...]
+    """why each newer file was not used"""
+
+
+def resume_training_state(path: str | Path) -> ResumedState:
+    """The newest good state among ``path`` and ``previous_state_path(path)``: a damaged newest one is skipped
+    with a warning naming it and the reason. Raises ``TrainingStateError`` when neither is usable."""
+    path = Path(path)
+    skipped: list[str] = []
+    for candidate in (path, previous_state_path(path)):
+        try:
+            tensors, meta = check_training_state(candidate)
+        except TrainingStateError as err:
+            skipped.append(str(err))
+            continue
+        if skipped:
+            step = meta["counters"]["global_step"]
+            log.warning("resume: skipped %s; resuming from %s (step %d)", "; ".join(skipped), candidate, step)
+        return ResumedState(tensors, meta, candidate, tuple(skipped))
+    raise TrainingStateError("no usable training state to resume from: " + "; ".join(skipped))
 
 
 def restore_optimizer(optimizer: torch.optim.Optimizer, tensors: dict, meta: dict) -> None:

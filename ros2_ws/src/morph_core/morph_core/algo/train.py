@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -17,7 +18,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.checkpoint import (
+    previous_state_path,
+    restore_optimizer,
+    resume_training_state,
+    save_training_state,
+    sub_dict,
+)
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.tb_layout import update_histograms
@@ -27,8 +34,11 @@ from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import replace_nested
+from morph_core.util.config_cli import check_field_types, replace_nested
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -100,6 +110,9 @@ class TrainConfig:
     def __post_init__(self):
         if isinstance(self.policy, dict):
             self.policy = PolicyConfig.from_dict(self.policy)
+        if not isinstance(self.policy, PolicyConfig):
+            raise TypeError(f"policy must be a JSON object of policy fields, got {self.policy!r}")
+        check_field_types(self)
         if self.clip_mode not in rule_names():
             raise ValueError(f"clip_mode must be one of {rule_names()}, got {self.clip_mode!r}")
         if not 1 <= self.min_joints <= self.max_joints <= 64:
@@ -238,14 +251,16 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     optimizer = learner.optimizer
     gen = torch.Generator().manual_seed(cfg.seed)
     global_step, iteration, last_ckpt = 0, 0, 0
-    if resume and state_path.exists():
-        tensors, meta = load_training_state(state_path)
+    if resume and (state_path.exists() or previous_state_path(state_path).exists()):
+        resumed = resume_training_state(state_path)  # TrainingStateError when neither state file is usable
+        tensors, meta = resumed.tensors, resumed.meta
         policy.load_state_dict(sub_dict(tensors, "policy."))
         restore_optimizer(optimizer, tensors, meta)
         learner.restore_state(tensors)
         gen.set_state(tensors["rng.torch"])
         envs.set_state(meta["env"], {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()})
         global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
+        _check_policy_checkpoints(ckpt_dir, global_step, policy)
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
         with atomic_writer(run_dir / "config.json") as f:
@@ -326,6 +341,21 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     envs.close()
     log.close()
     return run_dir
+
+
+def _check_policy_checkpoints(ckpt_dir: Path, step: int, policy: GraphActorCritic) -> None:
+    """On resume: say which weights-only checkpoints are damaged (a disk fault, a copy cut short). The one of
+    the resumed step is written again from the restored policy (the same weights); later ones are rewritten
+    as the run passes their steps again; earlier ones cannot be remade and are only named."""
+    for path in sorted(ckpt_dir.glob("policy_*.safetensors")):
+        try:
+            load_checkpoint(path)
+        except CheckpointError as err:
+            if path.name == f"policy_{step:08d}.safetensors":
+                policy.save(path, metadata={"global_step": step})
+                log.warning("resume: %s; written again from the resumed state", err)
+            else:
+                log.warning("resume: %s", err)
 
 
 def _progress(cfg: TrainConfig, start: int):

@@ -8,14 +8,17 @@ import tempfile
 from pathlib import Path
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    with atomic_writer(path, "wb") as f:
+def atomic_write_bytes(path: str | Path, data: bytes, previous: str | Path | None = None) -> None:
+    """Write ``data`` to ``path`` atomically; with ``previous``, the file it replaces is kept there (moved
+    only once the new one is complete on disk, so a write that fails, e.g. a full disk, leaves both)."""
+    with atomic_writer(path, "wb", previous=previous) as f:
         f.write(data)
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | Path, mode: str = "w"):
-    """Write to a temp file beside ``path``, fsync, then rename over it (POSIX-atomic)."""
+def atomic_writer(path: str | Path, mode: str = "w", previous: str | Path | None = None):
+    """Write to a temp file beside ``path``, fsync, then rename over it (POSIX-atomic); ``previous``: see
+    ``atomic_write_bytes``. An ``OSError`` (a full disk: ENOSPC) names ``path``; the old file is untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -27,8 +30,13 @@ def atomic_writer(path: str | Path, mode: str = "w"):
             yield f
             f.flush()
             os.fsync(f.fileno())
+        if previous is not None and path.exists():
+            os.replace(path, previous)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(err, OSError) and err.filename is None:
+            # write() and fsync() errors carry no file name; a run's error should say which file
+            raise OSError(err.errno, err.strerror, str(path)) from err
         raise

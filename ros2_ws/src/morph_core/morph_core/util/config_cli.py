@@ -11,6 +11,8 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import math
+import numbers
 import textwrap
 import typing
 
@@ -91,3 +93,22 @@ def replace_nested(obj, overrides: dict):
         current = getattr(obj, key)
         changes[key] = replace_nested(current, value) if dataclasses.is_dataclass(current) else value
     return dataclasses.replace(obj, **changes)
+
+
+def check_field_types(obj) -> None:
+    """Raise ``TypeError`` naming the field when a value does not have its field's type (bool, int, float or
+    str; an int is a float, a bool is neither an int nor a float), or a float is NaN: a hand-edited JSON
+    config ("learning_rate": "3e-4") fails here, before anything runs, not deep inside training."""
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        kind, value = hints[f.name], getattr(obj, f.name)
+        if kind not in (bool, int, float, str):
+            continue
+        if kind is bool or kind is str:
+            ok = isinstance(value, kind)
+        else:  # int or float: never a bool; an int is a float too
+            ok = not isinstance(value, bool) and isinstance(value, numbers.Real if kind is float else numbers.Integral)
+        if not ok:
+            raise TypeError(f"{f.name} must be {kind.__name__}, got {type(value).__name__} {value!r}")
+        if kind is float and math.isnan(value):
+            raise TypeError(f"{f.name} must be a number, got NaN")
