@@ -26,7 +26,9 @@ state, so a lockstep sim never steps on them). Malformed messages are
 rejected, counted and logged (throttled);
 so is a state for which the policy's output is not finite (nothing is
 published for it, so the zero efforts follow); the node keeps answering good
-ones.
+ones. What each input received, rejected and ignored, by reason, goes out on
+``/diagnostics`` every second (``morph_ros_util.diagnostics``); each case and
+what the node does with it: ``docs/robustness.md``.
 
 Policy (``policy_choice``): ``checkpoint`` (default: the shipped model) is
 loaded with NumPy alone, without torch; a file that cannot be loaded stops
@@ -86,20 +88,23 @@ from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
 from morph_core.msgs.policy_weights import policy_version_frame_id
-from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, to_ns
+from morph_core.msgs.stamps import SILENCE_TAG, StampError, answer_tag, check_stamp, to_ns
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.episode_tracker import EpisodeTracker
+from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.pairing import StatePairing
 from morph_core.protocol.policy_updates import PolicyUpdates
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
 from morph_ros_util import node_runner
+from morph_ros_util.diagnostics import InputDiagnostics
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
 _LOG_THROTTLE = 5.0
 _WEIGHTS_LOG_THROTTLE = 1.0
+STATES, ODOM, EPISODES, WEIGHTS = "joint_states", "odom", "episode_start", WEIGHTS_TOPIC  # inputs, as counted
 # Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
 # no publisher can make this reader wait on repairs.
 EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
@@ -191,6 +196,8 @@ class MorphPolicyNode(Node):
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
 
         self.rejected = 0
+        self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS])  # on /diagnostics every second
+        self._diagnostics = InputDiagnostics(self, self.counts)
         self._odom = None  # (quaternion, body linear xy, angular z) of the latest valid odometry
         self._unwrap = YawUnwrapper()
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
@@ -242,14 +249,19 @@ class MorphPolicyNode(Node):
                 self._input_timeout = param.value
 
     # -- inputs -----------------------------------------------------------------
-    def _reject(self, what: str, err: Exception) -> None:
+    def _reject(self, what: str, err: Exception, reason: str = "invalid") -> None:
         self.rejected += 1
+        self.counts.rejected(what, reason, str(err))
         self.get_logger().warn(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
 
     def _on_weights(self, msg: UInt8MultiArray) -> None:
+        self.counts.received(WEIGHTS)
         labels, sizes = [d.label for d in msg.layout.dim], [d.size for d in msg.layout.dim]
         offer = self._updates.offer(labels, sizes, msg.data)
+        if offer.outcome == "ignored":
+            self.counts.ignored(WEIGHTS, "not_newer")
         if offer.outcome == "rejected":
+            self.counts.rejected(WEIGHTS, "weights", offer.reason)
             # Counted with the other rejections; logged on its own (weights come about once a second, so a
             # second's throttle shows each bad one a trainer sends, yet a flood cannot fill the log).
             self.rejected += 1
@@ -261,36 +273,40 @@ class MorphPolicyNode(Node):
             self.get_logger().info(f"weights version {offer.version} received: adopted at the next state")
 
     def _on_episode_start(self, msg: Int64MultiArray) -> None:
+        self.counts.received(EPISODES)
         label = msg.layout.dim[0].label if msg.layout.dim else ""
         try:
             start = unpack_episode_start(0, label, msg.data)
         except EpisodeStartError as err:
-            self._reject("episode_start", err)
+            self._reject(EPISODES, err, "layout")
             return
         if self._episodes.announced(start.stamp_ns):
             self._unwrap.reset()  # its first state was answered already: restart from the next one
 
     def _on_odom(self, msg: Odometry) -> None:
+        self.counts.received(ODOM)
         q = msg.pose.pose.orientation
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
         quat, body = (q.x, q.y, q.z, q.w), (lin.x, lin.y)
         try:
             global_features(quat, body, ang.z)  # validation only; unwrapping happens when a state uses it
-        except JointStateError as err:
-            self._reject("odom", err)
+            stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        except (JointStateError, StampError) as err:
+            self._reject(ODOM, err, "stamp" if isinstance(err, StampError) else "odometry")
             return
         self._odom = (quat, body, ang.z)
-        ready = self._pairing.odometry(to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        ready = self._pairing.odometry(stamp_ns)
         if ready is not None:
             self._act(*ready)
 
     def _on_joint_states(self, msg: JointState) -> None:
+        self.counts.received(STATES)
         try:
             pos, vel = validate_joint_state(msg.name, msg.position, msg.velocity)
-        except JointStateError as err:
-            self._reject("joint_states", err)
+            stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        except (JointStateError, StampError) as err:
+            self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
-        stamp_ns = to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
         for ready in self._pairing.state(stamp_ns, (msg, list(msg.name), pos, vel), time.monotonic()):
             self._act(*ready)
 
@@ -327,7 +343,7 @@ class MorphPolicyNode(Node):
         try:
             out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng)
         except PolicyOutputError as err:
-            self._reject("joint_states", err)  # nothing goes out: the watchdog's zero efforts follow
+            self._reject(STATES, err, "policy_output")  # nothing goes out: the watchdog's zero efforts follow
             return
         self._silent = False
         self._last_answer = time.monotonic()

@@ -73,6 +73,13 @@ zeros after its input went quiet, ``SILENCE_TAG``) answer no state: free
 running they are applied, in lockstep ignored (counted in
 ``silence_ignored``): stepping on them would put zeros into a loop that was
 only slow, which made lockstep runs differ from the in-process rollout under load.
+
+Bad input: an effort command of the wrong length, with NaN/inf, with a tag
+that starts ``joints@`` but does not parse, or tagged with a state not yet
+published is rejected (the previous command stays in force, the loop does not
+step); counts of what each input received, rejected and ignored, by reason,
+go out on ``/diagnostics`` every second (``morph_ros_util.diagnostics``);
+warnings are throttled. See ``docs/robustness.md``.
 """
 
 from __future__ import annotations
@@ -100,12 +107,14 @@ from std_srvs.srv import Trigger
 
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
-from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
-from morph_core.msgs.stamps import SILENCE_TAG, from_ns, parse_answer_tag
+from morph_core.msgs.joint_state import MAX_NAME_CHARS, quaternion_from_yaw, world_to_body
+from morph_core.msgs.stamps import SILENCE_TAG, StampError, from_ns, parse_answer_tag
 from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
+from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
+from morph_ros_util.diagnostics import InputDiagnostics
 from swimmer_sim_node.chain_viz import ChainViz
 
 # A free-running tick steps for at most this long before letting the executor
@@ -113,6 +122,8 @@ from swimmer_sim_node.chain_viz import ChainViz
 _TICK_BUDGET = 0.02
 _LOG_THROTTLE = 5.0
 _MAX_EPISODE_STEPS = 2**31 - 1
+EFFORTS = "effort_commands"
+MAX_PREFIX_CHARS = MAX_NAME_CHARS - len("motor64_rot")  # the longest name the sim gives: <prefix>motor<k>_rot
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 """joint_states, odom, /clock"""
@@ -148,6 +159,14 @@ def chain_lengths(num_joints: int, min_joints: int, max_joints: int) -> int | tu
             f"{MIN_JOINTS} <= min_joints <= max_joints <= {MAX_JOINTS}; got {min_joints} and {max_joints}"
         )
     return min_joints, max_joints
+
+
+def prefix_error(prefix: str) -> str | None:
+    """Why ``prefix`` cannot start joint names (a controller refuses names that are not short printable
+    ASCII, ``msgs.joint_state``), or None."""
+    if len(prefix) > MAX_PREFIX_CHARS or not (prefix.isascii() and prefix.isprintable()):
+        return f"must be at most {MAX_PREFIX_CHARS} printable ASCII characters"
+    return None
 
 
 class SwimmerSimNode(Node):
@@ -212,6 +231,8 @@ class SwimmerSimNode(Node):
 
         p = self.get_parameter
         self._prefix = p("joint_prefix").value
+        if prefix_error(self._prefix) is not None:
+            raise ValueError(f"joint_prefix {prefix_error(self._prefix)}")
         self._rtf = p("real_time_factor").value
         self._lockstep = p("lockstep").value
         lengths = chain_lengths(p("num_joints").value, p("min_joints").value, p("max_joints").value)
@@ -239,6 +260,8 @@ class SwimmerSimNode(Node):
         self._announced = -1  # the last episode announced
         self._started = False  # the first state has been published
         self.old_episode_answers = 0
+        self.counts = InputCounts([EFFORTS])  # on /diagnostics every second
+        self._diagnostics = InputDiagnostics(self, self.counts)
         self.silence_ignored = 0  # fail-safe efforts a lockstep loop does not step on
         self._timer = None
         self._restart_pacing()
@@ -266,6 +289,10 @@ class SwimmerSimNode(Node):
             elif param.name == "effort_timeout":
                 if param.type_ != Parameter.Type.DOUBLE or not (math.isfinite(param.value) and param.value > 0):
                     return SetParametersResult(successful=False, reason="effort_timeout must be a finite double > 0")
+            elif param.name == "joint_prefix":
+                reason = prefix_error(param.value) if param.type_ == Parameter.Type.STRING else "must be a string"
+                if reason is not None:
+                    return SetParametersResult(successful=False, reason=f"joint_prefix {reason}")
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, params: list[Parameter]) -> None:
@@ -372,27 +399,42 @@ class SwimmerSimNode(Node):
     # -- messages ---------------------------------------------------------------
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
+        self.counts.received(EFFORTS)
         label = msg.layout.dim[0].label if msg.layout.dim else ""
         if self._lockstep and label == SILENCE_TAG:
             self.silence_ignored += 1  # a controller's fail-safe zeros answer no state: the loop holds still
+            self.counts.ignored(EFFORTS, "silence")
             return
-        answers = parse_answer_tag(label)
+        try:
+            answers = parse_answer_tag(label, strict=True)
+            if answers is not None and answers > self.sim.stamp_ns:
+                raise StampError(f"answers the state at {answers} ns, later than the latest published one")
+        except StampError as err:
+            self._reject("tag", err)
+            return
         if answers is not None and answers < self.sim.episode_start_ns:
             self.old_episode_answers += 1  # for a swimmer that is gone (maybe of another length)
+            self.counts.ignored(EFFORTS, "old_episode")
             return
         # In lockstep, an answer to an earlier (re-sent) state: taking it for the current one
         # would shift the whole loop by a step.
         if self._lockstep and self._gate.is_stale(answers):
+            self.counts.ignored(EFFORTS, "stale")
             return
         try:
             self.sim.command(msg.data, now)
         except EffortError as err:
-            self.get_logger().warn(
-                f"rejected effort command ({self.sim.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE
-            )
+            self._reject("efforts", err)
             return
         if self._lockstep and self._gate.answer():
             self._lockstep_step(now)
+
+    def _reject(self, reason: str, err: Exception) -> None:
+        self.counts.rejected(EFFORTS, reason, str(err))
+        self.get_logger().warn(
+            f"rejected effort command ({self.counts.rejected_total} so far): {err}",
+            throttle_duration_sec=_LOG_THROTTLE,
+        )
 
     def _publish(self, now: float) -> None:
         stamp_ns = self.sim.stamp_ns

@@ -14,6 +14,7 @@ from __future__ import annotations
 import re
 
 NS_PER_S = 1_000_000_000
+_TAG_PREFIX = "joints@"
 _TAG = re.compile(r"joints@(\d+)\.(\d{9})")
 
 
@@ -40,7 +41,25 @@ def answer_tag(sec: int, nanosec: int) -> str:
     return f"joints@{sec}.{nanosec:09d}"
 
 
-def parse_answer_tag(label: str) -> int | None:
-    """The answered state's stamp in ns, or None when ``label`` is not an answer tag."""
+class StampError(ValueError):
+    """A stamp or an answer tag that cannot be a state's; ``str(err)`` is the reason."""
+
+
+def parse_answer_tag(label: str, strict: bool = False) -> int | None:
+    """The answered state's stamp in ns, or None when ``label`` is not an answer tag.
+
+    ``strict``: a label that starts like one (``joints@``) but does not parse raises ``StampError``: it
+    was meant to name a state and names none, so it must not be taken for an untagged answer."""
     m = _TAG.fullmatch(label)
-    return None if m is None else to_ns(int(m.group(1)), int(m.group(2)))
+    if m is None:
+        if strict and label.startswith(_TAG_PREFIX):
+            raise StampError(f"answer tag {label[:60]!r} does not parse (expected joints@<sec>.<9-digit nanosec>)")
+        return None
+    return to_ns(int(m.group(1)), int(m.group(2)))
+
+
+def check_stamp(sec: int, nanosec: int) -> int:
+    """A message stamp as ns; raises ``StampError`` for a negative time or nanosec >= 10**9 (not a time)."""
+    if sec < 0 or not 0 <= nanosec < NS_PER_S:
+        raise StampError(f"stamp {sec}.{nanosec} is not a time (sec >= 0, 0 <= nanosec < 10**9)")
+    return to_ns(sec, nanosec)

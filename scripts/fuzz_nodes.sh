@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Fuzz both nodes with the full count of malformed messages (CI runs 600 each) and print the figures
+# that docs/robustness.md quotes. Usage: bash scripts/fuzz_nodes.sh [COUNT]   (default 10000)
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+echo "load before: $(cat /proc/loadavg)"
+FUZZ_COUNT="${1:-10000}" bash scripts/in_netns.sh .venv/bin/python -m pytest -q -s -p no:cacheprovider \
+    tests/test_fuzz_nodes.py
+echo "load after: $(cat /proc/loadavg)"

@@ -1,0 +1,424 @@
+"""Both nodes fuzzed over real DDS: malformed messages of every kind, interleaved with good ones.
+
+Each node gets ``FUZZ_COUNT`` malformed messages (600 in CI; ``scripts/fuzz_nodes.sh`` runs 10,000 and
+prints the figures in ``docs/robustness.md``). The test is the node's peer: it sends a few malformed
+messages, then a good one, and waits for the good one's answer before the next round (so a best-effort
+reader never overflows and every count is exact). Checked: the node stays up, answers every good message
+and no malformed one, reports on ``/diagnostics`` exactly how many it received, rejected and ignored per
+input, keeps its RSS flat (before/after, from /proc) and throttles its warnings.
+"""
+
+from __future__ import annotations
+
+import array
+import json
+import math
+import os
+import random
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+import safetensors.numpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
+from trajectory_msgs.msg import JointTrajectory
+
+from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_version
+from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, parse_answer_tag, to_ns
+from morph_core.protocol.input_counts import from_key_values
+
+FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "600"))
+"""malformed messages per node"""
+STARTUP = 60.0
+ANSWER_TIMEOUT = 10.0
+HUGE = 100_000
+RSS_GROWTH_LIMIT_KB = 20_000
+"""RSS may grow this much from after the warm-up to the end (allocator slack); a leak per message is far more"""
+DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+def _doubles(values) -> array.array:
+    return array.array("d", np.asarray(values, dtype=np.float64).tobytes())
+
+
+class Diagnostics:
+    """The latest input counts a node reported on /diagnostics."""
+
+    def __init__(self, probe, node_name: str):
+        self.name = f"{node_name}: inputs"
+        self.latest: dict | None = None
+        self.messages: list[str] = []
+        probe.node.create_subscription(DiagnosticArray, "/diagnostics", self._on, 10)
+
+    def _on(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == self.name:
+                self.latest = from_key_values((kv.key, kv.value) for kv in status.values)
+                self.messages.append(status.message)
+
+
+def _wait_counts(probe, diag: Diagnostics, expected_received: dict[str, int], may_drop: dict | None = None) -> dict:
+    """The counts once they show every message sent, less at most ``may_drop[input]`` (large messages a
+    best-effort transport may drop whole when a fragment is lost: they never reach the node)."""
+    may_drop = may_drop or {}
+
+    def caught_up():
+        return diag.latest is not None and all(
+            n - may_drop.get(k, 0) <= diag.latest[k].received <= n for k, n in expected_received.items()
+        )
+
+    try:
+        probe.spin_until(caught_up, 15.0, "the diagnostics to count every message sent")
+    except AssertionError:
+        got = {k: diag.latest[k].received for k in expected_received} if diag.latest else None
+        raise AssertionError(f"diagnostics counted {got}, sent {expected_received}") from None
+    probe.spin_for(2.5)  # two more reports: nothing still in flight
+    return diag.latest
+
+
+def _warning_lines(log: str) -> int:
+    return sum(1 for line in log.splitlines() if "rejected" in line and "WARN" in line)
+
+
+# -- policy node ------------------------------------------------------------------------------------------------
+NAMES = ["j0", "j1", "j2"]
+
+
+def _state(sec: int, nanosec: int, names=NAMES, pos=None, vel=None) -> JointState:
+    msg = JointState(name=list(names))
+    msg.position = _doubles(pos if pos is not None else [0.1, -0.2, 0.3][: len(names)] or [])
+    msg.velocity = _doubles(vel if vel is not None else [0.0, 0.1, 0.0][: len(names)] or [])
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    return msg
+
+
+def _odom(sec: int, nanosec: int, quat=(0.0, 0.0, 0.0, 1.0), lin=(0.0, 0.0)) -> Odometry:
+    msg = Odometry()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    q = msg.pose.pose.orientation
+    q.x, q.y, q.z, q.w = quat
+    msg.twist.twist.linear.x, msg.twist.twist.linear.y = lin
+    return msg
+
+
+def _weights(version: int, checkpoint: Path, damage: str = "") -> UInt8MultiArray:
+    config = json.loads(checkpoint.with_suffix(".json").read_text())["policy"]
+    tensors = safetensors.numpy.load(checkpoint.read_bytes())
+    tensors["log_std"] = np.array(-0.1 * version, dtype=np.float32)  # each version visibly its own
+    data = safetensors.numpy.save(tensors)
+    if damage == "nan":
+        tensors["actor_head.0.weight"][:] = np.nan
+        good = safetensors.numpy.save({**tensors, "actor_head.0.weight": np.zeros_like(tensors["actor_head.0.weight"])})
+        dims, _ = pack_policy_weights(version, config, good)
+        data = safetensors.numpy.save(tensors)
+    elif damage == "shape":
+        dims, _ = pack_policy_weights(version, config, data)
+        tensors["critic_head.0.weight"] = np.zeros((3, 5), dtype=np.float32)
+        data = safetensors.numpy.save(tensors)
+    else:
+        dims, _ = pack_policy_weights(version, config, data)
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    if damage == "label":
+        dims[0] = ("weights", len(data), len(data))
+    if damage == "json":
+        dims[1] = ('{"format": "morph_policy_weights/1", "version":', 0, 0)
+    dims[0] = (dims[0][0], len(data), len(data))
+    msg = UInt8MultiArray(data=bytes(data))
+    msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
+    return msg
+
+
+def _bad_joint_states(k: int, sec: int, nanosec: int) -> list[tuple[str, JointState]]:
+    """One malformed state of each kind (all stamped with the round's own unused stamp)."""
+    huge = np.zeros(HUGE)
+    many = [f"j{i}" for i in range(10_000)]
+    return [
+        ("length", _state(sec, nanosec, pos=[0.1, 0.2])),
+        ("nan", _state(sec, nanosec, pos=[0.1, math.nan, 0.3])),
+        ("inf", _state(sec, nanosec, vel=[0.0, -math.inf, 0.0])),
+        ("empty", JointState()),
+        ("huge_arrays", _state(sec, nanosec, pos=huge, vel=huge)),
+        ("10000_joints", _state(sec, nanosec, names=many, pos=np.zeros(10_000), vel=np.zeros(10_000))),
+        ("1MB_name", _state(sec, nanosec, names=["j0", "x" * 1_000_000, "j2"])),
+        ("duplicate_names", _state(sec, nanosec, names=["j0", "j1", "j0"])),
+        ("non_ascii_name", _state(sec, nanosec, names=["j0", "gelenk_ä", "j2"])),
+        ("bad_stamp", _state(sec, 2_000_000_000 + k)),
+    ]
+
+
+def _bad_odometry(sec: int, nanosec: int) -> list[tuple[str, Odometry]]:
+    return [
+        ("zero_quaternion", _odom(sec, nanosec, quat=(0.0, 0.0, 0.0, 0.0))),
+        ("non_unit_quaternion", _odom(sec, nanosec, quat=(0.0, 0.0, 0.5, 0.5))),
+        ("nan", _odom(sec, nanosec, lin=(math.nan, 0.0))),
+        ("inf", _odom(sec, nanosec, quat=(0.0, 0.0, math.inf, 1.0))),
+        ("bad_stamp", _odom(sec, 1_500_000_000)),
+    ]
+
+
+def _bad_episode_starts() -> list[tuple[str, Int64MultiArray]]:
+    wrong_label = Int64MultiArray(data=[1, 2, 3, 0])
+    wrong_label.layout.dim = [MultiArrayDimension(label="episode", size=4, stride=4)]
+    return [
+        ("empty", Int64MultiArray()),
+        ("wrong_label", wrong_label),
+        ("huge", Int64MultiArray(data=array.array("q", bytes(8 * HUGE)))),
+    ]
+
+
+@pytest.mark.timeout(1800)
+def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_checkpoint):
+    rng = random.Random(14)
+    answers: dict[int, int] = {}  # answered stamp -> times
+    infos: list[tuple[int, int | None]] = []  # (stamp, weights version) of each policy_info
+
+    def on_efforts(msg):
+        tag = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
+        if tag is not None:
+            answers[tag] = answers.get(tag, 0) + 1
+
+    def on_info(msg):
+        infos.append((to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec), parse_policy_version(msg.header.frame_id)))
+
+    probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
+    probe.node.create_subscription(JointTrajectory, "policy_info", on_info, DEEP)
+    diag = Diagnostics(probe, f"{namespace}/morph_policy")
+    pubs = {
+        topic: probe.node.create_publisher(kind, topic, 10)
+        for topic, kind in (("joint_states", JointState), ("odom", Odometry), ("episode_start", Int64MultiArray),
+                            ("policy_weights", UInt8MultiArray))
+    }  # fmt: skip
+    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), deterministic=False, input_timeout=60.0)
+    probe.spin_until(
+        lambda: all(p.get_subscription_count() > 0 for p in pubs.values()) and diag.latest is not None,
+        STARTUP, "the policy node's subscriptions and diagnostics",
+    )  # fmt: skip
+
+    sent: Counter[str] = Counter()  # per input
+    bad: Counter[str] = Counter()  # per input
+    kinds: Counter[str] = Counter()  # per kind of malformed message
+    big: Counter[str] = Counter()  # per input: messages of 800 kB or more (fragmented on the wire)
+    good_stamps: list[int] = []
+    used: set[tuple[int, int]] = set()
+    weights_sent: list[tuple[int, int]] = []  # (good version, stamp of the first state after it)
+    next_sec = [10]
+
+    def fresh_stamp() -> tuple[int, int]:
+        """A stamp no message used: mostly 40 ms apart, now and then going back or far ahead (legal: a
+        restarted sim, a wall clock), all distinct so each answer names its state."""
+        r = rng.random()
+        if r < 0.03:
+            stamp = (rng.randrange(0, 10), rng.randrange(0, 10**9))  # backwards
+        elif r < 0.05:
+            stamp = (rng.randrange(2**30, 2**31 - 1), rng.randrange(0, 10**9))  # far ahead
+        else:
+            next_sec[0] += 1
+            stamp = (next_sec[0], 40_000_000 * rng.randrange(25))
+        if stamp in used:
+            return fresh_stamp()
+        used.add(stamp)
+        return stamp
+
+    def send(topic: str, msg, kind: str | None = None) -> None:
+        pubs[topic].publish(msg)
+        sent[topic] += 1
+        if kind is not None:
+            bad[topic] += 1
+            kinds[f"{topic}:{kind}"] += 1
+            big[topic] += kind in ("huge_arrays", "10000_joints", "1MB_name", "huge")
+
+    def good_round(version: int | None = None) -> None:
+        sec, nanosec = fresh_stamp()
+        send("odom", _odom(sec, nanosec))
+        send("joint_states", _state(sec, nanosec))
+        stamp = to_ns(sec, nanosec)
+        good_stamps.append(stamp)
+        probe.spin_until(lambda: stamp in answers, ANSWER_TIMEOUT, f"the answer to the good state {stamp}")
+
+    version = 0
+    malformed = 0
+
+    def fuzz(until: int) -> None:
+        nonlocal version, malformed
+        while malformed < until:
+            for _ in range(rng.randint(1, 4)):  # at most 4 per topic a round: the reader keeps 5
+                sec, nanosec = fresh_stamp()
+                topic = rng.choices(["joint_states", "odom", "episode_start", "policy_weights"], [6, 2, 1, 1])[0]
+                if topic == "joint_states":
+                    kind, msg = rng.choice(_bad_joint_states(malformed, sec, nanosec))
+                elif topic == "odom":
+                    kind, msg = rng.choice(_bad_odometry(sec, nanosec))
+                elif topic == "episode_start":
+                    kind, msg = rng.choice(_bad_episode_starts())
+                else:
+                    kind = rng.choice(["truncated", "nan", "shape", "label", "json"])
+                    msg = _weights(10**6 + malformed, untrained_checkpoint, damage=kind)
+                send(topic, msg, kind)
+                malformed += 1
+                if topic == "policy_weights":
+                    break  # one weights message a round: that reader keeps only the newest
+            if rng.random() < 0.02:  # now and then a good policy, which must be adopted
+                version += 1
+                send("policy_weights", _weights(version, untrained_checkpoint))
+                weights_sent.append((version, len(good_stamps)))
+            good_round()
+
+    for _ in range(20):
+        good_round()
+    fuzz(max(50, FUZZ_COUNT // 10))  # warm-up: every kind once or more, allocator pools grown
+    probe.spin_for(1.0)
+    rss_before = rss_kb(proc.proc.pid)
+    t0 = time.monotonic()
+    fuzz(FUZZ_COUNT)
+    elapsed = time.monotonic() - t0
+    probe.spin_for(1.0)
+    rss_after = rss_kb(proc.proc.pid)
+    for _ in range(5):
+        good_round()
+
+    assert proc.alive(), proc.log()[-3000:]
+    # Every good state answered once, and nothing else answered.
+    assert all(answers.get(s) == 1 for s in good_stamps), "a good state unanswered or answered twice"
+    assert set(answers) == set(good_stamps), "a malformed state was answered"
+    # Every good policy adopted, within the next two answers; no malformed one ever ran.
+    versions = [v for _, v in infos]
+    for v, k in weights_sent:
+        after = {ver for stamp, ver in infos if stamp in set(good_stamps[k : k + 2])}
+        assert v in after or any(w > v for w in after), f"weights version {v} was not adopted"
+    assert all(v is None or v < 10**6 for v in versions), "malformed weights were adopted"
+    # Exact counts on /diagnostics.
+    counts = _wait_counts(probe, diag, dict(sent), big)
+    lost = {topic: sent[topic] - counts[topic].received for topic in sent}
+    for topic in sent:  # every good message arrived (each was answered), so what was lost was malformed
+        assert counts[topic].rejected_total == bad[topic] - lost[topic], (topic, counts[topic], bad[topic])
+    assert "stamp" in counts["joint_states"].rejected and "joint_state" in counts["joint_states"].rejected
+    # Warnings throttled: rclpy throttles per call site (5 s; weights 1 s).
+    log = proc.log()
+    warned = _warning_lines(log)
+    assert warned <= 3 * (elapsed / 5.0 + 2) + (elapsed / 1.0 + 2), f"{warned} warning lines in {elapsed:.0f} s"
+    assert "Traceback" not in log
+    growth = rss_after - rss_before
+    print(
+        f"\npolicy node: {sum(bad.values())} malformed + {len(good_stamps)} good states in {elapsed:.1f} s, "
+        f"{len(weights_sent)} good policies adopted; {sum(lost.values())} large ones lost in transport; "
+        f"RSS {rss_before} -> {rss_after} kB ({growth:+d}); "
+        f"{warned} warning lines; malformed by kind: {dict(sorted(kinds.items()))}"
+    )
+    assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
+
+
+# -- sim node --------------------------------------------------------------------------------------------------
+def _efforts(values, label: str | None = None) -> Float64MultiArray:
+    msg = Float64MultiArray(data=_doubles(values))
+    if label is not None:
+        msg.layout.dim = [MultiArrayDimension(label=label, size=len(values), stride=len(values))]
+    return msg
+
+
+@pytest.mark.timeout(1800)
+def test_sim_node_under_fuzzed_input(probe, launch, namespace):
+    """Lockstep: the sim steps exactly once per good answer, with that answer's efforts, never on a bad one."""
+    rng = random.Random(41)
+    states: list[JointState] = []
+    probe.node.create_subscription(JointState, "joint_states", states.append, DEEP)
+    diag = Diagnostics(probe, f"{namespace}/swimmer_sim")
+    pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", 10)
+    proc = launch("swimmer_sim_node", num_joints=3, lockstep=True, real_time_factor=0.0, effort_timeout=600.0)
+    probe.spin_until(lambda: states and pub.get_subscription_count() > 0 and diag.latest, STARTUP, "the sim")
+
+    sent = bad = ignored = big = 0
+    kinds: Counter[str] = Counter()
+
+    def stamp_of(s: JointState) -> int:
+        return to_ns(s.header.stamp.sec, s.header.stamp.nanosec)
+
+    def malformed_for(current: JointState, k: int) -> list[tuple[str, Float64MultiArray]]:
+        st = current.header.stamp
+        tag = answer_tag(st.sec, st.nanosec)
+        ahead = answer_tag(st.sec + 1000, st.nanosec)
+        return [
+            ("length", _efforts([0.1, 0.2], tag)),
+            ("nan", _efforts([0.1, math.nan, 0.2], tag)),
+            ("inf", _efforts([math.inf, 0.0, 0.0], tag)),
+            ("empty", Float64MultiArray()),
+            ("huge", _efforts(np.zeros(HUGE), tag)),
+            ("tag_does_not_parse", _efforts([0.3, 0.3, 0.3], f"joints@{k}x")),
+            ("tag_short_nanosec", _efforts([0.3, 0.3, 0.3], f"joints@{st.sec}.{st.nanosec % 1000}")),
+            ("tag_far_ahead", _efforts([0.3, 0.3, 0.3], ahead)),
+        ]
+
+    def ignorable_for(previous: JointState) -> list[tuple[str, Float64MultiArray]]:
+        st = previous.header.stamp
+        return [("stale", _efforts([0.4, 0.4, 0.4], answer_tag(st.sec, st.nanosec))),
+                ("silence", _efforts([0.0, 0.0, 0.0], SILENCE_TAG))]  # fmt: skip
+
+    steps = 0
+    malformed = 0
+
+    def fuzz(until: int) -> None:
+        nonlocal sent, bad, ignored, big, steps, malformed
+        while malformed < until:
+            current, n = states[-1], len(states)
+            for _ in range(rng.randint(1, 4)):  # the reader keeps 10
+                kind, msg = rng.choice(malformed_for(current, malformed))
+                pub.publish(msg)
+                sent, bad, malformed = sent + 1, bad + 1, malformed + 1
+                kinds[kind] += 1
+                big += kind == "huge"
+            if len(states) > 1 and rng.random() < 0.3:
+                kind, msg = rng.choice(ignorable_for(states[-2]))
+                pub.publish(msg)
+                sent, ignored = sent + 1, ignored + 1
+                kinds[kind] += 1
+            good = [round(rng.uniform(-1.5, 1.5), 3) for _ in range(3)]  # beyond +-1: clipped, still good
+            st = current.header.stamp
+            pub.publish(_efforts(good, answer_tag(st.sec, st.nanosec) if rng.random() < 0.9 else None))
+            sent += 1
+            probe.spin_until(lambda: len(states) > n, ANSWER_TIMEOUT, "the step on a good answer")  # noqa: B023
+            nxt = states[n]
+            assert stamp_of(nxt) == stamp_of(current) + 40_000_000, "the sim stepped other than once"
+            assert list(nxt.effort) == list(np.clip(good, -1.0, 1.0)), "a malformed command was applied"
+            steps += 1
+
+    fuzz(max(50, FUZZ_COUNT // 10))
+    probe.spin_for(1.0)
+    rss_before = rss_kb(proc.proc.pid)
+    t0 = time.monotonic()
+    fuzz(FUZZ_COUNT)
+    elapsed = time.monotonic() - t0
+    probe.spin_for(1.0)
+    rss_after = rss_kb(proc.proc.pid)
+    probe.spin_for(0.5)
+    # A state may be sent again (the first one, waiting for a listener), but the sim never steps without a good answer.
+    assert len({stamp_of(x) for x in states}) == steps + 1, "the sim stepped without a good answer"
+
+    assert proc.alive(), proc.log()[-3000:]
+    counts = _wait_counts(probe, diag, {"effort_commands": sent}, {"effort_commands": big})["effort_commands"]
+    lost = sent - counts.received
+    assert counts.rejected_total == bad - lost and counts.ignored_total == ignored, counts
+    assert set(counts.rejected) == {"efforts", "tag"}
+    log = proc.log()
+    warned = _warning_lines(log)
+    assert warned <= elapsed / 5.0 + 3, f"{warned} warning lines in {elapsed:.0f} s"
+    assert "Traceback" not in log
+    growth = rss_after - rss_before
+    print(
+        f"\nsim node: {bad} malformed + {ignored} stale/silence + {steps} good commands in {elapsed:.1f} s; "
+        f"{lost} large ones lost in transport; RSS {rss_before} -> {rss_after} kB ({growth:+d}); "
+        f"{warned} warning lines; by kind: {dict(sorted(kinds.items()))}"
+    )
+    assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
