@@ -64,6 +64,26 @@ class RosProbe:
         while time.monotonic() < end:
             self.executor.spin_once(timeout_sec=0.02)
 
+    def collect(self, msg_type, topic: str, qos=None) -> list:
+        """Every message on ``topic`` from now on (default QoS: reliable, keep last 1000: nothing lost)."""
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        got: list = []
+        qos = qos if qos is not None else QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.node.create_subscription(msg_type, topic, got.append, qos)
+        return got
+
+    def set_parameter(self, node_path: str, name: str, value, timeout: float = 60.0):
+        """Set one parameter of the node at ``node_path`` through its service; returns its SetParametersResult."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        client = self.node.create_client(SetParameters, f"{node_path}/set_parameters")
+        self.spin_until(client.service_is_ready, timeout, f"{node_path}/set_parameters")
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        self.spin_until(future.done, 20.0, "set_parameters response")
+        return future.result().results[0]
+
     def close(self) -> None:
         self.executor.shutdown()
         self.node.destroy_node()

@@ -33,12 +33,6 @@ DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def _collect(probe, msg_type, topic, qos=DEEP):
-    got = []
-    probe.node.create_subscription(msg_type, topic, got.append, qos)
-    return got
-
-
 def _ns(msg) -> int:
     return to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
 
@@ -84,8 +78,8 @@ class _Controller:
 @pytest.mark.timeout(180)
 def test_lockstep_episodes_are_announced_redrawn_and_replay_in_a_fresh_env(probe, launch):
     lo, hi, steps, seed, wanted = 2, 9, 6, 4, 60
-    announcements = _collect(probe, Int64MultiArray, "episode_start", LATCHED)
-    clocks = _collect(probe, Clock, "/clock")
+    announcements = probe.collect(Int64MultiArray, "episode_start", LATCHED)
+    clocks = probe.collect(Clock, "/clock")
     controller = _Controller(probe, seed=0)
     launch(
         "swimmer_sim_node",
@@ -138,10 +132,10 @@ def test_lockstep_episodes_are_announced_redrawn_and_replay_in_a_fresh_env(probe
 
 @pytest.mark.timeout(180)
 def test_reset_service_starts_an_announced_episode_the_policy_follows(probe, launch, namespace, untrained_checkpoint):
-    announcements = _collect(probe, Int64MultiArray, "episode_start", LATCHED)
-    states = _collect(probe, JointState, "joint_states")
-    efforts = _collect(probe, Float64MultiArray, "effort_commands")
-    clocks = _collect(probe, Clock, "/clock")
+    announcements = probe.collect(Int64MultiArray, "episode_start", LATCHED)
+    states = probe.collect(JointState, "joint_states")
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
+    clocks = probe.collect(Clock, "/clock")
     launch("swimmer_sim_node", num_joints=5, lockstep=True, real_time_factor=0.0, effort_timeout=2.0)
     launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
     probe.spin_until(lambda: len(states) > 20, STARTUP, "the loop running")
@@ -171,7 +165,7 @@ def test_reset_service_starts_an_announced_episode_the_policy_follows(probe, lau
     assert np.abs(first.position).max() < 0.2
 
     # A subscriber that comes late still learns where the current episode began (latched), and only that.
-    late = _collect(probe, Int64MultiArray, "episode_start", LATCHED)
+    late = probe.collect(Int64MultiArray, "episode_start", LATCHED)
     probe.spin_until(lambda: late, 10.0, "the latched announcement")
     probe.spin_for(0.3)
     assert [unpack_episode_start(0, m.layout.dim[0].label, m.data).episode for m in late] == [1]
@@ -179,7 +173,7 @@ def test_reset_service_starts_an_announced_episode_the_policy_follows(probe, lau
 
 @pytest.mark.timeout(120)
 def test_episode_steps_set_at_runtime(probe, launch, namespace):
-    announcements = _collect(probe, Int64MultiArray, "episode_start", LATCHED)
+    announcements = probe.collect(Int64MultiArray, "episode_start", LATCHED)
     controller = _Controller(probe, seed=1)
     launch("swimmer_sim_node", num_joints=3, lockstep=True, real_time_factor=0.0, effort_timeout=2.0)
     probe.spin_until(lambda: len(controller.states) > 10, STARTUP, "the loop running")
@@ -229,7 +223,7 @@ def test_chain_lengths_refuses_half_or_empty_ranges(args):
 def test_policy_restarts_yaw_unwrapping_with_each_announced_episode(probe, launch, untrained_checkpoint):
     """A swimmer that turned past pi, then a new episode with the same chain: the policy must see the new
     swimmer's yaw (near 0), not the old one's branch (2 pi + it); only the announcement tells it."""
-    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
     state_pub = probe.node.create_publisher(JointState, "joint_states", 10)
     odom_pub = probe.node.create_publisher(Odometry, "odom", 10)
     episode_pub = probe.node.create_publisher(Int64MultiArray, "episode_start", 10)

@@ -28,12 +28,6 @@ TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_in
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 
 
-def _collect(probe, msg_type, topic, qos=qos_profile_sensor_data):
-    got = []
-    probe.node.create_subscription(msg_type, topic, got.append, qos)
-    return got
-
-
 def _start_loop(launch, checkpoint, joints=4):
     sim = launch("swimmer_sim_node", num_joints=joints, lockstep=True, real_time_factor=0.0, effort_timeout=2.0)
     policy = launch("morph_policy_node", checkpoint=str(checkpoint), deterministic=False)
@@ -67,7 +61,7 @@ def test_records_the_closed_loop(probe, launch, untrained_checkpoint, tmp_path, 
     # A best-effort publisher of a stamped type the recorder knows only from the graph: a reliable
     # subscription would never match it.
     announce = probe.node.create_publisher(Header, "probe_episodes", qos_profile_sensor_data)
-    infos = _collect(probe, JointTrajectory, "policy_info")
+    infos = probe.collect(JointTrajectory, "policy_info", qos_profile_sensor_data)
     bag = tmp_path / "bag"
     recorder = launch("morph-record", output=str(bag), topics=TOPICS, chunk_size=16384)
     probe.spin_until(lambda: announce.get_subscription_count() > 0, STARTUP, "the recorder on probe_episodes")

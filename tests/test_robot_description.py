@@ -13,8 +13,6 @@ import mujoco
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
@@ -24,26 +22,11 @@ from visualization_msgs.msg import Marker, MarkerArray
 from morph_core.env.model import swimmer_model
 
 STARTUP = 60.0
-DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def _collect(probe, msg_type, topic, qos=DEEP):
-    got = []
-    probe.node.create_subscription(msg_type, topic, got.append, qos)
-    return got
 
 
 def _stamp_ns(header) -> int:
     return header.stamp.sec * 10**9 + header.stamp.nanosec
-
-
-def _set_parameter(probe, node_name: str, name: str, value):
-    client = probe.node.create_client(SetParameters, f"{node_name}/set_parameters")
-    probe.spin_until(client.service_is_ready, STARTUP, f"{node_name}/set_parameters")
-    future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
-    probe.spin_until(future.done, 10.0, "set_parameters response")
-    return future.result().results[0]
 
 
 def _revolute_names(urdf_text: str) -> list[str]:
@@ -53,20 +36,20 @@ def _revolute_names(urdf_text: str) -> list[str]:
 
 @pytest.mark.timeout(180)
 def test_late_subscriber_gets_the_urdf_and_it_follows_num_joints(probe, launch, namespace):
-    states = _collect(probe, JointState, "joint_states")
-    odoms = _collect(probe, Odometry, "odom")
+    states = probe.collect(JointState, "joint_states")
+    odoms = probe.collect(Odometry, "odom")
     launch("swimmer_sim_node", num_joints=6, joint_prefix="s1/")
     probe.spin_until(lambda: states and odoms, STARTUP, "the sim's first states")
 
     # Subscribed only now, after the sim published it: the latched sample arrives all the same.
-    descriptions = _collect(probe, String, "robot_description", LATCHED)
+    descriptions = probe.collect(String, "robot_description", LATCHED)
     probe.spin_until(lambda: descriptions, 20.0, "the latched robot_description")
     robot = URDF.from_xml_string(descriptions[-1].data)
     assert _revolute_names(descriptions[-1].data) == list(states[-1].name)
     assert robot.get_root() == odoms[-1].child_frame_id == "s1/torso"
     assert len(robot.links) == 7
 
-    result = _set_parameter(probe, f"{namespace}/swimmer_sim", "num_joints", 11)
+    result = probe.set_parameter(f"{namespace}/swimmer_sim", "num_joints", 11)
     assert result.successful, result.reason
     n = len(states)
     probe.spin_until(
@@ -106,9 +89,9 @@ def _marker_axis(marker: Marker) -> np.ndarray:
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("joints", [1, 6])
 def test_markers_are_the_sims_segments(probe, launch, namespace, joints):
-    states = _collect(probe, JointState, "joint_states")
-    odoms = _collect(probe, Odometry, "odom")
-    arrays = _collect(probe, MarkerArray, "markers")
+    states = probe.collect(JointState, "joint_states")
+    odoms = probe.collect(Odometry, "odom")
+    arrays = probe.collect(MarkerArray, "markers")
     efforts = probe.node.create_publisher(Float64MultiArray, "effort_commands", 10)
     t0 = probe.node.get_clock().now().nanoseconds
     # A travelling wave bends the chain well away from straight, so the check sees real angles.

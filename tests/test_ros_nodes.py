@@ -10,8 +10,6 @@ import math
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
-from rcl_interfaces.srv import SetParameters
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -28,22 +26,8 @@ STARTUP = 60.0  # seconds for processes to start and match (torch import on a lo
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def _collect(probe, msg_type, topic, qos=DEEP):
-    got = []
-    probe.node.create_subscription(msg_type, topic, got.append, qos)
-    return got
-
-
 def _stamp(msg) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-
-
-def _set_parameter(probe, node_name: str, name: str, value):
-    client = probe.node.create_client(SetParameters, f"{node_name}/set_parameters")
-    probe.spin_until(client.service_is_ready, STARTUP, f"{node_name}/set_parameters")
-    future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
-    probe.spin_until(future.done, 10.0, "set_parameters response")
-    return future.result().results[0]
 
 
 def _state(names, pos, vel, sec=0):
@@ -56,8 +40,8 @@ def _state(names, pos, vel, sec=0):
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("joints", [2, 7, 20])
 def test_efforts_have_one_value_per_joint(probe, launch, untrained_checkpoint, joints):
-    states = _collect(probe, JointState, "joint_states")
-    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    states = probe.collect(JointState, "joint_states")
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
     launch("swimmer_sim_node", num_joints=joints)
     launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
     probe.spin_until(lambda: len(efforts) >= 10 and len(states) >= 3, STARTUP, "joint states and 10 effort commands")
@@ -73,13 +57,13 @@ def test_efforts_have_one_value_per_joint(probe, launch, untrained_checkpoint, j
 
 @pytest.mark.timeout(120)
 def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, namespace):
-    states = _collect(probe, JointState, "joint_states")
-    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    states = probe.collect(JointState, "joint_states")
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
     launch("swimmer_sim_node", num_joints=6)
     launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
     probe.spin_until(lambda: any(len(e.data) == 6 for e in efforts), STARTUP, "6 efforts")
 
-    result = _set_parameter(probe, f"{namespace}/swimmer_sim", "num_joints", 11)
+    result = probe.set_parameter(f"{namespace}/swimmer_sim", "num_joints", 11)
     assert result.successful, result.reason
     n_before = len(states)
     probe.spin_until(
@@ -92,9 +76,9 @@ def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, name
     first = lengths.index(11)
     assert set(lengths[first:]) == {11}
 
-    refused = _set_parameter(probe, f"{namespace}/swimmer_sim", "num_joints", 0)
+    refused = probe.set_parameter(f"{namespace}/swimmer_sim", "num_joints", 0)
     assert not refused.successful and "num_joints" in refused.reason
-    refused = _set_parameter(probe, f"{namespace}/swimmer_sim", "real_time_factor", -1.0)
+    refused = probe.set_parameter(f"{namespace}/swimmer_sim", "real_time_factor", -1.0)
     assert not refused.successful and refused.reason
     n = len(states)
     probe.spin_until(lambda: len(states) > n + 5, 20.0, "joint states after a refused change")
@@ -120,10 +104,10 @@ def _rollout(policy: GraphActorCritic, joints: int, seed: int, steps: int) -> li
 
 def _run_lockstep(probe, launch, checkpoint, joints, seed, sim_seconds):
     """Sim in lockstep + policy; returns {step: (x, y)} from odom up to ``sim_seconds``."""
-    odoms = _collect(probe, Odometry, "odom")
+    odoms = probe.collect(Odometry, "odom")
     # Listening to joint_states too makes the sim publish (and re-send) its reset state before the
     # policy is up, so the probe has surely matched the sim when the loop starts.
-    _collect(probe, JointState, "joint_states")
+    probe.collect(JointState, "joint_states")
     launch(
         "swimmer_sim_node",
         num_joints=joints,
@@ -148,7 +132,7 @@ def test_lockstep_sim_never_steps_on_a_controllers_silence_zeros(probe, launch):
 
     from morph_core.msgs.stamps import SILENCE_TAG, answer_tag
 
-    states = _collect(probe, JointState, "joint_states")
+    states = probe.collect(JointState, "joint_states")
     pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", DEEP)
     launch("swimmer_sim_node", num_joints=2, lockstep=True, real_time_factor=0.0, effort_timeout=30.0)
     probe.spin_until(lambda: states and pub.get_subscription_count() > 0, STARTUP, "the first state")
@@ -193,7 +177,7 @@ def test_trained_policy_swims_forward(probe, launch):
 
 # -- policy node alone ---------------------------------------------------------------------
 def _policy_with_publisher(probe, launch, checkpoint, **params):
-    efforts = _collect(probe, Float64MultiArray, "effort_commands")
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
     pub = probe.node.create_publisher(JointState, "joint_states", 10)
     proc = launch("morph_policy_node", checkpoint=str(checkpoint), **params)
     probe.spin_until(
@@ -260,7 +244,7 @@ def test_silent_input_gives_zero_efforts(probe, launch, untrained_checkpoint):
 
 @pytest.mark.timeout(120)
 def test_sampling_publishes_policy_info(probe, launch, untrained_checkpoint):
-    infos = _collect(probe, JointTrajectory, "policy_info")
+    infos = probe.collect(JointTrajectory, "policy_info")
     proc, pub, efforts = _policy_with_publisher(probe, launch, untrained_checkpoint, deterministic=False)
     good = _state(["x", "y", "z", "w"], [0.3, -0.2, 0.1, 0.0], [0.1] * 4, sec=42)
     answer = _answer(probe, pub, efforts, good, 4)
@@ -284,8 +268,8 @@ def test_sampling_publishes_policy_info(probe, launch, untrained_checkpoint):
 # -- sim node alone ------------------------------------------------------------------------
 @pytest.mark.timeout(120)
 def test_sim_rejects_malformed_commands_and_keeps_running(probe, launch):
-    states = _collect(probe, JointState, "joint_states")
-    odoms = _collect(probe, Odometry, "odom")
+    states = probe.collect(JointState, "joint_states")
+    odoms = probe.collect(Odometry, "odom")
     pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", 10)
     proc = launch("swimmer_sim_node", num_joints=3, real_time_factor=2.0, effort_timeout=5.0)
     probe.spin_until(lambda: pub.get_subscription_count() > 0 and states, STARTUP, "the sim")
