@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.env.reward import applied_action
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.joint_state import chain_batch
@@ -75,7 +76,7 @@ def sampled(policy):
 
 
 def replay_by_order(loop):
-    """(stamp, observation, action stepped with, reward, next observation) per stepped state, from a fresh env
+    """(stamp, observation, action sampled, reward, next observation) per stepped state, from a fresh env
     with the sim's seed, reset where the recording reset."""
     env = MorphSwimmerEnv(num_joints=loop.truth[0].observation["joint_pos"].size)
     obs, _ = env.reset(seed=SEED)
@@ -86,7 +87,9 @@ def replay_by_order(loop):
             obs, _ = env.reset(options={"num_joints": truth.observation["joint_pos"].size})
         if truth.action is None:
             continue
-        nxt, reward, _, _, _ = env.step(truth.action)
+        # Stepped as the training loop steps it: with the sample clipped to the motors' range, the action
+        # charged (env.reward); the transition keeps the sample itself for its log-prob.
+        nxt, reward, _, _, _ = env.step(applied_action(truth.action))
         yield obs, truth.action, reward, nxt
         obs = nxt
 

@@ -4,8 +4,13 @@
 
 ``x`` and ``x'`` are the torso's world x before and after one control period
 ``dt`` (0.04 s: 4 physics steps of 0.01), ``a`` the action the env was
-stepped with (before the env's own clip to the motors' range: in training the
-sampled action, as Gymnasium's Swimmer-v5 charges it).
+stepped with. In training that is the policy's sample clipped to the motors'
+range (``applied_action``), as Stable-Baselines3 clips it before stepping
+Swimmer-v5 in the paper's setup; every data source charges that same action
+(the simulator loop, and transitions rebuilt from topics, where it is the
+effort the sim reports as applied). Charging the unclipped sample instead makes
+the cost unbounded once the policy's mean drifts beyond the range: the live
+trainer's critic then chased returns of -300 and its updates diverged.
 """
 
 from __future__ import annotations
@@ -14,6 +19,13 @@ import numpy as np
 
 FORWARD_REWARD_WEIGHT = 1.0
 CTRL_COST_WEIGHT = 1e-4
+CTRL_LIMIT = 1.0
+"""the motors' control range is [-CTRL_LIMIT, CTRL_LIMIT] (the MJCF's ctrlrange)"""
+
+
+def applied_action(action) -> np.ndarray:
+    """What the motors get of an action: clipped to the control range."""
+    return np.clip(action, -CTRL_LIMIT, CTRL_LIMIT)
 
 
 def forward_velocity(x_before: float, x_after: float, dt: float) -> float:

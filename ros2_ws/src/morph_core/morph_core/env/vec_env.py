@@ -16,6 +16,7 @@ from typing import TypeVar
 import mujoco
 import numpy as np
 
+from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.chains import pad_observations
 
@@ -119,7 +120,7 @@ class SwimmerVecEnv:
 
     def _step_one(self, i: int, action: np.ndarray):
         env = self.envs[i]
-        obs, r, term, _, _ = env.step(np.clip(action[: env.num_joints], -1.0, 1.0))
+        obs, r, term, _, _ = env.step(applied_action(action[: env.num_joints]))
         self.episode_steps[i] += 1
         self.episode_returns[i] += r
         trunc = not term and self.episode_steps[i] >= self.max_episode_steps

@@ -18,8 +18,8 @@ next state s' one control period later:
   step); either way clip(action) must be the effort the sim reports as
   applied over the period (s'.effort), or the step is skipped;
 - reward: Swimmer-v5's, from the torso x of s and s' (their odometry), the
-  control period, and that action (the env is charged for the unclipped
-  sample; the sim applies its clip);
+  control period, and that action clipped to the motors' range (what the sim
+  applied, and what the simulator loop charges: ``env.reward``);
 - terminated: never (the swimmer task has no terminal states; the one the
   env has, a physics divergence, leaves no next state on the wire: the sim
   resets and announces a new episode, so that step is not there to keep);
@@ -61,7 +61,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
-from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, swimmer_reward
+from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, applied_action, swimmer_reward
 from morph_core.msgs.joint_state import JointStateError, YawUnwrapper, global_features, validate_joint_state
 from morph_core.msgs.records import (
     EffortRecord,
@@ -490,8 +490,9 @@ class TransitionAssembler:
         action, log_prob, has_info = answer
         cfg = self.config
         reward = swimmer_reward(
-            obs.x, obs_next.x, cfg.control_period, action, cfg.forward_reward_weight, cfg.ctrl_cost_weight
-        )
+            obs.x, obs_next.x, cfg.control_period, applied_action(action), cfg.forward_reward_weight,
+            cfg.ctrl_cost_weight,
+        )  # fmt: skip
         return Transition(
             episode=-1,
             stamp_ns=a.stamp,
