@@ -147,3 +147,16 @@ def test_live_updates_log_the_log_ratio_histograms(tmp_path, episodes):
     tags = acc.Tags()["histograms"]
     assert {"log_ratio/d3", "log_ratio/d6"} <= set(tags), tags
     assert acc.Histograms("log_ratio/d3")[0].step == 80
+
+
+def test_resume_skips_a_damaged_state_for_the_previous_one(tmp_path, episodes):
+    learner = LiveLearner(SMALL, tmp_path, max_staleness=1)
+    learner.add_episode(episodes[0], [0] * 40)
+    learner.add_episode(episodes[1], [0] * 40)
+    learner.update()
+    learner.close()
+    state = tmp_path / "state.safetensors"
+    state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])  # truncated on disk
+    resumed = LiveLearner(SMALL, tmp_path, resume=True, max_staleness=1)
+    assert resumed.resumed and resumed.version == 0  # the state before the update, whole
+    assert resumed.run_id == learner.run_id

@@ -49,7 +49,13 @@ import numpy as np
 import torch
 from safetensors.torch import save as safetensors_bytes
 
-from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.checkpoint import (
+    previous_state_path,
+    restore_optimizer,
+    resume_training_state,
+    save_training_state,
+    sub_dict,
+)
 from morph_core.algo.ppo import explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.tb_layout import update_histograms
@@ -114,7 +120,7 @@ class LiveLearner:
         self.state_path = self.run_dir / "state.safetensors"
         self.max_staleness = max_staleness
         torch.set_num_threads(1)  # before init, as algo.train
-        resumed = resume and self.state_path.exists()
+        resumed = resume and (self.state_path.exists() or previous_state_path(self.state_path).exists())
         self.cfg = cfg  # on resume: the run's config.json with any overrides (``train.load_run_config``)
         torch.manual_seed(cfg.seed)
         self.policy = GraphActorCritic(cfg.policy)
@@ -123,7 +129,8 @@ class LiveLearner:
         self.counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "version": 0, "env_steps": 0}
         self.run_id = uuid.uuid4().hex
         if resumed:
-            tensors, meta = load_training_state(self.state_path)
+            state = resume_training_state(self.state_path)  # a damaged newest state: the previous one
+            tensors, meta = state.tensors, state.meta
             self.policy.load_state_dict(sub_dict(tensors, "policy."))
             restore_optimizer(self.learner.optimizer, tensors, meta)
             self.learner.restore_state(tensors)  # the rule's state, e.g. the KL penalty's beta

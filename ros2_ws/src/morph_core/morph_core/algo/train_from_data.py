@@ -79,7 +79,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.checkpoint import load_training_state, restore_optimizer, save_training_state, sub_dict
+from morph_core.algo.checkpoint import (
+    load_training_state,
+    previous_state_path,
+    restore_optimizer,
+    resume_training_state,
+    save_training_state,
+    sub_dict,
+)
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.tb_layout import update_histograms
@@ -354,9 +361,10 @@ def train_from_data(
     gen = torch.Generator().manual_seed(cfg.seed)
     counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "data_round": 0, "env_steps": 0}
     current: _Round | None = None
-    resumed = resume and state_path.exists()
+    resumed = resume and (state_path.exists() or previous_state_path(state_path).exists())
     if resumed:
-        tensors, meta = load_training_state(state_path)
+        state = resume_training_state(state_path)  # a damaged newest state: the previous one, named in the log
+        tensors, meta = state.tensors, state.meta
         policy.load_state_dict(sub_dict(tensors, "policy."))
         restore_optimizer(learner.optimizer, tensors, meta)
         learner.restore_state(tensors)
