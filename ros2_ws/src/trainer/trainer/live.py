@@ -30,7 +30,7 @@ reset). The trainer killed: ``--resume`` continues from the state saved at
 its last update and re-publishes that version; policy nodes run the
 last weights they got meanwhile.
 
-Subscription QoS: reliable keep-last 1000 for the data topics (a deep queue:
+Subscription QoS: reliable keep-last 10,000 for the data topics (a deep queue:
 the worker thread's update must not cost samples; reliable readers match the
 nodes' reliable writers and a best-effort writer is still heard by nobody:
 the project's publishers of these topics are reliable), reliable transient
@@ -62,7 +62,13 @@ from morph_core.algo.train import TrainConfig
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
-from morph_core.protocol.transitions import SkipCounts, StreamStats, Transition, TransitionAssembler
+from morph_core.protocol.transitions import (
+    SkipCounts,
+    StreamStats,
+    Transition,
+    TransitionAssembler,
+    TransitionConfig,
+)
 from trainer.bag_io import (
     DecodeError,
     effort_record,
@@ -73,7 +79,12 @@ from trainer.bag_io import (
 )
 from trainer.live_learner import LiveLearner, LiveOptions
 
-DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
+"""deep: an update starves the executor for tens of seconds on a loaded machine, and a full queue drops the
+oldest messages (stamp gaps that cut episodes into fragments)"""
+SETTLE_STATES = 500
+"""states a step waits for its other messages: a reliable reader repairs a lost sample only after the
+writer's next heartbeat, seconds later on a loaded machine (a bag has no such delay: 10 suffice there)"""
 EPISODE_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
@@ -96,7 +107,9 @@ class _Pair:
     """One namespace's stream."""
 
     ns: str
-    assembler: TransitionAssembler = field(default_factory=TransitionAssembler)
+    assembler: TransitionAssembler = field(
+        default_factory=lambda: TransitionAssembler(TransitionConfig(settle_states=SETTLE_STATES))
+    )
     episode: list[Transition] = field(default_factory=list)
     versions: OrderedDict = field(default_factory=OrderedDict)
     """policy_info stamp -> weights version (None: not said)"""
@@ -108,6 +121,11 @@ class _Pair:
     decode_errors: Counter = field(default_factory=Counter)
     dropped_partial: int = 0
     drops: int = 0
+
+
+def _nonzero(skips: SkipCounts) -> str:
+    """The reasons that counted, e.g. 'not_applied 12, late_message 3'."""
+    return ", ".join(f"{k} {v}" for k, v in skips.as_dict().items() if v) or "none"
 
 
 class LiveTrainer(Node):
@@ -284,7 +302,8 @@ class LiveTrainer(Node):
         ]
         self.get_logger().info(
             f"version {self.learner.version}, pool {self.learner.pool_size}/{self.learner.cfg.batch_size}, "
-            f"{stats.transitions} transitions, {skips.steps_skipped} steps skipped, dropped stale "
+            f"{stats.transitions} transitions in {stats.episodes} runs, {stats.boundaries_stamp_gap} stamp gaps, "
+            f"{skips.steps_skipped} steps skipped ({_nonzero(skips)}), dropped stale "
             f"{self.learner.dropped_stale}; " + "; ".join(parts)
         )
 
