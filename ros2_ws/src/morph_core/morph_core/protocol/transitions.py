@@ -287,6 +287,9 @@ class TransitionAssembler:
 
     def _start_stream(self) -> None:
         self._slots: dict[int, _Slot] = {}
+        # Slots of messages whose state has not come (yet), oldest first: eviction looks only at these, so a
+        # long settle window costs nothing per message.
+        self._stateless: dict[int, _Slot] = {}
         self._sequence: deque[int] = deque()  # stamps of received states not yet judged as a step's start
         self._states_seen = 0
         self._latest_state: int | None = None  # stamp, for untagged efforts
@@ -361,7 +364,7 @@ class TransitionAssembler:
             if stamp in self._judged and self._latest_state - stamp <= self._late_window_ns:
                 self.skips.late_message += 1
                 return None
-            slot = self._slots[stamp] = _Slot(stamp, self._states_seen)
+            slot = self._slots[stamp] = self._stateless[stamp] = _Slot(stamp, self._states_seen)
         return slot
 
     def _on_state(self, record: JointStateRecord) -> None:
@@ -400,6 +403,7 @@ class TransitionAssembler:
         if slot is None:
             slot = _Slot(record.stamp_ns, self._states_seen)
         self._slots[record.stamp_ns] = slot
+        self._stateless.pop(record.stamp_ns, None)
         slot.state = record
         self._sequence.append(record.stamp_ns)
         self._states_seen += 1
@@ -439,9 +443,10 @@ class TransitionAssembler:
 
     def _evict_orphans(self, final: bool) -> None:
         """Drop (and count) messages for stamps no state came for within the settle window."""
-        for slot in [s for s in self._slots.values() if s.state is None]:
-            if final or self._states_seen - slot.born > self.config.settle_states + 1:
-                self._evict(slot)
+        for slot in list(self._stateless.values()):
+            if not (final or self._states_seen - slot.born > self.config.settle_states + 1):
+                break  # oldest first: the rest are younger
+            self._evict(slot)
 
     def _new_episode(self) -> int:
         self._next_episode += 1
@@ -462,6 +467,7 @@ class TransitionAssembler:
 
     def _evict(self, slot: _Slot) -> None:
         del self._slots[slot.stamp]
+        del self._stateless[slot.stamp]
         self.skips.orphan_effort += len(slot.efforts)
         self.skips.orphan_policy_info += len(slot.infos)
         self.skips.orphan_odometry += slot.odom is not None
