@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.records import EpisodeStartRecord
 from morph_core.policy.actor_critic import GraphActorCritic, gaussian_log_prob
@@ -64,6 +65,7 @@ def test_exported_bag_equals_a_replay_in_the_env(untrained_checkpoint, tmp_path,
                 torch.as_tensor(action[None], dtype=torch.float32), mean, policy.log_std, batch.mask
             )
         assert data.log_prob[i] == pytest.approx(float(expected), abs=1e-4)  # float32 network vs float64 record
-        obs, reward, terminated, _, _ = env.step(action)  # the env is charged for the sampled action
+        # Stepped as training steps it: the sample clipped to the motors' range is what is charged.
+        obs, reward, terminated, _, _ = env.step(applied_action(action))
         assert not terminated
         assert data.reward[i] == pytest.approx(reward, abs=1e-9)
