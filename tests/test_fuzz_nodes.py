@@ -50,6 +50,19 @@ def rss_kb(pid: int) -> int:
     raise AssertionError("no VmRSS")
 
 
+def _fuzz_measured(probe, proc, fuzz) -> tuple[int, int, float]:
+    """A warm-up (every kind once or more, allocator pools grown), then ``FUZZ_COUNT`` malformed messages
+    with good ones between: (RSS before, RSS after [kB], seconds of the measured part)."""
+    fuzz(max(50, FUZZ_COUNT // 10))
+    probe.spin_for(1.0)
+    rss_before = rss_kb(proc.proc.pid)
+    t0 = time.monotonic()
+    fuzz(FUZZ_COUNT)
+    elapsed = time.monotonic() - t0
+    probe.spin_for(1.0)
+    return rss_before, rss_kb(proc.proc.pid), elapsed
+
+
 def _doubles(values) -> array.array:
     return array.array("d", np.asarray(values, dtype=np.float64).tobytes())
 
@@ -279,14 +292,7 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
 
     for _ in range(20):
         good_round()
-    fuzz(max(50, FUZZ_COUNT // 10))  # warm-up: every kind once or more, allocator pools grown
-    probe.spin_for(1.0)
-    rss_before = rss_kb(proc.proc.pid)
-    t0 = time.monotonic()
-    fuzz(FUZZ_COUNT)
-    elapsed = time.monotonic() - t0
-    probe.spin_for(1.0)
-    rss_after = rss_kb(proc.proc.pid)
+    rss_before, rss_after, elapsed = _fuzz_measured(probe, proc, fuzz)
     for _ in range(5):
         good_round()
 
@@ -394,14 +400,7 @@ def test_sim_node_under_fuzzed_input(probe, launch, namespace):
             assert list(nxt.effort) == list(np.clip(good, -1.0, 1.0)), "a malformed command was applied"
             steps += 1
 
-    fuzz(max(50, FUZZ_COUNT // 10))
-    probe.spin_for(1.0)
-    rss_before = rss_kb(proc.proc.pid)
-    t0 = time.monotonic()
-    fuzz(FUZZ_COUNT)
-    elapsed = time.monotonic() - t0
-    probe.spin_for(1.0)
-    rss_after = rss_kb(proc.proc.pid)
+    rss_before, rss_after, elapsed = _fuzz_measured(probe, proc, fuzz)
     probe.spin_for(0.5)
     # A state may be sent again (the first one, waiting for a listener), but the sim never steps without a good answer.
     assert len({stamp_of(x) for x in states}) == steps + 1, "the sim stepped without a good answer"
