@@ -9,8 +9,8 @@ range (``applied_action``), as Stable-Baselines3 clips it before stepping
 Swimmer-v5 in the paper's setup; every data source charges that same action
 (the simulator loop, and transitions rebuilt from topics, where it is the
 effort the sim reports as applied). Charging the unclipped sample instead makes
-the cost unbounded once the policy's mean drifts beyond the range: the live
-trainer's critic then chased returns of -300 and its updates diverged.
+the cost unbounded once the policy's mean drifts beyond the range (a live run
+charged so fell to returns of -340), and the sources would learn different tasks.
 """
 
 from __future__ import annotations
