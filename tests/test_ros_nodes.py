@@ -85,6 +85,26 @@ def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, name
     assert {len(s.name) for s in states[n:]} == {11}
 
 
+@pytest.mark.timeout(120)
+def test_joint_prefix_checked_and_applied_at_runtime(probe, launch, namespace):
+    states = probe.collect(JointState, "joint_states")
+    launch("swimmer_sim_node", num_joints=3)
+    probe.spin_until(lambda: states, STARTUP, "joint states")
+    node = f"{namespace}/swimmer_sim"
+    for bad in ("x" * 300, "caf\u00e9/", "a\tb/"):  # too long, not ASCII, a control character
+        result = probe.set_parameter(node, "joint_prefix", bad)
+        assert not result.successful and "joint_prefix" in result.reason, (bad, result.reason)
+    wrong_type = probe.set_parameter(node, "joint_prefix", 7)
+    assert not wrong_type.successful
+    n = len(states)
+    probe.spin_until(lambda: len(states) > n + 3, 20.0, "joint states after the refusals")
+    assert all(not name.startswith(("x", "caf", "a\t")) for s in states[n:] for name in s.name)
+    assert probe.set_parameter(node, "joint_prefix", "left/").successful
+    probe.spin_until(lambda: any(s.name[0].startswith("left/") for s in states[n:]), 20.0, "prefixed names")
+    renamed = next(s for s in states[n:] if s.name[0].startswith("left/"))
+    assert len(renamed.name) == 3 and all(name.startswith("left/") for name in renamed.name)
+
+
 def _rollout(policy: GraphActorCritic, joints: int, seed: int, steps: int) -> list[tuple[float, float]]:
     """The same closed loop in-process, in the training env: torso (x, y) after each control step, index 0 = reset.
 
