@@ -31,12 +31,14 @@ from morph_core.env.segments import segment_poses
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
 
-DESCRIPTION_QOS = QoSProfile(
+LATCHED_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=1,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+"""the latest sample kept for late subscribers (the sim's robot_description and episode_start)"""
+DESCRIPTION_QOS = LATCHED_QOS
 """robot_description: latched, as robot_state_publisher's"""
 MARKER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 SEGMENT_COLOR = ColorRGBA(r=0.8, g=0.6, b=0.4, a=1.0)  # the MJCF's segment colour

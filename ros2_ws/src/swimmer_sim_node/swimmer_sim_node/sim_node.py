@@ -99,7 +99,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
@@ -115,7 +115,7 @@ from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
-from swimmer_sim_node.chain_viz import ChainViz
+from swimmer_sim_node.chain_viz import LATCHED_QOS, ChainViz
 
 # A free-running tick steps for at most this long before letting the executor
 # serve commands and parameter requests.
@@ -127,12 +127,7 @@ MAX_PREFIX_CHARS = MAX_NAME_CHARS - len("motor64_rot")  # the longest name the s
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 """joint_states, odom, /clock"""
-EPISODE_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
+EPISODE_QOS = LATCHED_QOS
 """episode_start: latched, so a late subscriber still learns where the current episode began"""
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 """effort_commands (read): depth 10 so a stale answer queued behind the awaited one cannot push it out"""
