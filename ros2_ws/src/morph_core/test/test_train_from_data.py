@@ -21,9 +21,8 @@ from morph_core.algo.train_from_data import (
     run_state,
     train_from_data,
 )
-from morph_core.env.sim import SwimmerSim
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.protocol.loopback import LoopbackRecording, MeanController, SamplingController
+from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import assemble
 
@@ -36,13 +35,7 @@ EPISODES = ((3, 40), (6, 30), (9, 30))
 
 
 def record(controller, episodes=EPISODES, seed=0) -> TransitionBatch:
-    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
-    for i, (n, steps) in enumerate(episodes):
-        if i:
-            loop.new_episode(n)
-        loop.run(steps)
-    loop.finish()
-    return assemble(loop.records).batch
+    return assemble(record_episodes(controller, episodes, seed)).batch
 
 
 @pytest.fixture(scope="module")
