@@ -1,11 +1,13 @@
 """Live training on a Jazzy install: K lockstep sim+policy pairs in /swimmer0.. plus the live trainer.
 
 ros2 launch trainer live_training.launch.py pairs:=4 out:=runs/live [updates:=0] [episode_steps:=1000]
-    [resume:=false] [min_joints:=2] [max_joints:=10] [train_args:='--num-steps 1024 --seed 1']
+    [resume:=false] [min_joints:=2] [max_joints:=10] [real_time_factor:=1.0]
+    [train_args:='--num-steps 1024 --seed 1']
 
 The same processes as ``python -m trainer.live_bringup`` (which needs no ``launch``): each pair's sim runs
-in lockstep as fast as possible with its chain length redrawn from min_joints..max_joints at each reset; its
-policy samples (``deterministic:=false``) and takes the weights the trainer pushes on ``policy_weights``.
+in lockstep at real_time_factor (1: real time; 0: as fast as it goes) with its chain length redrawn from
+min_joints..max_joints at each reset; its policy samples (``deterministic:=false``) and takes the weights
+the trainer pushes on ``policy_weights``.
 """
 
 from launch import LaunchDescription
@@ -28,7 +30,8 @@ def _nodes(context):
     for i, ns in enumerate(namespaces):
         actions.append(Node(package="swimmer_sim_node", executable="swimmer_sim_node", name="swimmer_sim",
                             namespace=ns, output="screen", respawn=True, respawn_delay=1.0,
-                            parameters=[{"lockstep": True, "real_time_factor": 0.0, "effort_timeout": 2.0,
+                            parameters=[{"lockstep": True, "real_time_factor": float(value("real_time_factor")),
+                                         "effort_timeout": 2.0,
                                          "min_joints": int(value("min_joints")),
                                          "max_joints": int(value("max_joints")), "seed": i}]))  # fmt: skip
         actions.append(Node(package="morph_policy_node", executable="morph_policy_node", name="morph_policy",
@@ -46,6 +49,7 @@ def generate_launch_description():
         ("resume", "false", "continue the run in out"),
         ("min_joints", "2", "shortest chain drawn at a reset"),
         ("max_joints", "10", "longest chain drawn at a reset"),
+        ("real_time_factor", "1.0", "the sims' pace (1: real time, as robots run; 0: unpaced)"),
         ("train_args", "", "further morph-train options (TrainConfig fields)"),
     ]
     return LaunchDescription(

@@ -5,8 +5,8 @@
 What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
 machines without ``launch``. The trainer starts first (``morph-train --live``,
 its subscriptions made in advance), then each pair in ``/swimmer<i>``: the
-sim (lockstep, as fast as possible, chain length redrawn from 2..10 at each
-reset, seed i) and, once the trainer listens to the pair, the sampling policy
+sim (lockstep, paced at ``--real-time-factor``, real time by default; chain
+length redrawn from 2..10 at each reset, seed i) and, once the trainer listens to the pair, the sampling policy
 (``deterministic:=false``, seed i). The trainer pushes its weights to every
 policy node and sets each sim's episode length. The bring-up ends when the
 trainer does (``--updates``, or the config's total_timesteps) and stops the
@@ -27,11 +27,13 @@ from trainer.record_bringup import _fastdds_profile, _start, _stop, _wait_for_su
 TRAINER_NODE = "morph_live_trainer"
 
 
-def pair_params(index: int, min_joints: int, max_joints: int, checkpoint: str | None) -> tuple[dict, dict]:
+def pair_params(
+    index: int, min_joints: int, max_joints: int, checkpoint: str | None, real_time_factor: float = 1.0
+) -> tuple[dict, dict]:
     """(sim, policy) parameters of pair ``index``."""
     sim = {
         "lockstep": "true",
-        "real_time_factor": 0.0,
+        "real_time_factor": real_time_factor,
         "effort_timeout": 2.0,
         "min_joints": min_joints,
         "max_joints": max_joints,
@@ -69,7 +71,7 @@ def run(args, extra: list[str]) -> int:
     specs: list[tuple[str, str, dict]] = []
     try:
         for i, ns in enumerate(namespaces):
-            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint)
+            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor)
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
             topics = [f"{ns}/{t}" for t in ("joint_states", "effort_commands", "policy_info", "odom")]
@@ -110,6 +112,13 @@ def main(argv=None) -> int:
     ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out")
     ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
+    ap.add_argument(
+        "--real-time-factor",
+        type=float,
+        default=1.0,
+        help="the sims' pace (1: real time, as robots run; 0: as fast as the loop goes). Unpaced pairs "
+        "can outrun the trainer's ingest on a loaded machine, which then cuts their episodes",
+    )
     ap.add_argument("--min-joints", type=int, default=2)
     ap.add_argument("--max-joints", type=int, default=10)
     ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
@@ -119,6 +128,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.pairs < 1:
         ap.error("--pairs must be >= 1")
+    if not args.real_time_factor >= 0:
+        ap.error("--real-time-factor must be >= 0")
     return run(args, extra)
 
 
