@@ -256,7 +256,7 @@ def test_a_lost_state_is_a_stamp_gap_and_the_rest_is_unchanged(sampled):
     lost = state_stamps(sampled)[10]
     records = without(sampled.records, lambda r: isinstance(r, JointStateRecord) and r.stamp_ns == lost)
     result = assemble(records)
-    assert result.stats.boundaries_stamp_gap == 1
+    assert result.stats.boundaries_stamp_gap == 1 and result.stats.clock_restarts == 0
     # its odometry, effort and policy_info answer no recorded state
     assert (result.skips.orphan_odometry, result.skips.orphan_effort, result.skips.orphan_policy_info) == (1, 1, 1)
     assert result.skips.steps_skipped == 0
@@ -275,7 +275,7 @@ def test_a_restarted_clock_is_a_boundary(policy):
         if not isinstance(r, EpisodeStartRecord)  # a sim that does not announce
     ]
     result = assemble(records)
-    assert result.stats.boundaries_stamp_gap == 1
+    assert result.stats.boundaries_stamp_gap == 1 and result.stats.clock_restarts == 1
     assert np.bincount(result.batch.episode).tolist() == [40, 6]
     assert result.skips == SkipCounts()
 

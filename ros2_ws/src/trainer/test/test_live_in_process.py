@@ -53,3 +53,35 @@ def test_cli_refuses_bad_options_and_an_existing_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "run")])
     assert "already holds a run" in capsys.readouterr().err
+
+
+def test_lost_states_are_warned_about_and_a_restarted_sim_is_not():
+    import dataclasses
+
+    import numpy as np
+
+    from morph_core.msgs.records import JointStateRecord
+    from morph_core.policy.actor_critic import GraphActorCritic
+    from morph_core.protocol.loopback import SamplingController, record_episodes
+    from morph_core.protocol.transitions import TransitionAssembler
+    from trainer.live import lost_messages_warning  # rclpy is imported, nothing is started
+
+    policy = GraphActorCritic()
+    first = record_episodes(SamplingController(policy, 1), [(3, 50)], seed=1)
+    again = record_episodes(SamplingController(policy, 2), [(3, 50)], seed=2)  # the sim restarted: clock from 0
+    shift = first[-1].log_ns
+    restarted = first + [dataclasses.replace(r, log_ns=r.log_ns + shift) for r in again]
+    asm = TransitionAssembler()
+    asm.push_many(restarted)
+    asm.flush()
+    assert asm.stats.boundaries_stamp_gap >= 1 and asm.stats.lost_state_gaps == 0
+    assert lost_messages_warning(asm.stats.lost_state_gaps, asm.stats.transitions) is None
+
+    states = [i for i, r in enumerate(first) if isinstance(r, JointStateRecord)]
+    lost = {states[10], states[30]}
+    asm = TransitionAssembler()
+    asm.push_many([r for i, r in enumerate(first) if i not in lost])
+    asm.flush()
+    assert asm.stats.lost_state_gaps == 2
+    warning = lost_messages_warning(asm.stats.lost_state_gaps, asm.stats.transitions)
+    assert warning.startswith("2 stamp gaps") and f"one per {np.round(asm.stats.transitions / 2):.0f}" in warning

@@ -98,8 +98,23 @@ WEIGHTS_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 """the weights topic: the latest policy kept for late joiners"""
+REPORT_PERIOD = 10.0
+"""seconds between the trainer's report lines"""
 SIM_NODE = "swimmer_sim"
 _VERSIONS_KEPT = 4096  # stamps whose policy_info version is remembered, per pair
+
+
+def lost_messages_warning(gaps: int, transitions: int) -> str | None:
+    """What the trainer says when lost messages made ``gaps`` stamp gaps over ``transitions`` since its last
+    report (None when there were none). Runs cut short bootstrap at every cut: with lagging weights such data
+    made the updates diverge (docs/results.md, "Learning live over DDS")."""
+    if gaps <= 0:
+        return None
+    return (
+        f"{gaps} stamp gaps in the last {REPORT_PERIOD:.0f} s (one per {max(transitions, 1) / gaps:.0f} "
+        "transitions): lost messages cut episodes into short runs, which make updates unstable; pace the pairs "
+        "(real_time_factor 1) or run fewer pairs per trainer"
+    )
 
 
 @dataclass
@@ -160,7 +175,8 @@ class LiveTrainer(Node):
             self._sim_reset[ns] = self.create_client(Trigger, f"{ns}/{SIM_NODE}/reset", callback_group=services)
         self.publish_weights()
         self.create_timer(0.05, self._on_timer)
-        self.create_timer(10.0, self._report)
+        self._reported = (0, 0)  # (stamp gaps from lost messages, transitions) at the last report
+        self.create_timer(REPORT_PERIOD, self._report)
         # Policy nodes read the weights best effort (immune to the Fast DDS wedge, docs/design.md), so they get
         # no history: the latest weights go out again periodically for nodes that start late or lost a sample.
         self.create_timer(options.weights_period, self._republish_weights)
@@ -306,6 +322,11 @@ class LiveTrainer(Node):
             f"{skips.steps_skipped} steps skipped ({_nonzero(skips)}), dropped stale "
             f"{self.learner.dropped_stale}; " + "; ".join(parts)
         )
+        lost = stats.lost_state_gaps
+        warning = lost_messages_warning(lost - self._reported[0], stats.transitions - self._reported[1])
+        self._reported = (lost, stats.transitions)
+        if warning:
+            self.get_logger().warn(warning)
 
     def close(self) -> None:
         if self._updating is not None:

@@ -190,6 +190,8 @@ class StreamStats:
     boundaries_announced: int = 0
     boundaries_new_chain: int = 0
     boundaries_stamp_gap: int = 0
+    clock_restarts: int = 0
+    """stamp gaps where the clock went back (a restarted sim), not lost messages"""
     episodes: int = 0
     """runs of consecutive transitions released (an episode with a skipped step counts twice)"""
     transitions: int = 0
@@ -209,6 +211,11 @@ class StreamStats:
     @property
     def boundaries(self) -> int:
         return self.boundaries_announced + self.boundaries_new_chain + self.boundaries_stamp_gap
+
+    @property
+    def lost_state_gaps(self) -> int:
+        """stamp gaps that lost messages made (the clock going back is a restart)"""
+        return self.boundaries_stamp_gap - self.clock_restarts
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -379,6 +386,7 @@ class TransitionAssembler:
         if latest is not None and stamp < latest:
             # The clock went back (a restarted sim): what is pending belongs to the old run.
             self.stats.count_boundary("stamp_gap")
+            self.stats.clock_restarts += 1
             self._cut()
             self._judged.clear()
             slot = self._slots.get(stamp)  # only messages that came before this state can be pending
