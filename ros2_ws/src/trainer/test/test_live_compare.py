@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trainer.live_compare import plot, return_at, table
+from trainer.live_compare import plot, return_at, stability_table, table
 from trainer.runs import Run
 
 
@@ -38,3 +38,19 @@ def test_table_rows_and_means(tmp_path):
     assert "| simulator | simulator-s1 | 40.0 | 50.0 | 50.0 | 200000 |" in lines
     png = plot(groups, tmp_path / "figs" / "live")
     assert png.suffix == ".png" and png.stat().st_size > 1000
+
+
+def test_stability_table_finds_the_first_diverged_update_and_the_reward_rate():
+    def rows(kls, rates=None):
+        out = [{"global_step": str(7000 * (i + 1)), "return_mean": "0", "approx_kl": str(k)} for i, k in enumerate(kls)]
+        for r, rate in zip(out, rates or [], strict=False):
+            r["reward_rate"] = str(rate)
+        return out
+
+    groups = {
+        "live": [Run(Path("diverged"), {}, rows([0.1, 0.3, 2.5, 11.6, 0.4], [0.0, 0.01, 0.02, 0.03, 0.04]))],
+        "simulator": [Run(Path("steady"), {}, rows([0.05, 0.2, 0.9]))],
+    }
+    lines = stability_table(groups, last=2).splitlines()
+    assert "| live | diverged | 5 | 11.6 | 21000 | 35.0 |" in lines
+    assert "| simulator | steady | 3 | 0.9 | never | - |" in lines

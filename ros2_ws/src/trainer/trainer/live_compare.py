@@ -51,6 +51,29 @@ def table(groups: dict[str, list[Run]], marks: list[int]) -> str:
     return "\n".join(lines)
 
 
+KL_DIVERGED = 1.0
+"""an update whose approximate KL exceeds this moved the policy far outside any trust region"""
+
+
+def stability_table(groups: dict[str, list[Run]], last: int = 5) -> str:
+    """Markdown: per run, the largest approximate KL of an update, the step of the first update above
+    ``KL_DIVERGED``, and 1000 x reward per step over the ``last`` updates (a measure that, unlike returns,
+    does not depend on how episodes were cut; "-" for runs that do not log it)."""
+    head = f"| source | run | updates | max approx. KL | first KL > {KL_DIVERGED:g} at"
+    lines = [f"{head} | 1000 x reward/step, last {last} |", "|---|---|---:|---:|---:|---:|"]
+    for source, runs in groups.items():
+        for run in runs:
+            steps, kl = series(run.progress, "approx_kl")
+            over = steps[kl > KL_DIVERGED]
+            rate = series(run.progress, "reward_rate")[1][-last:] if "reward_rate" in run.progress[0] else []
+            cells = [
+                str(len(kl)), f"{np.nanmax(kl):.3g}", f"{int(over[0])}" if len(over) else "never",
+                f"{1000 * np.mean(rate):.1f}" if len(rate) else "-",
+            ]  # fmt: skip
+            lines.append(f"| {source} | {run.dir.name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def plot(groups: dict[str, list[Run]], path: Path) -> Path:
     import matplotlib
 
@@ -86,13 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m trainer.live_compare", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     ap.add_argument("live", type=Path, nargs="+", help="live run directories (morph-train --live --out)")
-    ap.add_argument("--simulator", type=Path, nargs="+", required=True, help="simulator run directories")
+    ap.add_argument("--simulator", type=Path, nargs="*", default=[], help="simulator run directories")
     ap.add_argument("--marks", type=int, nargs="+", default=[100_000, 200_000, 300_000], help="steps to compare at")
     ap.add_argument("--plot", type=Path, default=None, help="write the curves to this .png")
     args = ap.parse_args(argv)
     try:
-        groups = {"live over DDS": [load_run(d) for d in args.live],
-                  "simulator": [load_run(d) for d in args.simulator]}  # fmt: skip
+        groups = {"live": [load_run(d) for d in args.live]}
+        if args.simulator:
+            groups["simulator"] = [load_run(d) for d in args.simulator]
     except (OSError, ValueError, KeyError) as err:
         ap.error(str(err))
     for runs in groups.values():
@@ -100,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
             if not run.progress:
                 ap.error(f"{run.dir} has no update logged yet")
     print(table(groups, args.marks))
+    print()
+    print(stability_table(groups))
     if args.plot is not None:
         print(f"\nwrote {plot(groups, args.plot)}")
     return 0
