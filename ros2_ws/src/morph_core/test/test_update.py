@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from morph_core.algo.train import TrainConfig
 from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update, with_proximal
 from morph_core.policy.actor_critic import GraphActorCritic
 
@@ -135,6 +136,31 @@ def test_decoupled_objective_clips_against_the_proximal_policy_and_weights_stale
     assert row["logr_mean_d2"] == pytest.approx(math.log(1.3), abs=1e-5)  # the log ratio is against pi_prox
     assert stats.policy_loss == pytest.approx(-(weight[0] * 1.1 * adv[0] + weight[1] * 1.0 * adv[1]) / 2, abs=1e-5)
     torch.testing.assert_close(learner.params.grad, expected_grad, atol=1e-6, rtol=1e-4)
+
+
+def test_behaviour_objective_ignores_the_proximal_policy_bit_for_bit():
+    # The stale batch of the test above: under the behaviour objective the ratio is against pi_behav and
+    # nothing is weighted, exactly the update of the same batch without proximal log-probs.
+    policy = _policy(1)
+    batch = _batch(policy, [2, 3], [1.0, 2.0], [1.0, -1.0])
+    prox = proximal_log_probs(policy, batch) - torch.tensor([math.log(1.3), 0.0])
+    stale = RolloutBatch(**{**batch.__dict__, "proximal_log_prob": prox})
+    results = []
+    for b, objective in ((batch, "decoupled"), (stale, "behaviour"), (stale, "decoupled")):
+        learner = Learner.create(copy.deepcopy(policy), learning_rate=1e-2, adam_eps=1e-5, compile=False)
+        stats = update(learner, b, _config("fixed", off_policy_objective=objective), torch.Generator())
+        results.append((learner.params.theta.detach(), stats.policy_loss))
+    assert torch.equal(results[0][0], results[1][0]) and results[0][1] == results[1][1]
+    assert not torch.equal(results[0][0], results[2][0])  # the decoupled objective does differ here
+
+
+def test_behaviour_objective_refuses_rules_that_need_the_old_gaussian():
+    with pytest.raises(ValueError, match="only the decoupled objective"):
+        _config("kl-penalty", off_policy_objective="behaviour")
+    with pytest.raises(ValueError, match="off_policy_objective must be one of"):
+        _config("fixed", off_policy_objective="newest")
+    with pytest.raises(ValueError, match="only the decoupled objective"):
+        TrainConfig(clip_mode="kl-penalty-per-joint", off_policy_objective="behaviour")
 
 
 def test_proximal_log_probs_are_the_current_policys_in_chunks():

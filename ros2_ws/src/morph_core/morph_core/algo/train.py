@@ -88,6 +88,10 @@ class TrainConfig:
     """initial beta of the kl-penalty rules"""
     kl_adaptive: bool = True
     """adapt the kl-penalty rules' beta to kl_target after each update; false keeps beta = kl_beta"""
+    off_policy_objective: str = "decoupled"
+    """how samples of an older policy (bags, live) enter the update: 'decoupled' (ratio against the policy as
+    the update starts, each sample weighted by min(pi_prox / pi_behav, proximal_weight_cap)) or 'behaviour'
+    (PPO's own loss, the ratio against the policy that acted); simulator rollouts are on-policy either way"""
     min_joints: int = 2
     """shortest chain drawn at a reset"""
     max_joints: int = 10
@@ -128,6 +132,7 @@ class TrainConfig:
             raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
         if not (self.kl_target > 0 and self.kl_beta > 0):
             raise ValueError(f"kl_target and kl_beta must be > 0, got {self.kl_target}, {self.kl_beta}")
+        self.update_config()  # the update's own checks, e.g. an objective that does not fit the rule
 
     @property
     def batch_size(self) -> int:
@@ -150,6 +155,7 @@ class TrainConfig:
             kl_target=self.kl_target,
             kl_beta=self.kl_beta,
             kl_adaptive=self.kl_adaptive,
+            off_policy_objective=self.off_policy_objective,
         )
 
     def to_dict(self) -> dict:

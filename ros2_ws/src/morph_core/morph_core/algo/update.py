@@ -13,7 +13,9 @@ policy as the update starts, ``proximal_log_prob``), r = pi_theta / pi_prox,
 and each sample's policy term is weighted by the truncated importance weight
 min(pi_prox / pi_behav, c) (c = ``proximal_weight_cap``, as V-trace's
 rho-bar). Without proximal log-probs (on-policy: pi_prox = pi_behav) there
-is no weight at all, and the loss is PPO's own, bit for bit.
+is no weight at all, and the loss is PPO's own, bit for bit. The
+``behaviour`` objective (``OFF_POLICY_OBJECTIVES``) takes PPO's own loss on
+off-policy data too: the ratio against the policy that acted, no weight.
 """
 
 from __future__ import annotations
@@ -137,9 +139,17 @@ class UpdateConfig:
     """the KL penalty's beta as training starts"""
     kl_adaptive: bool = True
     """adapt the KL penalty's beta to kl_target after each update (Schulman et al. 2017); else it stays"""
+    off_policy_objective: str = "decoupled"
+    """a name from ``OFF_POLICY_OBJECTIVES``"""
 
     def __post_init__(self):
-        get_rule(self.rule)  # a clear error for an unknown name
+        rule = get_rule(self.rule)  # a clear error for an unknown name
+        if self.off_policy_objective not in OFF_POLICY_OBJECTIVES:
+            raise ValueError(f"off_policy_objective must be one of {OFF_POLICY_OBJECTIVES}, "
+                             f"got {self.off_policy_objective!r}")  # fmt: skip
+        if self.off_policy_objective == "behaviour" and rule.uses_old_gaussian:
+            raise ValueError(f"rule {rule.name!r} needs the old policy's Gaussian, which only the decoupled "
+                             "objective has (the behaviour policy's means are not kept)")  # fmt: skip
         if not (self.kl_target > 0 and self.kl_beta > 0):  # also refuses NaN
             raise ValueError(f"kl_target and kl_beta must be > 0, got {self.kl_target}, {self.kl_beta}")
         if self.update_epochs < 1 or self.minibatch_size < 2:
@@ -186,6 +196,12 @@ class Learner:
         if rule.name not in self._losses:
             self._losses[rule.name] = compiled(functools.partial(ppo_loss, rule=rule), self.compile)
         return self._losses[rule.name]
+
+
+OFF_POLICY_OBJECTIVES = ("decoupled", "behaviour")
+"""how samples of an older policy enter the update: ``decoupled``, the ratio against the proximal policy and
+each sample weighted by min(pi_prox / pi_behav, c); ``behaviour``, PPO's own loss with the ratio against
+the behaviour policy (a sample whose ratio starts outside the clip range pulls only back towards it)"""
 
 
 EPOCH_TAGS = ("_first", "_last")
@@ -259,7 +275,7 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
     flat, optimizer = learner.params, learner.optimizer
     dims = batch.num_joints.to(torch.float32)
     clip_range = rule.clip_range(cfg.clip_eps, dims) if rule.clips_joint_ratio else torch.full_like(dims, cfg.clip_eps)
-    if batch.proximal_log_prob is None:
+    if batch.proximal_log_prob is None or cfg.off_policy_objective == "behaviour":
         old_log_prob, weight = batch.log_prob, None
     else:
         old_log_prob = batch.proximal_log_prob
