@@ -15,6 +15,7 @@ common grid, each run's training return (trailing mean over 5 updates, as
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +46,10 @@ def table(groups: dict[str, list[Run]], marks: list[int]) -> str:
             rows.append([*at, last])
             cells = " | ".join("-" if np.isnan(v) else f"{v:.1f}" for v in at)
             lines.append(f"| {source} | {run.dir.name} | {cells} | {last:.1f} | {run.progress[-1]['global_step']} |")
-        mean = np.nanmean(np.array(rows), axis=0)
-        cells = " | ".join(f"**{v:.1f}**" for v in mean[:-1])
+        with warnings.catch_warnings():  # a mark no run reached is NaN, said as "-"
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(np.array(rows), axis=0)
+        cells = " | ".join("-" if np.isnan(v) else f"**{v:.1f}**" for v in mean[:-1])
         lines.append(f"| {source} | mean of {len(runs)} | {cells} | **{mean[-1]:.1f}** | |")
     return "\n".join(lines)
 
