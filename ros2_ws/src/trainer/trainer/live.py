@@ -106,14 +106,15 @@ _VERSIONS_KEPT = 4096  # stamps whose policy_info version is remembered, per pai
 
 def lost_messages_warning(gaps: int, transitions: int) -> str | None:
     """What the trainer says when lost messages made ``gaps`` stamp gaps over ``transitions`` since its last
-    report (None when there were none). Runs cut short bootstrap at every cut: with lagging weights such data
-    made the updates diverge (docs/results.md, "Learning live over DDS")."""
+    report (None when there were none). Runs cut short bootstrap at every cut, and learning from them was slow
+    in-process; lost messages also mean the trainer is falling behind, and stale samples made the update
+    diverge (docs/results.md, "Why the earlier live attempts diverged")."""
     if gaps <= 0:
         return None
     return (
         f"{gaps} stamp gaps in the last {REPORT_PERIOD:.0f} s (one per {max(transitions, 1) / gaps:.0f} "
-        "transitions): lost messages cut episodes into short runs, which make updates unstable; pace the pairs "
-        "(real_time_factor 1) or run fewer pairs per trainer"
+        "transitions): lost messages cut episodes into short runs and the trainer is likely falling behind (stale "
+        "samples make updates diverge); pace the pairs (real_time_factor 1) or run fewer pairs per trainer"
     )
 
 
