@@ -93,7 +93,10 @@ def plot(groups: dict[str, list[Run]], path: Path) -> Path:
         curves = np.array([return_at(run, grid) for run in runs])
         for c in curves:
             ax.plot(grid, c, color=color, alpha=0.3, lw=0.8)
-        ax.plot(grid, np.nanmean(curves, 0), color=color, lw=2.2, label=f"{source} ({len(runs)} seeds)")
+        with warnings.catch_warnings():  # before any run's first update: NaN, not drawn
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(curves, 0)
+        ax.plot(grid, mean, color=color, lw=2.2, label=f"{source} ({len(runs)} seeds)")
     ax.set_xlabel("environment steps learned from")
     ax.set_ylabel("training episode return (chains of 2..10)")
     ax.set_title("Live over DDS vs the simulator trainer: thin = seeds, thick = mean")
