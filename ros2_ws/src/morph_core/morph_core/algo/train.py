@@ -128,11 +128,7 @@ class TrainConfig:
             raise ValueError(f"minibatch_size {self.minibatch_size} exceeds the rollout size {self.batch_size}")
         if self.clip_eps <= 0:
             raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
-        if not self.proximal_weight_cap > 0:
-            raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
-        if not (self.kl_target > 0 and self.kl_beta > 0):
-            raise ValueError(f"kl_target and kl_beta must be > 0, got {self.kl_target}, {self.kl_beta}")
-        self.update_config()  # the update's own checks, e.g. an objective that does not fit the rule
+        self.update_config()  # the update's own checks: weight cap, KL settings, objective and rule together
 
     @property
     def batch_size(self) -> int:

@@ -155,7 +155,7 @@ class UpdateConfig:
         if self.update_epochs < 1 or self.minibatch_size < 2:
             raise ValueError(f"need update_epochs >= 1 and minibatch_size >= 2 (advantages are normalised within a "
                              f"minibatch), got {self.update_epochs}, {self.minibatch_size}")  # fmt: skip
-        if self.proximal_weight_cap <= 0:
+        if not self.proximal_weight_cap > 0:  # also refuses NaN
             raise ValueError(f"proximal_weight_cap must be > 0, got {self.proximal_weight_cap}")
 
 
