@@ -16,7 +16,7 @@ from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 from morph_core.protocol.transitions import TransitionAssembler
-from trainer.live_learner import LiveLearner, LiveOptions
+from trainer.live_learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
 SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
                     tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
@@ -160,3 +160,25 @@ def test_resume_skips_a_damaged_state_for_the_previous_one(tmp_path, episodes):
     resumed = LiveLearner(SMALL, tmp_path, resume=True, max_staleness=1)
     assert resumed.resumed and resumed.version == 0  # the state before the update, whole
     assert resumed.run_id == learner.run_id
+
+
+def test_a_diverged_update_is_refused_and_the_learner_kept_as_it_was(tmp_path, episodes):
+    """An update that leaves the parameters non-finite (here: a step size no float32 survives) is refused; the
+    learner is then exactly the one before it: the same next update as a learner that never saw it."""
+    blown, fresh = LiveLearner(SMALL, tmp_path / "a"), LiveLearner(SMALL, tmp_path / "b")
+    pool = ([], np.zeros(0))
+    for learner in (blown, fresh):
+        learner.add_episode(episodes[0], [0] * 40)
+        learner.add_episode(episodes[1], [0] * 40)
+        pool = learner.take_pool()
+    before = blown.learner.params.theta.detach().clone()
+    blown.learner.optimizer.param_groups[0]["lr"] = 1e38
+    with pytest.raises(NonFiniteUpdate, match="non-finite; refused"):
+        blown.update(pool)
+    assert blown.rejected_updates == 1 and blown.version == 0
+    assert torch.equal(blown.learner.params.theta, before)
+    blown.learner.optimizer.param_groups[0]["lr"] = SMALL.learning_rate
+    a, b = blown.update(pool), fresh.update(pool)
+    assert a["version"] == b["version"] == 1 and a["approx_kl"] == b["approx_kl"]
+    assert torch.equal(blown.learner.params.theta, fresh.learner.params.theta)
+    assert len(list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))) == 1  # the refused update not logged

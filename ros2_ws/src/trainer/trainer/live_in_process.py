@@ -39,7 +39,7 @@ from morph_core.msgs.records import JointStateRecord
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import Transition, TransitionAssembler
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.live_learner import LiveLearner
+from trainer.live_learner import LiveLearner, NonFiniteUpdate
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,11 @@ def train_in_process(cfg: TrainConfig, options: InProcessOptions, out: Path, log
                 learner.add_episode(run, [version] * len(run))
             episode += 1
             if learner.ready():
-                row = learner.update()
+                try:
+                    row = learner.update()
+                except NonFiniteUpdate as err:  # as the live node: that pool is lost, the policy kept
+                    log(f"update refused: {err}")
+                    continue
                 behaviours.append((learner.version, copy.deepcopy(learner.policy)))
                 log(f"update {row['iteration']}: step {row['global_step']}, {row['pool_episodes']} runs, return "
                     f"{row['return_mean']:.2f}, approx KL {row['approx_kl']:.3g}, weight {row['is_weight_mean']:.3f}, "

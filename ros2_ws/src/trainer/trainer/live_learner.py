@@ -33,10 +33,16 @@ collected since the last update is lost with the process (a few seconds of
 data). The run id goes with every weights message (``metadata["run"]``), so
 policy nodes take a fresh run's version 0 but ignore an old message of this
 run.
+
+A diverged update (parameters NaN or inf) is refused: the learner keeps the
+parameters, optimizer and rule state it had before it, counts it
+(``rejected_updates``) and raises ``NonFiniteUpdate``; its pool is lost, the
+version stays, and the policy nodes keep the last good weights.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import time
@@ -108,6 +114,10 @@ def live_log_columns(cfg: TrainConfig) -> list[str]:
     return [*log_columns(cfg), *LIVE_COLUMNS]
 
 
+class NonFiniteUpdate(RuntimeError):
+    """An update made the policy's parameters NaN or inf; the learner kept the ones before it."""
+
+
 class LiveLearner:
     """Pool of episodes, PPO updates, checkpoints and the current weights version (see module docstring)."""
 
@@ -150,6 +160,7 @@ class LiveLearner:
         self.pool_size = 0
         self.dropped_stale = 0
         self.dropped_no_info = 0
+        self.rejected_updates = 0
 
     @property
     def version(self) -> int:
@@ -224,8 +235,17 @@ class LiveLearner:
         prepare_s = time.perf_counter() - t0
         t1 = time.perf_counter()
         torch.set_num_threads(cfg.torch_threads)
+        before = self._learning_state()
         stats = update(self.learner, batch, cfg.update_config(), self.gen)
         torch.set_num_threads(1)
+        if not torch.isfinite(self.learner.params.theta).all():
+            self._restore_learning_state(before)
+            self.rejected_updates += 1
+            kl = stats.per_dim.overall()["approx_kl"]
+            raise NonFiniteUpdate(
+                f"the update on {episodes} episodes ({batch.size} samples, approx KL {kl:.3g}) made the policy "
+                f"non-finite; refused ({self.rejected_updates} so far), version {self.version} kept"
+            )
         update_s = time.perf_counter() - t1
         c = self.counters
         c["iteration"] += 1
@@ -266,6 +286,20 @@ class LiveLearner:
                              metadata={"global_step": step, "version": c["version"]})  # fmt: skip
         self._save_state()  # every update: a resumed trainer continues from the version the nodes run
         return row
+
+    def _learning_state(self) -> tuple:
+        """What an update changes (parameters, Adam, the rule's state, the generator), copied."""
+        learner = self.learner
+        return (learner.params.theta.detach().clone(), copy.deepcopy(learner.optimizer.state_dict()),
+                {k: v.clone() for k, v in learner.rule_state.items()}, self.gen.get_state())  # fmt: skip
+
+    def _restore_learning_state(self, saved: tuple) -> None:
+        theta, optimizer, rule_state, gen = saved
+        with torch.no_grad():
+            self.learner.params.theta.copy_(theta)  # in place: the policy's parameters are views of it
+        self.learner.optimizer.load_state_dict(optimizer)
+        self.learner.rule_state = rule_state
+        self.gen.set_state(gen)
 
     def _save_state(self) -> None:
         save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, {"run": self.run_id}, {},
