@@ -8,6 +8,10 @@ on one small topic, the same in both phases), then ``morph-train --live`` starts
 the same rate is measured again from its first to its last update, beside the rate the trainer collects over
 that window (its ``progress.csv``: env_steps between updates over wall time) and its update time. Prints a
 Markdown table (and writes it to ``--out``).
+
+``--ingest-only``: the trainer gets a batch no window fills (it subscribes, decodes and assembles, but never
+updates), and the loop rate with it is measured over ``--seconds`` once every pair has joined: what listening
+alone costs the pairs, apart from the update's CPU.
 """
 
 from __future__ import annotations
@@ -91,7 +95,11 @@ def _collected(run: Path) -> tuple[float, float, int]:
     return steps / wall, upd, len(rows)
 
 
-def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: int) -> dict:
+def _joined(log: Path, k: int) -> bool:
+    return log.exists() and log.read_text(errors="replace").count("is running") >= k
+
+
+def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: int, ingest_only: bool = False) -> dict:
     namespaces = [f"/bench{k}_{i}" for i in range(k)]
     procs = []
     try:
@@ -109,8 +117,17 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: in
         run = work / f"run{k}"
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
                "--compile", "false", "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
+        if ingest_only:
+            cmd += ["--num-envs", "1", "--num-steps", "100000000"]
         trainer = _proc(cmd, work / f"trainer{k}.log")
         procs.insert(0, trainer)
+        if ingest_only:
+            deadline = time.monotonic() + 20 * seconds
+            while not _joined(work / f"trainer{k}.log", k) and time.monotonic() < deadline:
+                counter.rate(1.0)
+            with_trainer = counter.rate(seconds)
+            return {"K": k, "alone": alone, "with": with_trainer, "collected": float("nan"),
+                    "update_s": float("nan"), "updates": 0}  # fmt: skip
         # The loop rate with the trainer over the same window as the collection: from its first update on.
         deadline = time.monotonic() + 20 * seconds
         while _collected(run)[2] < 1 and time.monotonic() < deadline:
@@ -131,6 +148,7 @@ def main() -> int:
     ap.add_argument("--pairs", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
     ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over (>= 2)")
+    ap.add_argument("--ingest-only", action="store_true", help="a trainer that never updates (listening alone)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     import rclpy
@@ -145,14 +163,19 @@ def main() -> int:
     results = []
     try:
         for k in args.pairs:
-            r = bench(k, args.seconds, work, counter, args.updates)
+            r = bench(k, args.seconds, work, counter, args.updates, args.ingest_only)
             results.append(r)
             print(r, flush=True)
     finally:
         rclpy.try_shutdown()
     lines = [
         f"Live training, {os.cpu_count()} cores; env-steps/s summed over the K pairs (lockstep, sampling, 2..10 "
-        "joints), batch 6,144, updates in the trainer's worker thread.",
+        "joints), "
+        + (
+            "a trainer that listens and never updates."
+            if args.ingest_only
+            else "batch 6,144, updates in the trainer's worker thread."
+        ),
         "",
         "| K | loop rate, no trainer | loop rate, trainer listening | cost | collected by the trainer | "
         "update (prepare + PPO) | updates |",
