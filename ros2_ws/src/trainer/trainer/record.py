@@ -42,7 +42,7 @@ from pathlib import Path
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -404,10 +404,12 @@ class RecorderNode(Node):
 def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
+    executor = SingleThreadedExecutor()  # one for the run: rclpy.spin_once(node) rebuilds the wait set per call
     try:
         node = RecorderNode()
+        executor.add_node(node)
         while rclpy.ok() and not node.finished:
-            rclpy.spin_once(node, timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except BagWriterError as err:
@@ -419,6 +421,7 @@ def main(args=None) -> int:
         if rclpy.ok():
             raise
     finally:
+        executor.shutdown()
         if node is not None:
             node.close()
             node.destroy_node()
