@@ -127,6 +127,9 @@ def test_options_refuse_nonsense(tmp_path):
         LiveOptions(("/a", "/a"), tmp_path)
     with pytest.raises(ValueError, match="silence_timeout"):
         LiveOptions(("/a",), tmp_path, silence_timeout=0)
+    for nice in (-1, 20):
+        with pytest.raises(ValueError, match="nice"):
+            LiveOptions(("/a",), tmp_path, nice=nice)
     with pytest.raises(ValueError, match="anneal_lr"):
         LiveLearner(TrainConfig(**{**SMALL.to_dict(), "anneal_lr": True}), tmp_path)
     assert np.isfinite(SMALL.batch_size)

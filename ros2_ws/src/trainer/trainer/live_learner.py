@@ -93,6 +93,9 @@ class LiveOptions:
     weights_period: float = 1.0
     """seconds between re-publications of the current weights (how a late policy node, reading best effort,
     gets them)"""
+    nice: int = 0
+    """the trainer's niceness (0..19): on the pairs' own machine their control loops come first, and ingest and
+    updates take the CPU the loops leave (a lockstep loop is latency-bound: docs/benchmarks.md)"""
 
     def __post_init__(self):
         if not self.namespaces:
@@ -105,6 +108,8 @@ class LiveOptions:
             raise ValueError(f"silence_timeout must be > 0, got {self.silence_timeout}")
         if not self.weights_period > 0:
             raise ValueError(f"weights_period must be > 0, got {self.weights_period}")
+        if not 0 <= self.nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {self.nice}")
 
 
 LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]
