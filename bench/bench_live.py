@@ -5,7 +5,8 @@
 Per K: the pairs start (chains of 2..10 joints, sampling policies), their loop rate is measured with no trainer
 (env-steps/s summed over the pairs, counted from ``/clock``, which each sim publishes once per step: a listener
 on one small topic, the same in both phases), then ``morph-train --live`` starts (the paper's batch of 6,144) and
-the same rate is measured again from its first to its last update, beside the rate the trainer collects over
+the same rate is measured again from its first to its last update (and once more alone after the trainer
+stops: the cost is against the mean of both, as the machine's speed drifts), beside the rate the trainer collects over
 that window (its ``progress.csv``: env_steps between updates over wall time) and its update time. Prints a
 Markdown table (and writes it to ``--out``).
 
@@ -99,12 +100,21 @@ def _joined(log: Path, k: int) -> bool:
     return log.exists() and log.read_text(errors="replace").count("is running") >= k
 
 
-def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: int, ingest_only: bool = False) -> dict:
+def bench(
+    k: int,
+    seconds: float,
+    work: Path,
+    counter: ClockCounter,
+    updates: int,
+    ingest_only: bool = False,
+    trainer_args: tuple[str, ...] = (),
+    real_time_factor: float = 0.0,
+) -> dict:
     namespaces = [f"/bench{k}_{i}" for i in range(k)]
     procs = []
     try:
         for i, ns in enumerate(namespaces):
-            sim = {"lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0, "min_joints": 2,
+            sim = {"lockstep": "true", "real_time_factor": real_time_factor, "effort_timeout": 2.0, "min_joints": 2,
                    "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
             procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim{k}_{i}.log"))
             policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
@@ -117,6 +127,7 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: in
         run = work / f"run{k}"
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
                "--compile", "false", "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
+        cmd += trainer_args
         if ingest_only:
             cmd += ["--num-envs", "1", "--num-steps", "100000000"]
         trainer = _proc(cmd, work / f"trainer{k}.log")
@@ -126,21 +137,25 @@ def bench(k: int, seconds: float, work: Path, counter: ClockCounter, updates: in
             while not _joined(work / f"trainer{k}.log", k) and time.monotonic() < deadline:
                 counter.rate(1.0)
             with_trainer = counter.rate(seconds)
-            return {"K": k, "alone": alone, "with": with_trainer, "collected": float("nan"),
-                    "update_s": float("nan"), "updates": 0}  # fmt: skip
-        # The loop rate with the trainer over the same window as the collection: from its first update on.
-        deadline = time.monotonic() + 20 * seconds
-        while _collected(run)[2] < 1 and time.monotonic() < deadline:
-            counter.rate(1.0)
-        c0, t0 = counter.count, time.monotonic()
-        while _collected(run)[2] < updates and time.monotonic() < deadline:
-            counter.rate(1.0)
-        with_trainer = (counter.count - c0) / (time.monotonic() - t0)
-        collected, update_s, updates = _collected(run)
+            collected, update_s, updates = float("nan"), float("nan"), 0
+        else:
+            # The loop rate with the trainer over the same window as the collection: from its first update on.
+            deadline = time.monotonic() + 20 * seconds
+            while _collected(run)[2] < 1 and time.monotonic() < deadline:
+                counter.rate(1.0)
+            c0, t0 = counter.count, time.monotonic()
+            while _collected(run)[2] < updates and time.monotonic() < deadline:
+                counter.rate(1.0)
+            with_trainer = (counter.count - c0) / (time.monotonic() - t0)
+            collected, update_s, updates = _collected(run)
+        # The rate alone once more: the machine's speed drifts within minutes, so the cost is against both.
+        _stop([trainer])
+        counter.rate(2.0)
+        after = counter.rate(seconds)
     finally:
         _stop(procs)
-    return {"K": k, "alone": alone, "with": with_trainer, "collected": collected, "update_s": update_s,
-            "updates": updates}  # fmt: skip
+    return {"K": k, "alone": alone, "with": with_trainer, "after": after, "collected": collected,
+            "update_s": update_s, "updates": updates}  # fmt: skip
 
 
 def main() -> int:
@@ -149,6 +164,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
     ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over (>= 2)")
     ap.add_argument("--ingest-only", action="store_true", help="a trainer that never updates (listening alone)")
+    ap.add_argument("--real-time-factor", type=float, default=0.0,
+                    help="pace the sims (1: real time, 25 steps/s per pair; 4: a 100 Hz loop); 0: unpaced")  # fmt: skip
+    ap.add_argument("--trainer-args", default="", help='more morph-train options, e.g. "--nice 0"')
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     import rclpy
@@ -163,28 +181,33 @@ def main() -> int:
     results = []
     try:
         for k in args.pairs:
-            r = bench(k, args.seconds, work, counter, args.updates, args.ingest_only)
+            trainer_args = tuple(args.trainer_args.split())
+            r = bench(
+                k, args.seconds, work, counter, args.updates, args.ingest_only, trainer_args, args.real_time_factor
+            )
             results.append(r)
             print(r, flush=True)
     finally:
         rclpy.try_shutdown()
     lines = [
         f"Live training, {os.cpu_count()} cores; env-steps/s summed over the K pairs (lockstep, sampling, 2..10 "
-        "joints), "
+        + (f"joints, paced at {args.real_time_factor}x real time), " if args.real_time_factor else "joints, unpaced), ")
         + (
             "a trainer that listens and never updates."
             if args.ingest_only
             else "batch 6,144, updates in the trainer's worker thread."
-        ),
+        )
+        + (f" Trainer options: {args.trainer_args}." if args.trainer_args else ""),
         "",
-        "| K | loop rate, no trainer | loop rate, trainer listening | cost | collected by the trainer | "
-        "update (prepare + PPO) | updates |",
+        "| K | loop rate, no trainer (before / after) | loop rate, trainer listening | cost | "
+        "collected by the trainer | update (prepare + PPO) | updates |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        cost = 1 - r["with"] / r["alone"] if r["alone"] else float("nan")
-        lines.append(f"| {r['K']} | {r['alone']:.0f} | {r['with']:.0f} | {100 * cost:.0f}% | {r['collected']:.0f} | "
-                     f"{r['update_s']:.2f} s | {r['updates']} |")  # fmt: skip
+        alone = (r["alone"] + r["after"]) / 2
+        cost = 1 - r["with"] / alone if alone else float("nan")
+        lines.append(f"| {r['K']} | {r['alone']:.0f} / {r['after']:.0f} | {r['with']:.0f} | {100 * cost:.0f}% | "
+                     f"{r['collected']:.0f} | {r['update_s']:.2f} s | {r['updates']} |")  # fmt: skip
     table = "\n".join(lines)
     print(table)
     if args.out:
