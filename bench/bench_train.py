@@ -1,26 +1,35 @@
-"""Training speed at the paper configuration, beside the raw physics rate of the same chain mix.
+"""Training speed at the paper configuration, beside the raw physics rate of the same chain mix and, with
+``--reference``, beside the paper's own implementation, all measured in this one run.
 
-    python bench/bench_train.py [--iterations 4]
+    python bench/bench_train.py [--iterations 4] [--reference DIR --reference-python PY]
 
 Runs the real training loop (6 envs x 1024 steps, minibatch 256, 10 epochs,
 chains drawn from 2..10, torch.compile on as by default) for one warm-up
 iteration and a few timed ones, in three settings: one core; both cores
 for the physics with the paper's single torch thread; both cores for
 physics and update. It prints overall env-steps/s by wall clock (updates,
-logging and checkpoints included), and the median rollout and update
-seconds per iteration. The
-raw rate is MuJoCo alone: mj_step with frame_skip 4, averaged over the
-chain lengths 2..10 the way the envs draw them. The reference
-implementation's figure (~360 env-steps/s on this machine class) is quoted
-from docs/method notes for the ratio, not re-measured here.
+logging and checkpoints included), the median rollout and update seconds
+per iteration, and the share of the raw physics rate: MuJoCo alone
+(mj_step with frame_skip 4, averaged over the chain lengths 2..10 the way
+the envs draw them), a ratio that does not depend on the machine.
+
+``--reference DIR``: a checkout of the paper's code (github.com/jr-robotics/MorphologicalPPO), run by
+``--reference-python`` (a Python with its requirements) at its paper configuration (``agent=sb3_flex_varppo``:
+compensated clipping, 6 envs, 1024 steps, minibatch 256, 10 epochs) for the same number of iterations, in a
+copy of DIR. Its rate is wall clock between the first and last of its per-iteration logs, and each of our
+settings is printed as a multiple of it. Machines of this kind differ 2x in speed from hour to hour, so only
+such a side-by-side ratio is a claim.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import shutil
 import statistics
+import subprocess
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +37,33 @@ from bench_env import raw_step_rate
 
 from morph_core.algo.train import TrainConfig, train
 
-REFERENCE_SPS = 360.0
 BATCH = 6 * 1024  # samples per iteration at the paper configuration
+
+
+def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
+    """Env-steps/s of the paper's implementation over ``iterations`` timed iterations after a first one.
+
+    Stable-Baselines3 logs a table after each rollout whose ``total_timesteps`` row gives the steps so far;
+    the rate is taken between the first and the last table by wall clock (rollouts and updates included, as
+    ours)."""
+    with tempfile.TemporaryDirectory() as d:
+        work = Path(d) / "reference"
+        shutil.copytree(ref_dir, work, ignore=shutil.ignore_patterns(".git", "logs", "outputs"))
+        cmd = [python, "-u", "train.py", "agent=sb3_flex_varppo", "~callbacks",
+               f"learner.total_timesteps={(1 + iterations) * BATCH}", f"log_dir={work / 'logs'}"]  # fmt: skip
+        marks: list[tuple[float, int]] = []
+        tail: list[str] = []
+        with subprocess.Popen(cmd, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+            for line in proc.stdout:
+                tail = (tail + [line])[-20:]
+                cells = [c.strip() for c in line.split("|")]
+                if len(cells) >= 3 and cells[1] == "total_timesteps" and cells[2].isdigit():
+                    marks.append((time.perf_counter(), int(cells[2])))
+        if proc.returncode != 0 or len(marks) < 2:
+            raise SystemExit(f"the reference run failed (exit {proc.returncode}, {len(marks)} iterations logged):\n"
+                             + "".join(tail))  # fmt: skip
+    (t0, s0), (t1, s1) = marks[0], marks[-1]
+    return (s1 - s0) / (t1 - t0)
 
 
 def run(iterations: int, torch_threads: int, env_threads: int) -> dict[str, float]:
@@ -57,21 +91,36 @@ def run(iterations: int, torch_threads: int, env_threads: int) -> dict[str, floa
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--iterations", type=int, default=4, help="timed training iterations per setting (>= 2)")
+    parser.add_argument("--reference", type=Path, default=None, metavar="DIR",
+                        help="a checkout of the paper's code, measured side by side")  # fmt: skip
+    parser.add_argument("--reference-python", default=None, metavar="PY",
+                        help="the Python that runs it (with its requirements installed)")  # fmt: skip
     args = parser.parse_args()
+    if args.reference is not None:
+        if not (args.reference / "train.py").is_file():
+            parser.error(f"--reference {args.reference}: no train.py there (a MorphologicalPPO checkout?)")
+        if args.reference_python is None:
+            parser.error("--reference needs --reference-python (a Python with the reference's requirements)")
+    iterations = max(2, args.iterations)
     # Physics alone for the 2..10 mix: mean time per control step over the lengths.
     per_step = np.mean([4.0 / raw_step_rate(n, 0.6) for n in range(2, 11)])
     raw_mix = 1.0 / per_step
-    print("| setting | env-steps/s overall | rollout s/iter | update s/iter | vs reference (360/s) |")
-    print("|---|---:|---:|---:|---:|")
+    reference = None
+    if args.reference is not None:
+        reference = reference_rate(args.reference, args.reference_python, iterations)
+        print(f"reference (paper's code, this run): {reference:,.0f} env-steps/s")
+    print("| setting | env-steps/s overall | rollout s/iter | update s/iter | share of raw physics | vs reference |")
+    print("|---|---:|---:|---:|---:|---:|")
     settings = [
         ("1 core (1 env thread, 1 torch thread)", 1, 1),
         ("2 cores, paper config (2 env threads, 1 torch thread)", 1, 2),
         ("2 cores (2 env threads, 2 torch threads)", 2, 2),
     ]
     for label, tt, et in settings:
-        r = run(max(2, args.iterations), tt, et)
-        ratio = r["sps"] / REFERENCE_SPS
-        print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | {ratio:.1f}x |")
+        r = run(iterations, tt, et)
+        ratio = f"{r['sps'] / reference:.1f}x" if reference else "not run"
+        print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | "
+              f"{r['sps'] / raw_mix:.2f} | {ratio} |")  # fmt: skip
     print(f"\nraw MuJoCo for the same 2..10 mix, one core: {raw_mix:,.0f} env-steps/s "
           f"(a rollout of 6,144 steps needs >= {6144 / raw_mix:.2f} s of physics)")  # fmt: skip
 
