@@ -344,7 +344,7 @@ def run_live(cfg: TrainConfig, options: LiveOptions, args=None) -> int:
     node = None
     # One executor for the whole run: rclpy.spin_once(node) adds and removes the node on every call, which
     # rebuilds the wait set for every message (4 per step per pair). (rclpy's experimental EventsExecutor
-    # took about 0.6x the CPU per message, but stopped dispatching in 2 of 2 runs of tests/test_live.py.)
+    # used less CPU still in a one-off trial, but stopped dispatching in 2 of 2 runs of tests/test_live.py.)
     executor = SingleThreadedExecutor()
     try:
         node = LiveTrainer(cfg, options)
