@@ -51,8 +51,10 @@ def test_efforts_have_one_value_per_joint(probe, launch, untrained_checkpoint, j
     assert np.isfinite(values).all() and np.abs(values).max() <= 1.0
     assert np.abs(values).max() > 0  # a real policy output, not the silence fallback
     # The sim reports the efforts it applied: the policy's, once they arrive.
-    applied = {tuple(s.effort) for s in states}
-    assert any(tuple(e.data) in applied for e in efforts)
+    probe.spin_until(
+        lambda: any(tuple(e.data) in {tuple(s.effort) for s in states} for e in efforts), STARTUP,
+        "a state reporting one of the policy's efforts as applied (it comes a step after the answer)",
+    )  # fmt: skip
 
 
 @pytest.mark.timeout(120)
