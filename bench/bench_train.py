@@ -30,6 +30,7 @@ import statistics
 import subprocess
 import tempfile
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +53,10 @@ def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
         cmd = [python, "-u", "train.py", "agent=sb3_flex_varppo", "~callbacks",
                f"learner.total_timesteps={(1 + iterations) * BATCH}", f"log_dir={work / 'logs'}"]  # fmt: skip
         marks: list[tuple[float, int]] = []
-        tail: list[str] = []
+        tail: deque[str] = deque(maxlen=20)  # the run's last lines, for the error
         with subprocess.Popen(cmd, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
             for line in proc.stdout:
-                tail = (tail + [line])[-20:]
+                tail.append(line)
                 cells = [c.strip() for c in line.split("|")]
                 if len(cells) >= 3 and cells[1] == "total_timesteps" and cells[2].isdigit():
                     marks.append((time.perf_counter(), int(cells[2])))
