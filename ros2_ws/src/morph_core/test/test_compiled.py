@@ -80,18 +80,18 @@ def test_compiled_loss_of_the_per_joint_rules_equals_eager(rule):
     assert not fast.fell_back
 
 
-def test_without_a_cxx_compiler_training_falls_back_to_eager(monkeypatch):
+def test_without_a_cxx_compiler_training_falls_back_to_eager():
     import torch._inductor.config as inductor_config
-
-    monkeypatch.setattr(inductor_config.cpp, "cxx", ("/nonexistent/c++",))
-    monkeypatch.setattr(inductor_config, "fx_graph_cache", False)  # a cached kernel would need no compiler
 
     def scaled_softplus(x):
         return torch.nn.functional.softplus(3.0 * x) / 3.0
 
     x = torch.linspace(-2, 2, 9)
     fn = compiled(scaled_softplus)
-    with pytest.warns(UserWarning, match="eager mode"):
+    # Inductor's own patch, not monkeypatch: undoing a monkeypatch deleted fx_graph_cache from the config,
+    # and every later compile in the process then failed and fell back to eager mode unnoticed.
+    no_compiler = {"cpp.cxx": ("/nonexistent/c++",), "fx_graph_cache": False}  # a cached kernel needs no compiler
+    with inductor_config.patch(no_compiler), pytest.warns(UserWarning, match="eager mode"):
         y = fn(x)
     assert fn.fell_back
     torch.testing.assert_close(y, scaled_softplus(x))
