@@ -5,10 +5,12 @@
 
 Runs the real training loop (6 envs x 1024 steps, minibatch 256, 10 epochs,
 chains drawn from 2..10, torch.compile on as by default) for one warm-up
-iteration and a few timed ones, in three settings: one core; both cores
+iteration and a few timed ones, in four settings: one core; both cores
 for the physics with the paper's single torch thread; both cores for
-physics and update. It prints overall env-steps/s by wall clock (updates,
-logging and checkpoints included), the median rollout and update seconds
+physics and update by threads; two processes, each with half the swimmers
+and half of every minibatch (``processes=2``, ``algo.data_parallel``). It
+prints overall env-steps/s by wall clock (updates, logging and checkpoints
+included), the median rollout and update seconds
 per iteration, and the share of the raw physics rate: MuJoCo alone
 (mj_step with frame_skip 4, averaged over the chain lengths 2..10 the way
 the envs draw them), a ratio that does not depend on the machine.
@@ -67,11 +69,12 @@ def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
     return (s1 - s0) / (t1 - t0)
 
 
-def run(iterations: int, torch_threads: int, env_threads: int) -> dict[str, float]:
+def run(iterations: int, torch_threads: int, env_threads: int, processes: int) -> dict[str, float]:
     cfg = TrainConfig(
         total_timesteps=(1 + iterations) * BATCH,
         torch_threads=torch_threads,
         env_threads=env_threads,
+        processes=processes,
         tensorboard=False,
         progress_bar=False,
     )
@@ -96,6 +99,8 @@ def main() -> None:
                         help="a checkout of the paper's code, measured side by side")  # fmt: skip
     parser.add_argument("--reference-python", default=None, metavar="PY",
                         help="the Python that runs it (with its requirements installed)")  # fmt: skip
+    parser.add_argument("--settings", type=int, nargs="+", default=None, metavar="K",
+                        help="run only these settings (1-based, in the table's order)")  # fmt: skip
     args = parser.parse_args()
     if args.reference is not None:
         if not (args.reference / "train.py").is_file():
@@ -113,12 +118,14 @@ def main() -> None:
     print("| setting | env-steps/s overall | rollout s/iter | update s/iter | share of raw physics | vs reference |")
     print("|---|---:|---:|---:|---:|---:|")
     settings = [
-        ("1 core (1 env thread, 1 torch thread)", 1, 1),
-        ("2 cores, paper config (2 env threads, 1 torch thread)", 1, 2),
-        ("2 cores (2 env threads, 2 torch threads)", 2, 2),
+        ("1 core (1 env thread, 1 torch thread)", 1, 1, 1),
+        ("2 cores, paper config (2 env threads, 1 torch thread)", 1, 2, 1),
+        ("2 cores (2 env threads, 2 torch threads)", 2, 2, 1),
+        ("2 cores, 2 processes (data-parallel)", 1, 1, 2),
     ]
-    for label, tt, et in settings:
-        r = run(iterations, tt, et)
+    chosen = args.settings or range(1, len(settings) + 1)
+    for label, tt, et, processes in (settings[k - 1] for k in chosen):
+        r = run(iterations, tt, et, processes)
         ratio = f"{r['sps'] / reference:.1f}x" if reference else "not run"
         print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | "
               f"{r['sps'] / raw_mix:.2f} | {ratio} |")  # fmt: skip

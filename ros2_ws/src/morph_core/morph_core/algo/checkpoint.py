@@ -58,9 +58,11 @@ def save_training_state(
     env_arrays: dict[str, np.ndarray],
     counters: dict,
     learner_state: dict[str, torch.Tensor] | None = None,
+    more_rngs: dict[str, torch.Tensor] | None = None,
 ) -> None:
     """``learner_state``: further tensors by their full key (``update.Learner.state_tensors``, e.g. the
-    KL penalty's beta), stored bit for bit and given back by ``load_training_state`` as they are."""
+    KL penalty's beta), stored bit for bit and given back by ``load_training_state`` as they are.
+    ``more_rngs``: further generator states by name (a helper process's noise), stored as ``rng.<name>``."""
     tensors = {f"policy.{k}": v.detach().contiguous() for k, v in policy.state_dict().items()}
     for k, v in (learner_state or {}).items():
         if k in tensors or not k.startswith("learner."):
@@ -71,6 +73,10 @@ def save_training_state(
         for name, value in state.items():
             tensors[f"optim.{idx}.{name}"] = torch.as_tensor(value).contiguous()
     tensors["rng.torch"] = generator.get_state()
+    for k, v in (more_rngs or {}).items():
+        if f"rng.{k}" in tensors:
+            raise ValueError(f"generator name {k!r} is taken")
+        tensors[f"rng.{k}"] = v
     for k, v in env_arrays.items():
         tensors[f"env.{k}"] = torch.from_numpy(np.ascontiguousarray(v))
     meta = {"param_groups": opt["param_groups"], "env": env_meta, "counters": counters}

@@ -30,8 +30,11 @@ def ppo_loss(
     old_mean=None,
     old_log_std=None,
     kl_beta=None,
+    normalize_advantages: bool = True,
 ):
-    """PPO's loss on one minibatch, with advantages normalised within it.
+    """PPO's loss on one minibatch, with advantages normalised within it (unless
+    ``normalize_advantages`` is False: a part of a minibatch split over processes gets its advantages
+    already normalised over the whole minibatch, ``algo.data_parallel``).
 
     ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``old_log_prob`` the
     log-probs the ratio is taken against (the proximal policy's, see ``algo.update``), ``clip_range``
@@ -43,7 +46,7 @@ def ppo_loss(
     """
     mean, log_std, value = policy(batch)
     log_ratio = policy.log_prob(batch, actions, mean) - old_log_prob
-    adv = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    adv = normalized_advantages(advantages) if normalize_advantages else advantages
     ctx = LossContext(
         log_ratio, adv, clip_range, batch.num_joints, mean, log_std, actions, batch.mask, old_mean, old_log_std, kl_beta
     )
@@ -53,6 +56,11 @@ def ppo_loss(
     entropy = policy.entropy(batch).mean()
     loss = pg_loss + vf_coef * v_loss - ent_coef * entropy
     return loss, pg_loss, v_loss, entropy, log_ratio, rule.clip_share(ctx)
+
+
+def normalized_advantages(advantages: torch.Tensor) -> torch.Tensor:
+    """Advantages scaled to mean 0 and standard deviation 1 over a minibatch."""
+    return (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
 
 def compute_gae(

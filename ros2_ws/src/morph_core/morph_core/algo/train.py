@@ -13,6 +13,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -25,14 +26,15 @@ from morph_core.algo.checkpoint import (
     save_training_state,
     sub_dict,
 )
+from morph_core.algo.data_parallel import Helpers, HelperSpec, env_bounds
 from morph_core.algo.ppo import compute_gae, explained_variance
+from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.tb_layout import update_histograms
 from morph_core.algo.trust_region import rule_names
-from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, epoch_columns, update
-from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.algo.update import Learner, UpdateConfig, epoch_columns, minibatch_cuts, update
+from morph_core.env.vec_env import SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
-from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
@@ -101,7 +103,10 @@ class TrainConfig:
     torch_threads: int = 1
     """torch intra-op threads in the update (rollout inference always uses 1)"""
     env_threads: int = 1
-    """threads stepping the swimmers (MuJoCo releases the GIL); 2 uses both cores of a 2-core machine"""
+    """threads stepping the swimmers (MuJoCo releases the GIL) in each process"""
+    processes: int = 1
+    """processes sharing the swimmers and every minibatch's gradient (algo.data_parallel); 2 uses both cores
+    of a 2-core machine. The action noise's random streams depend on it, so a run keeps its count"""
     compile: bool = True
     """torch.compile the minibatch loss and its backward (~1.5x faster update, ~20 s to compile once;
     falls back to eager mode with a warning where Inductor cannot run)"""
@@ -126,6 +131,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.minibatch_size > self.batch_size:
             raise ValueError(f"minibatch_size {self.minibatch_size} exceeds the rollout size {self.batch_size}")
+        smallest = min(b - a for a, b in pairwise(minibatch_cuts(self.batch_size, self.minibatch_size)))
+        if not 1 <= self.processes <= min(self.num_envs, smallest):
+            raise ValueError(f"processes must be in 1..{min(self.num_envs, smallest)} (each needs a swimmer and a "
+                             f"part of every minibatch), got {self.processes}")  # fmt: skip
         if self.clip_eps <= 0:
             raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
         self.update_config()  # the update's own checks: weight cap, KL settings, objective and rule together
@@ -178,73 +187,12 @@ def log_columns(cfg: TrainConfig) -> list[str]:
     ]  # fmt: skip
 
 
-def _arrays(obs: PaddedObs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    return obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints
-
-
-class Rollout:
-    """[T, E] storage of one rollout, padded to the longest chain the range allows; NumPy while
-    collecting, shared with torch (no copy) for the update."""
-
-    def __init__(self, steps: int, envs: int, max_joints: int):
-        T, E, J = steps, envs, max_joints
-        self.joint_pos, self.joint_vel = np.zeros((T, E, J), np.float32), np.zeros((T, E, J), np.float32)
-        self.global_feats, self.num_joints = np.zeros((T, E, 4), np.float32), np.zeros((T, E), np.int64)
-        self.actions, self.log_prob = np.zeros((T, E, J), np.float32), np.zeros((T, E), np.float32)
-        self.rewards, self.values = np.zeros((T, E), np.float32), np.zeros((T, E), np.float32)
-        self.terminated, self.truncated = np.zeros((T, E), bool), np.zeros((T, E), bool)
-        self.final_values = np.zeros((T, E), np.float32)  # V(final obs) where a time limit cut the episode
-
-    def batch(self, advantages: torch.Tensor, returns: torch.Tensor) -> RolloutBatch:
-        def flat(x: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(x).flatten(0, 1)
-
-        return RolloutBatch(
-            num_joints=flat(self.num_joints),
-            joint_pos=flat(self.joint_pos),
-            joint_vel=flat(self.joint_vel),
-            global_feats=flat(self.global_feats),
-            actions=flat(self.actions),
-            log_prob=flat(self.log_prob),
-            values=flat(self.values),
-            advantages=advantages.flatten(),
-            returns=returns.flatten(),
-        )
-
-
-def collect(
-    envs: SwimmerVecEnv, actor: NumpyPolicy, rollout: Rollout, obs: PaddedObs, generator: torch.Generator
-) -> tuple[PaddedObs, list[tuple[int, float, int]]]:
-    """Fill ``rollout`` by acting from ``obs``; returns the observation after it and the finished episodes.
-
-    The action noise comes from the run's torch generator, so a resumed run draws the same noise.
-    """
-    steps, num_envs, max_joints = rollout.actions.shape
-    episodes: list[tuple[int, float, int]] = []
-    for t in range(steps):
-        rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t], rollout.num_joints[t] = _arrays(obs)
-        noise = torch.randn((num_envs, max_joints), generator=generator).numpy()
-        rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(*_arrays(obs), noise)
-        step = envs.step(rollout.actions[t])
-        rollout.rewards[t], rollout.terminated[t], rollout.truncated[t] = step.reward, step.terminated, step.truncated
-        # A truncated episode would have gone on: GAE bootstraps it from the value of its final observation.
-        rollout.final_values[t] = 0.0
-        trunc = [i for i in step.final_obs if step.truncated[i]]
-        if trunc:
-            final = pad_observations([step.final_obs[i] for i in trunc], max_joints)
-            rollout.final_values[t, trunc] = actor.forward(*final)[1]
-        obs = step.obs
-        episodes += step.episodes
-    return obs, episodes
-
-
 def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors)."""
     run_dir = Path(run_dir)
     state_path = run_dir / "state.safetensors"
     ckpt_dir = run_dir / "checkpoints"
 
-    envs = SwimmerVecEnv(cfg.num_envs, (cfg.min_joints, cfg.max_joints), seed=cfg.seed, num_threads=cfg.env_threads)
     # Threads before init: the orthogonal init's QR differs in its last bits with the thread count.
     torch.set_num_threads(1)
     torch.manual_seed(cfg.seed)
@@ -252,25 +200,46 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
     optimizer = learner.optimizer
     gen = torch.Generator().manual_seed(cfg.seed)
-    global_step, iteration, last_ckpt = 0, 0, 0
-    if resume and (state_path.exists() or previous_state_path(state_path).exists()):
-        resumed = resume_training_state(state_path)  # TrainingStateError when neither state file is usable
-        tensors, meta = resumed.tensors, resumed.meta
-        policy.load_state_dict(sub_dict(tensors, "policy."))
-        restore_optimizer(optimizer, tensors, meta)
-        learner.restore_state(tensors)
-        gen.set_state(tensors["rng.torch"])
-        envs.set_state(meta["env"], {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()})
-        global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
-        _check_policy_checkpoints(ckpt_dir, global_step, policy)
-    else:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        with atomic_writer(run_dir / "config.json") as f:
-            json.dump(cfg.to_dict(), f, indent=2)
-    log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
+    # This process steps the first share of the swimmers (all of them, alone); helpers the others.
+    bounds = env_bounds(cfg.num_envs, cfg.processes)
+    envs = SwimmerVecEnv(bounds[0][1], (cfg.min_joints, cfg.max_joints), seed=cfg.seed, num_threads=cfg.env_threads)
+    helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
+    try:
+        global_step, iteration, last_ckpt = 0, 0, 0
+        if resume and (state_path.exists() or previous_state_path(state_path).exists()):
+            resumed = resume_training_state(state_path)  # TrainingStateError when neither state file is usable
+            tensors, meta = resumed.tensors, resumed.meta
+            policy.load_state_dict(sub_dict(tensors, "policy."))
+            restore_optimizer(optimizer, tensors, meta)
+            learner.restore_state(tensors)
+            gen.set_state(tensors["rng.torch"])
+            env_arrays = {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()}
+            env_parts = split_env_state(meta["env"], env_arrays, bounds)
+            envs.set_state(*env_parts[0])
+            if helpers is not None:
+                helpers.set_states([(*part, _helper_rng(tensors, r)) for r, part in enumerate(env_parts[1:], 1)])
+            global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
+            _check_policy_checkpoints(ckpt_dir, global_step, policy)
+        else:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            with atomic_writer(run_dir / "config.json") as f:
+                json.dump(cfg.to_dict(), f, indent=2)
+        _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, (global_step, iteration, last_ckpt))
+    finally:
+        envs.close()
+        if helpers is not None:
+            helpers.close()
+    return run_dir
 
+
+def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> None:
+    state_path, ckpt_dir = run_dir / "state.safetensors", run_dir / "checkpoints"
+    policy, optimizer = learner.policy, learner.optimizer
+    global_step, iteration, last_ckpt = counters
+    log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
     T, E = cfg.num_steps, cfg.num_envs
-    rollout = Rollout(T, E, cfg.max_joints)
+    rollout = Rollout(T, E, cfg.max_joints) if helpers is None else helpers.rollout
+    mine = rollout.columns(0, envs.num_envs)  # this process's swimmers' columns
     update_cfg = cfg.update_config()
     obs = envs.observations()
     recent: list[tuple[int, float, int]] = []
@@ -281,18 +250,22 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
         # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
         t0 = time.perf_counter()
-        actor = NumpyPolicy(policy)
-        obs, episodes = collect(envs, actor, rollout, obs, gen)
+        if helpers is not None:
+            helpers.start_collect()
+        obs, episodes = collect(envs, NumpyPolicy(policy), mine, obs, gen)
+        if helpers is not None:
+            episodes += helpers.finish_collect()
         global_step += T * E
         rollout_s = time.perf_counter() - t0
 
         # 2. Advantages.
-        last_value = torch.from_numpy(actor.forward(*_arrays(obs))[1])
         advantages, returns = compute_gae(
             *map(torch.from_numpy, (rollout.rewards, rollout.values, rollout.terminated, rollout.truncated,
-                                    rollout.final_values)),
-            last_value, cfg.gamma, cfg.gae_lambda,
+                                    rollout.final_values, rollout.last_value)),
+            cfg.gamma, cfg.gae_lambda,
         )  # fmt: skip
+        if helpers is not None:
+            helpers.publish_advantages(advantages, returns)
         batch = rollout.batch(advantages, returns)
 
         # 3. Update.
@@ -300,7 +273,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         if cfg.anneal_lr:  # a function of the step count alone, so a resumed run gets the same rate
             optimizer.param_groups[0]["lr"] = cfg.learning_rate * (1.0 - (global_step - T * E) / cfg.total_timesteps)
         torch.set_num_threads(cfg.torch_threads)
-        stats = update(learner, batch, update_cfg, gen)
+        stats = update(learner, batch, update_cfg, gen, peers=helpers)
         update_s = time.perf_counter() - t1
 
         # 4. Log and checkpoint.
@@ -329,10 +302,12 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
         ):
             last_ckpt = global_step
             policy.save(ckpt_dir / f"policy_{global_step:08d}.safetensors", metadata={"global_step": global_step})
-            env_meta, env_arrays = envs.get_state()
+            helper_states = [] if helpers is None else helpers.get_states()
+            env_meta, env_arrays = merge_env_states([envs.get_state(), *[(m, a) for m, a, _ in helper_states]])
+            more_rngs = {f"helper{r}": rng for r, (_, _, rng) in enumerate(helper_states, start=1)}
             counters = {"global_step": global_step, "iteration": iteration, "last_ckpt": last_ckpt}
             save_training_state(
-                state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors()
+                state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors(), more_rngs
             )
         if bar is not None:
             bar.update(T * E)
@@ -340,9 +315,24 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             bar.set_postfix(ret=f"{ret:.1f}", sps=f"{row['sps']:.0f}", kl=f"{row['approx_kl']:.3f}")
     if bar is not None:
         bar.close()
-    envs.close()
     log.close()
-    return run_dir
+
+
+def helper_spec(cfg: TrainConfig, learner: Learner) -> HelperSpec:
+    """What the helper processes of a run of ``cfg`` start from (``algo.data_parallel``)."""
+    return HelperSpec(
+        rank=0, processes=cfg.processes, shm_name="", num_steps=cfg.num_steps, num_envs=cfg.num_envs,
+        min_joints=cfg.min_joints, max_joints=cfg.max_joints, seed=cfg.seed, env_threads=cfg.env_threads,
+        num_params=learner.params.theta.numel(), policy=dataclasses.asdict(cfg.policy), compile=cfg.compile,
+        update=cfg.update_config(),
+    )  # fmt: skip
+
+
+def _helper_rng(tensors: dict[str, torch.Tensor], rank: int) -> torch.Tensor | None:
+    state = tensors.get(f"rng.helper{rank}")
+    if state is None:  # a run started with fewer processes: this helper's noise starts from its seed
+        log.warning("resume: the checkpoint has no noise generator for helper %d; it starts from its seed", rank)
+    return state
 
 
 def _check_policy_checkpoints(ckpt_dir: Path, step: int, policy: GraphActorCritic) -> None:

@@ -25,12 +25,13 @@ import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple, Protocol
 
 import torch
 
 from morph_core.algo.compiled import compiled
 from morph_core.algo.param_buffer import FlatParameters
-from morph_core.algo.ppo import PerDimensionStats, ppo_loss
+from morph_core.algo.ppo import PerDimensionStats, normalized_advantages, ppo_loss
 from morph_core.algo.trust_region import LossContext, TrustRegionRule, get_rule, kl_per_joint
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
@@ -268,11 +269,27 @@ def minibatch_cuts(size: int, minibatch_size: int) -> list[int]:
     return cuts
 
 
-def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: torch.Generator) -> UpdateStats:
-    """Epochs of shuffled minibatch steps on ``batch`` under ``cfg.rule``; ``generator`` shuffles."""
+@dataclass
+class UpdateTerms:
+    """What every minibatch step of one update reads besides the batch, fixed as the update starts."""
+
+    rule: TrustRegionRule
+    loss_fn: Callable
+    old_log_prob: torch.Tensor
+    """[N] the log-probs the ratio is taken against"""
+    weight: torch.Tensor | None
+    """[N] the truncated importance weights, or None (on-policy data, or the behaviour objective)"""
+    clip_range: torch.Tensor
+    """[N] the rule's clip range per sample"""
+    old_mean: torch.Tensor | None
+    """[N, J] the proximal policy's means, for rules that use its Gaussian"""
+    extra: dict
+    """further keyword arguments of the loss (the old log-std, the KL penalty's beta)"""
+
+
+def update_terms(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, kl_beta: torch.Tensor | None) -> UpdateTerms:
+    """The update's fixed terms, with the policy as the update starts (the proximal policy)."""
     rule = get_rule(cfg.rule)
-    loss_fn = learner.minibatch_loss(rule)
-    flat, optimizer = learner.params, learner.optimizer
     dims = batch.num_joints.to(torch.float32)
     clip_range = rule.clip_range(cfg.clip_eps, dims) if rule.clips_joint_ratio else torch.full_like(dims, cfg.clip_eps)
     if batch.proximal_log_prob is None or cfg.off_policy_objective == "behaviour":
@@ -280,16 +297,115 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
     else:
         old_log_prob = batch.proximal_log_prob
         weight = torch.clamp(torch.exp(batch.proximal_log_prob - batch.log_prob), max=cfg.proximal_weight_cap)
-    # The rule's state as the learner keeps it (restored from a checkpoint), else as the rule starts it.
-    state = {k: learner.rule_state.get(k, v) for k, v in rule.initial_state(cfg).items()}
-    learner.rule_state = state
-    kl_beta = state.get("kl_beta")
-    extra = {}  # what only some rules need, so the others' loss is called exactly as before
+    extra, old_mean = {}, None  # what only some rules need, so the others' loss is called exactly as before
     if rule.uses_old_gaussian:
         old_mean, old_log_std = proximal_means(learner.policy, batch)
         extra = {"old_log_std": old_log_std}
     if kl_beta is not None:
         extra["kl_beta"] = kl_beta.to(torch.float32)
+    return UpdateTerms(rule, learner.minibatch_loss(rule), old_log_prob, weight, clip_range, old_mean, extra)
+
+
+class MinibatchPart(NamedTuple):
+    """One process's part of a minibatch step: its share of the mean losses and its samples' ratios."""
+
+    pg_loss: torch.Tensor
+    v_loss: torch.Tensor
+    entropy: torch.Tensor
+    log_ratio: torch.Tensor
+    clip_share: torch.Tensor | None
+
+
+def minibatch_part(
+    policy: GraphActorCritic,
+    terms: UpdateTerms,
+    batch: RolloutBatch,
+    cfg: UpdateConfig,
+    mb: torch.Tensor,
+    advantages: torch.Tensor | None = None,
+    rank: int = 0,
+    world: int = 1,
+) -> tuple[torch.Tensor, MinibatchPart]:
+    """The loss of part ``rank`` of ``world`` of minibatch ``mb`` (all of it for one process) and its
+    statistics, both scaled by the part's share of the minibatch: the parts' losses, and so their
+    gradients, add up to the whole minibatch's. ``advantages``: ``mb``'s advantages normalised over all of
+    ``mb`` (required when the minibatch is split)."""
+    if world == 1:
+        index, adv, normalize, share = mb, batch.advantages[mb], True, 1.0
+    else:
+        sizes = [len(p) for p in torch.tensor_split(mb, world)]
+        lo = sum(sizes[:rank])
+        index, adv, normalize = mb[lo : lo + sizes[rank]], advantages[lo : lo + sizes[rank]], False
+        share = sizes[rank] / len(mb)
+    chains, actions = batch.minibatch(index)
+    extra = terms.extra
+    if terms.old_mean is not None:
+        extra = {**extra, "old_mean": terms.old_mean[index, : chains.max_joints]}
+    loss, pg_loss, v_loss, entropy, log_ratio, clip_share = terms.loss_fn(
+        policy,
+        chains,
+        actions,
+        terms.old_log_prob[index],
+        adv,
+        batch.returns[index],
+        terms.clip_range[index],
+        None if terms.weight is None else terms.weight[index],
+        cfg.vf_coef,
+        cfg.ent_coef,
+        normalize_advantages=normalize,
+        **extra,
+    )
+    if share != 1.0:
+        loss, pg_loss, v_loss, entropy = (x * share for x in (loss, pg_loss, v_loss, entropy))
+    stats = MinibatchPart(pg_loss.detach(), v_loss.detach(), entropy.detach(), log_ratio.detach(),
+                          None if clip_share is None else clip_share.detach())  # fmt: skip
+    return loss, stats
+
+
+class MinibatchPeers(Protocol):
+    """Other processes that compute parts of every minibatch step (``algo.data_parallel``)."""
+
+    world: int
+    """processes, this one included (it computes part 0)"""
+
+    def begin(self, kl_beta: torch.Tensor | None) -> None:
+        """An update starts, with the policy as it is now."""
+
+    def start(self, mb: torch.Tensor, advantages: torch.Tensor) -> None:
+        """The peers compute their parts of minibatch ``mb`` (``advantages`` normalised over it)."""
+
+    def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
+        """Add the peers' gradients into ``grad`` (in rank order); their statistics."""
+
+    def stepped(self) -> None:
+        """The optimizer has stepped: the peers take the new parameters."""
+
+    def end(self) -> None:
+        """The update is over."""
+
+
+def update(
+    learner: Learner,
+    batch: RolloutBatch,
+    cfg: UpdateConfig,
+    generator: torch.Generator,
+    peers: MinibatchPeers | None = None,
+) -> UpdateStats:
+    """Epochs of shuffled minibatch steps on ``batch`` under ``cfg.rule``; ``generator`` shuffles.
+
+    With ``peers``, each minibatch is split over the processes: each computes the gradient of its part
+    (advantages normalised over the whole minibatch first), this one adds them and steps; the result
+    equals the one-process update to float rounding (``test_data_parallel``).
+    """
+    rule = get_rule(cfg.rule)
+    flat, optimizer = learner.params, learner.optimizer
+    # The rule's state as the learner keeps it (restored from a checkpoint), else as the rule starts it.
+    state = {k: learner.rule_state.get(k, v) for k, v in rule.initial_state(cfg).items()}
+    learner.rule_state = state
+    kl_beta = state.get("kl_beta")
+    terms = update_terms(learner, batch, cfg, kl_beta)
+    if peers is not None:
+        peers.begin(kl_beta)
     cuts = minibatch_cuts(batch.size, cfg.minibatch_size)
     mb_losses, mb_index, mb_log_ratio, mb_clip_share = [], [], [], []
     epochs = 0
@@ -299,37 +415,35 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
         epoch_log_ratio = []
         for start, stop in zip(cuts[:-1], cuts[1:], strict=True):
             mb = perm[start:stop]
-            chains, actions = batch.minibatch(mb)
-            if rule.uses_old_gaussian:
-                extra["old_mean"] = old_mean[mb, : chains.max_joints]
-            loss, pg_loss, v_loss, entropy, log_ratio, clip_share = loss_fn(
-                learner.policy,
-                chains,
-                actions,
-                old_log_prob[mb],
-                batch.advantages[mb],
-                batch.returns[mb],
-                clip_range[mb],
-                None if weight is None else weight[mb],
-                cfg.vf_coef,
-                cfg.ent_coef,
-                **extra,
-            )
             flat.zero_grad()
-            loss.backward()
+            if peers is None:
+                loss, part = minibatch_part(learner.policy, terms, batch, cfg, mb)
+                loss.backward()
+                parts = [part]
+            else:
+                advantages = normalized_advantages(batch.advantages[mb])
+                peers.start(mb, advantages)
+                loss, part = minibatch_part(learner.policy, terms, batch, cfg, mb, advantages, 0, peers.world)
+                loss.backward()
+                parts = [part, *peers.gather(flat.grad)]
             torch.nn.utils.clip_grad_norm_(flat.theta, cfg.max_grad_norm)
             optimizer.step()
+            if peers is not None:
+                peers.stepped()
             # Statistics are reduced once per update, not per minibatch.
-            mb_losses.append(torch.stack([pg_loss, v_loss, entropy]).detach())
+            mb_losses.append(torch.stack([sum(getattr(p, k) for p in parts) for k in ("pg_loss", "v_loss", "entropy")]))
             mb_index.append(mb)
-            epoch_log_ratio.append(log_ratio.detach())
-            if clip_share is not None:
-                mb_clip_share.append(clip_share.detach())
+            epoch_log_ratio.append(torch.cat([p.log_ratio for p in parts]))
+            if part.clip_share is not None:
+                mb_clip_share.append(torch.cat([p.clip_share for p in parts]))
         mb_log_ratio += epoch_log_ratio
         epoch_log_ratio = torch.cat(epoch_log_ratio)
         if rule.stop_after_epoch(epoch_log_ratio, batch.num_joints[perm], cfg):  # an epoch covers perm once
             break
+    if peers is not None:
+        peers.end()
     index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
+    clip_range = terms.clip_range
     clipped = torch.cat(mb_clip_share) if mb_clip_share else rule.clipped(log_ratio.exp(), clip_range[index])
     stats = PerDimensionStats(batch.max_joints)
     stats.add(batch.num_joints[index], log_ratio, clipped, cfg.clip_eps)
@@ -340,7 +454,9 @@ def update(learner: Learner, batch: RolloutBatch, cfg: UpdateConfig, generator: 
         epoch.add(batch.num_joints[index[part]], log_ratio[part], clipped[part], cfg.clip_eps)
         per_epoch.append(epoch)
     if state:
-        kl = exact_kl(learner.policy, batch, old_mean, old_log_std) if rule.uses_old_gaussian else None
+        kl = None
+        if rule.uses_old_gaussian:
+            kl = exact_kl(learner.policy, batch, terms.old_mean, terms.extra["old_log_std"])
         learner.rule_state = rule.end_update(state, kl, batch.num_joints, cfg)
     pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
     beta = math.nan if kl_beta is None else float(kl_beta)

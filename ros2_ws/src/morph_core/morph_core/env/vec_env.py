@@ -163,3 +163,28 @@ class SwimmerVecEnv:
             self._obs[i] = env._observation()
         self.episode_steps[:] = arrays["episode_steps"]
         self.episode_returns[:] = arrays["episode_returns"]
+
+
+def merge_env_states(parts: list[tuple[dict, dict[str, np.ndarray]]]) -> tuple[dict, dict[str, np.ndarray]]:
+    """One ``get_state`` of the swimmers of several vector envs in order (processes' shares of one run)."""
+    meta, arrays, offset = {"envs": []}, {}, 0
+    for part_meta, part_arrays in parts:
+        for i in range(len(part_meta["envs"])):
+            arrays[f"env{offset + i}.mj_state"] = part_arrays[f"env{i}.mj_state"]
+        meta["envs"] += part_meta["envs"]
+        offset += len(part_meta["envs"])
+    for name in ("episode_steps", "episode_returns"):
+        arrays[name] = np.concatenate([a[name] for _, a in parts])
+    return meta, arrays
+
+
+def split_env_state(meta: dict, arrays: dict[str, np.ndarray], bounds: list[tuple[int, int]]):
+    """The inverse of ``merge_env_states``: the state of swimmers lo..hi-1 for each (lo, hi) of ``bounds``."""
+    if len(meta["envs"]) != bounds[-1][1]:
+        raise ValueError(f"checkpoint holds {len(meta['envs'])} envs, this run has {bounds[-1][1]}")
+    parts = []
+    for lo, hi in bounds:
+        part = {f"env{i - lo}.mj_state": arrays[f"env{i}.mj_state"] for i in range(lo, hi)}
+        part |= {name: arrays[name][lo:hi] for name in ("episode_steps", "episode_returns")}
+        parts.append(({"envs": meta["envs"][lo:hi]}, part))
+    return parts

@@ -1,0 +1,98 @@
+"""Collecting a rollout: the swimmers act under a NumPy snapshot of the policy, [T, E] arrays fill up.
+
+The simulator trainer (``algo.train``) collects into one ``Rollout``; with
+several processes (``algo.data_parallel``) each collects its own swimmers
+into its columns of one rollout in shared memory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from morph_core.algo.update import RolloutBatch
+from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.policy.chains import pad_observations
+from morph_core.policy.numpy_actor import NumpyPolicy
+
+
+def rollout_layout(steps: int, envs: int, max_joints: int) -> dict[str, tuple[tuple[int, ...], type]]:
+    """Name -> (shape, dtype) of every array of a ``Rollout``."""
+    T, E, J = steps, envs, max_joints
+    return {
+        "joint_pos": ((T, E, J), np.float32), "joint_vel": ((T, E, J), np.float32),
+        "global_feats": ((T, E, 4), np.float32), "num_joints": ((T, E), np.int64),
+        "actions": ((T, E, J), np.float32), "log_prob": ((T, E), np.float32),
+        "rewards": ((T, E), np.float32), "values": ((T, E), np.float32),
+        "terminated": ((T, E), np.bool_), "truncated": ((T, E), np.bool_),
+        "final_values": ((T, E), np.float32),  # V(final obs) where a time limit cut the episode
+        "last_value": ((E,), np.float32),  # V(obs after the last step), GAE's bootstrap
+    }  # fmt: skip
+
+
+class Rollout:
+    """[T, E] storage of one rollout, padded to the longest chain the range allows; NumPy while
+    collecting, shared with torch (no copy) for the update."""
+
+    def __init__(self, steps: int, envs: int, max_joints: int, alloc: Callable[..., np.ndarray] | None = None):
+        """``alloc(name, shape, dtype)`` gives each array (zeroed); by default ``np.zeros``."""
+        for name, (shape, dtype) in rollout_layout(steps, envs, max_joints).items():
+            setattr(self, name, np.zeros(shape, dtype) if alloc is None else alloc(name, shape, dtype))
+
+    def columns(self, lo: int, hi: int) -> Rollout:
+        """The swimmers lo..hi-1 of this rollout: a rollout whose arrays are views into this one's."""
+        part = object.__new__(Rollout)
+        for name in rollout_layout(1, 1, 1):
+            array = getattr(self, name)
+            setattr(part, name, array[lo:hi] if array.ndim == 1 else array[:, lo:hi])
+        return part
+
+    def batch(self, advantages: torch.Tensor, returns: torch.Tensor) -> RolloutBatch:
+        def flat(x: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(x).flatten(0, 1)
+
+        return RolloutBatch(
+            num_joints=flat(self.num_joints),
+            joint_pos=flat(self.joint_pos),
+            joint_vel=flat(self.joint_vel),
+            global_feats=flat(self.global_feats),
+            actions=flat(self.actions),
+            log_prob=flat(self.log_prob),
+            values=flat(self.values),
+            advantages=advantages.flatten(),
+            returns=returns.flatten(),
+        )
+
+
+def _arrays(obs: PaddedObs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints
+
+
+def collect(
+    envs: SwimmerVecEnv, actor: NumpyPolicy, rollout: Rollout, obs: PaddedObs, generator: torch.Generator
+) -> tuple[PaddedObs, list[tuple[int, float, int]]]:
+    """Fill ``rollout`` by acting from ``obs``; returns the observation after it and the finished episodes.
+
+    The action noise comes from the run's torch generator, so a resumed run draws the same noise.
+    ``rollout.last_value`` gets the value of the observation after the last step.
+    """
+    steps, num_envs, max_joints = rollout.actions.shape
+    episodes: list[tuple[int, float, int]] = []
+    for t in range(steps):
+        rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t], rollout.num_joints[t] = _arrays(obs)
+        noise = torch.randn((num_envs, max_joints), generator=generator).numpy()
+        rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(*_arrays(obs), noise)
+        step = envs.step(rollout.actions[t])
+        rollout.rewards[t], rollout.terminated[t], rollout.truncated[t] = step.reward, step.terminated, step.truncated
+        # A truncated episode would have gone on: GAE bootstraps it from the value of its final observation.
+        rollout.final_values[t] = 0.0
+        trunc = [i for i in step.final_obs if step.truncated[i]]
+        if trunc:
+            final = pad_observations([step.final_obs[i] for i in trunc], max_joints)
+            rollout.final_values[t, trunc] = actor.forward(*final)[1]
+        obs = step.obs
+        episodes += step.episodes
+    rollout.last_value[:] = actor.forward(*_arrays(obs))[1]
+    return obs, episodes
