@@ -1,15 +1,19 @@
 """morph-eval: deterministic checkpoint evaluation into eval.csv, resumable, and the comparison plots."""
 
 import csv
+import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from morph_core.algo.evaluate import evaluate_policy
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.actor_critic import GraphActorCritic
+from trainer.eval_cli import EvalConfig, evaluate_run
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
@@ -80,3 +84,36 @@ def test_eval_cli_refuses_a_directory_that_is_not_a_run(tmp_path):
         [sys.executable, "-m", "trainer.eval_cli", "--run", str(tmp_path)], capture_output=True, text=True
     )
     assert out.returncode != 0 and "not a training run" in out.stderr
+
+
+def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
+    run = train(TrainConfig(total_timesteps=512, seed=2, **SMALL), tmp_path / "run")
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    cfg = EvalConfig(lengths=[2, 4, 7], episodes=2)
+    one = evaluate_run(run, cfg, log=lambda _: None)
+    two = evaluate_run(copy, dataclasses.replace(cfg, processes=2), log=lambda _: None)
+    assert len(one) == 4 * 3 * 2  # 4 checkpoints, 3 lengths, 2 episodes
+    assert one == two
+    assert (run / "eval.csv").read_text() == (copy / "eval.csv").read_text()
+
+
+def test_evaluation_runs_the_policy_the_torch_network_computes():
+    # The NumPy forward pass the evaluation uses, against the torch policy's own mean action, step by step.
+    import torch
+
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
+    from morph_core.policy.chains import ChainBatch
+
+    torch.manual_seed(0)
+    policy = GraphActorCritic()
+    returns = evaluate_policy(policy, [3], episodes=1, max_steps=40)[3]
+    env = MorphSwimmerEnv(num_joints=3)
+    obs, _ = env.reset(seed=10_000)
+    total = 0.0
+    with torch.no_grad():
+        for _ in range(40):
+            mean = policy(ChainBatch.from_observations([obs]))[0].numpy()[0, :3]
+            obs, r, _, _, _ = env.step(np.clip(mean, -1.0, 1.0))
+            total += r
+    assert returns[0] == pytest.approx(total, rel=1e-4, abs=1e-5)

@@ -5,23 +5,26 @@ deterministically (the policy's mean action), ``--episodes`` episodes per
 chain length (default 2..10 plus the unseen 15 and 20), into the run's
 ``eval.csv``. Checkpoints already in ``eval.csv`` are skipped, so an
 interrupted evaluation resumes. ``--stride k`` evaluates every k-th
-checkpoint (the last one always). Figures comparing the clip modes go to
-``--plots DIR``.
+checkpoint (the last one always). ``--processes 2`` evaluates two
+checkpoints at a time, one per core (each checkpoint's results are the same
+as alone). Figures comparing the clip modes go to ``--plots DIR``.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import multiprocessing
 import re
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
+import numpy as np
 
 from morph_core.algo.evaluate import evaluate_policy
-from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 
@@ -42,7 +45,9 @@ class EvalConfig:
     seed: int = 10_000
     """reset seed of episode 0 (episode k uses seed + k)"""
     threads: int = 1
-    """threads stepping the swimmers"""
+    """threads stepping the swimmers of one checkpoint"""
+    processes: int = 1
+    """checkpoints evaluated at a time, each in its own process (2 uses both cores of a 2-core machine)"""
 
 
 def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
@@ -71,17 +76,14 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     chosen = ckpts[:: cfg.stride]
     if chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
-    for step, path in chosen:
-        todo = [n for n in cfg.lengths if (step, n) not in done]
-        if not todo:
-            continue
-        policy = GraphActorCritic.load(path)
-        results = evaluate_policy(policy, todo, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in cfg.lengths if (step, n) not in done])]
+    for step, todo, results in _evaluated(jobs, cfg):
         for n in todo:
             rows += [
                 {"global_step": step, "num_joints": n, "episode": k, "return": float(r)}
                 for k, r in enumerate(results[n])
             ]
+        rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), int(r["episode"])))
         # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
         with atomic_writer(run_dir / "eval.csv") as f:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
@@ -90,6 +92,24 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
         means = " ".join(f"{n}:{results[n].mean():.1f}" for n in todo)
         log(f"{run_dir.name} step {step}: {means}")
     return rows
+
+
+def evaluate_checkpoint(path: Path, lengths: list[int], cfg: EvalConfig) -> dict[int, np.ndarray]:
+    """The returns of the checkpoint at ``path`` per chain length (its weights read without torch)."""
+    return evaluate_policy(load_checkpoint(path), lengths, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+
+
+def _evaluated(jobs: list[tuple[int, Path, list[int]]], cfg: EvalConfig):
+    """(step, lengths, results) of every job, in order, evaluated ``cfg.processes`` at a time."""
+    if cfg.processes == 1 or len(jobs) < 2:
+        for step, path, todo in jobs:
+            yield step, todo, evaluate_checkpoint(path, todo, cfg)
+        return
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or locks
+    with ProcessPoolExecutor(min(cfg.processes, len(jobs)), mp_context=context) as pool:
+        futures = [(step, todo, pool.submit(evaluate_checkpoint, path, todo, cfg)) for step, path, todo in jobs]
+        for step, todo, future in futures:
+            yield step, todo, future.result()
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -106,9 +126,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.lengths is not None:
         overrides["lengths"] = args.lengths
     cfg = replace_nested(EvalConfig(), overrides)
-    if cfg.episodes < 1 or cfg.stride < 1 or any(not 1 <= n <= 64 for n in cfg.lengths):
-        parser.error("episodes and stride must be >= 1, lengths in 1..64")
-    torch.set_num_threads(1)
+    if cfg.episodes < 1 or cfg.stride < 1 or cfg.processes < 1 or any(not 1 <= n <= 64 for n in cfg.lengths):
+        parser.error("episodes, stride and processes must be >= 1, lengths in 1..64")
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")
