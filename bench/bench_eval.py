@@ -43,7 +43,9 @@ def timed_eval(tree: Path, run: Path, chosen: list[Path], work: Path, processes:
     (copy / "checkpoints").mkdir(parents=True)
     shutil.copy(run / "config.json", copy)
     for path in chosen:
-        shutil.copy(path, copy / "checkpoints")
+        for part in (path, path.with_suffix(".json")):  # the weights and their config beside them
+            if part.exists():
+                shutil.copy(part, copy / "checkpoints")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(tree / p) for p in PACKAGES))
     cmd = [sys.executable, "-m", "trainer.eval_cli", "--run", str(copy)]
     if processes > 1:

@@ -13,7 +13,7 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["morph_core", "matplotlib", "numpy", "rosbags", "pillow", "imageio-ffmpeg"],
+    install_requires=["morph_core", "matplotlib", "numpy", "rosbags", "pillow", "imageio-ffmpeg", "threadpoolctl"],
     # morph-export: torch's ONNX exporter (onnxscript) and ONNX Runtime to check the graph it writes.
     extras_require={"onnx": ["onnx", "onnxruntime", "onnxscript"]},
     zip_safe=True,
