@@ -103,7 +103,7 @@ def evaluate_checkpoint(path: Path, lengths: list[int], cfg: EvalConfig) -> dict
 def one_blas_thread() -> None:
     """One BLAS thread in this evaluation process. OpenBLAS's worker threads spin while they wait, so two
     processes with two BLAS threads each on two cores fight for them: two evaluations side by side ran
-    3.6x slower than with one thread each (a measurement of this session, not kept)."""
+    3.6x slower than with one thread each (docs/benchmarks.md)."""
     threadpool_limits(limits=1, user_api="blas")
 
 

@@ -145,7 +145,6 @@ class Helpers:
         self.rollout = shared_rollout(self.shared, spec.num_steps, spec.num_envs, spec.max_joints)
         self._theta = torch.from_numpy(self.shared["theta"])
         self._grads = torch.from_numpy(self.shared["grad"])
-        self._n = 0
         context = multiprocessing.get_context("spawn")  # fork would copy torch's and MuJoCo's threads' locks
         self._procs, self._conns = [], []
         try:
@@ -221,7 +220,7 @@ class Helpers:
         self._call_all(("begin", beta))
 
     def start(self, mb: torch.Tensor, advantages: torch.Tensor) -> None:
-        self._n = n = len(mb)
+        n = len(mb)
         self.shared["mb"][:n] = mb.numpy()
         self.shared["mb_advantages"][:n] = advantages.numpy()
         for rank in range(1, self.world):
@@ -229,11 +228,10 @@ class Helpers:
 
     def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
         parts = []
-        sizes = [len(p) for p in np.array_split(np.arange(self._n), self.world)]
         for rank in range(1, self.world):
-            (has_clip_share,) = self._receive(rank)
+            size, has_clip_share = self._receive(rank)  # the helper says how many samples its part held
             grad += self._grads[rank - 1]
-            size, slot = sizes[rank], rank - 1
+            slot = rank - 1
             losses = torch.from_numpy(self.shared["part_losses"][slot].copy())
             log_ratio = torch.from_numpy(self.shared["part_log_ratio"][slot, :size].copy())
             clip_share = (
@@ -244,9 +242,6 @@ class Helpers:
 
     def stepped(self) -> None:
         self.publish_parameters()
-
-    def end(self) -> None:
-        pass  # the helpers wait for the next command as they are
 
     # -- checkpoints ----------------------------------------------------------------
     def get_states(self) -> list[tuple[dict, dict[str, np.ndarray], torch.Tensor]]:
@@ -341,7 +336,7 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
             shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()
             if part.clip_share is not None:
                 shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
-            conn.send(("done", part.clip_share is not None))
+            conn.send(("done", size, part.clip_share is not None))
         elif command == "get_state":
             meta, arrays = envs.get_state()
             conn.send(("state", meta, arrays, generator.get_state()))

@@ -380,9 +380,6 @@ class MinibatchPeers(Protocol):
     def stepped(self) -> None:
         """The optimizer has stepped: the peers take the new parameters."""
 
-    def end(self) -> None:
-        """The update is over."""
-
 
 def update(
     learner: Learner,
@@ -440,8 +437,6 @@ def update(
         epoch_log_ratio = torch.cat(epoch_log_ratio)
         if rule.stop_after_epoch(epoch_log_ratio, batch.num_joints[perm], cfg):  # an epoch covers perm once
             break
-    if peers is not None:
-        peers.end()
     index, log_ratio = torch.cat(mb_index), torch.cat(mb_log_ratio)
     clip_range = terms.clip_range
     clipped = torch.cat(mb_clip_share) if mb_clip_share else rule.clipped(log_ratio.exp(), clip_range[index])
