@@ -117,3 +117,15 @@ def test_evaluation_runs_the_policy_the_torch_network_computes():
             obs, r, _, _, _ = env.step(np.clip(mean, -1.0, 1.0))
             total += r
     assert returns[0] == pytest.approx(total, rel=1e-4, abs=1e-5)
+
+
+def test_from_step_adds_lengths_to_the_late_checkpoints_only(tmp_path):
+    # Zero-shot on longer chains late in training: the same checkpoints the stride picks, from a step on.
+    run = train(TrainConfig(total_timesteps=640, seed=3, **SMALL), tmp_path / "run")  # checkpoints 128..640
+    evaluate_run(run, EvalConfig(lengths=[2], episodes=1, stride=2), log=lambda _: None)  # 128, 384, 640
+    rows = evaluate_run(run, EvalConfig(lengths=[4], episodes=1, stride=2, from_step=300), log=lambda _: None)
+    steps = {n: sorted({int(r["global_step"]) for r in rows if int(r["num_joints"]) == n}) for n in (2, 4)}
+    assert steps == {2: [128, 384, 640], 4: [384, 640]}
+    # Past the last checkpoint: the last one is still evaluated.
+    rows = evaluate_run(run, EvalConfig(lengths=[5], episodes=1, from_step=10_000), log=lambda _: None)
+    assert sorted({int(r["global_step"]) for r in rows if int(r["num_joints"]) == 5}) == [640]

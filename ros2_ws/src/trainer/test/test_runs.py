@@ -33,8 +33,8 @@ def eighth_root():
     unregister(rule.name)
 
 
-def write_run(run_dir, rule, seed, steps=(6144, 12288, 18432)):
-    """A run directory as morph-train and morph-eval leave it, with made-up numbers."""
+def write_run(run_dir, rule, seed, steps=(6144, 12288, 18432), scale=1.0):
+    """A run directory as morph-train and morph-eval leave it, with made-up numbers (returns times ``scale``)."""
     cfg = TrainConfig(clip_mode=rule, seed=seed, total_timesteps=steps[-1], min_joints=2, max_joints=3)
     run_dir.mkdir(parents=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
@@ -43,14 +43,14 @@ def write_run(run_dir, rule, seed, steps=(6144, 12288, 18432)):
         w = csv.DictWriter(f, columns)
         w.writeheader()
         for k, step in enumerate(steps):
-            w.writerow({c: 0.1 * (k + 1) for c in columns} | {"global_step": step, "return_mean": 150 * k})
+            w.writerow({c: 0.1 * (k + 1) for c in columns} | {"global_step": step, "return_mean": 150 * k * scale})
     with (run_dir / "eval.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, ["global_step", "num_joints", "episode", "return"])
         w.writeheader()
         for step in steps:
             for n in (2, 3, 5):
-                w.writerows({"global_step": step, "num_joints": n, "episode": e, "return": step / 1000 + n + e}
-                            for e in range(2))  # fmt: skip
+                w.writerows({"global_step": step, "num_joints": n, "episode": e,
+                             "return": (step / 1000 + n + e) * scale} for e in range(2))  # fmt: skip
     return run_dir
 
 
@@ -94,6 +94,20 @@ def test_a_registered_rule_reaches_the_cli_the_plots_and_the_summary(tmp_path, e
     out = capsys.readouterr().out
     assert f"clip fraction per dimension, {TEST_RULE} (2 runs): 2:0.20 3:0.20" in out
     assert f"| {TEST_RULE}-s1 | 18k | never | 150 |" in out  # trailing means 0, 75, 150
+
+
+def test_summary_ranks_the_rules_claim_by_claim_and_reports_zero_shot(tmp_path, capsys):
+    # kl-stop's returns are twice fixed's: it ranks first on every claim, ties (none collapsed) share rank 1.
+    runs = [write_run(tmp_path / f"fixed-s{s}", "fixed", s) for s in (1, 2)]
+    runs.append(write_run(tmp_path / "kl-stop-s1", "kl-stop", 1, scale=2.0))
+    summary.main(["--run", *map(str, runs)])
+    out = capsys.readouterr().out
+    # late = checkpoints from 9216 on (12288, 18432): mean return 15.36 + n + 0.5 over episodes 0, 1
+    assert "| fixed | 2 | 18 ± 0 | 21 ± 0 |" in out  # trained 2..3: 18.36; unseen 5: 20.86
+    assert "| kl-stop | 1 | 37 ± 0 | 42 ± 0 |" in out
+    assert "| fixed | never (2) | 150 (2) | 0 (1) | 18 (2) | 21 (2) |" in out  # trailing means 0, 75, 150
+    assert "| kl-stop | 18k (1) | 300 (1) | 0 (1) | 37 (1) | 42 (1) |" in out  # 0, 150, 300: 200 at 18432
+    assert "KL per dimension, fixed: 2:0.2000 3:0.2000" in out
 
 
 def test_ship_needs_an_explicit_destination(tmp_path):

@@ -5,7 +5,10 @@ deterministically (the policy's mean action), ``--episodes`` episodes per
 chain length (default 2..10 plus the unseen 15 and 20), into the run's
 ``eval.csv``. Checkpoints already in ``eval.csv`` are skipped, so an
 interrupted evaluation resumes. ``--stride k`` evaluates every k-th
-checkpoint (the last one always). ``--processes 2`` evaluates two
+checkpoint (the last one always); ``--from-step S`` only those from step S
+on (zero-shot on long chains late in training: ``--lengths 30 40
+--from-step 500000``, the same checkpoints as the full pass with the same
+stride). ``--processes 2`` evaluates two
 checkpoints at a time, one per core (each checkpoint's results are the same
 as alone). Figures comparing the clip modes go to ``--plots DIR``.
 """
@@ -43,6 +46,8 @@ class EvalConfig:
     """deterministic episodes per chain length"""
     stride: int = 1
     """evaluate every k-th checkpoint (the last one always)"""
+    from_step: int = 0
+    """only checkpoints at or after this global step (of those the stride picks; the last one always)"""
     seed: int = 10_000
     """reset seed of episode 0 (episode k uses seed + k)"""
     threads: int = 1
@@ -74,8 +79,8 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     ckpts = checkpoints(run_dir)
     if not ckpts:
         raise FileNotFoundError(f"no checkpoints in {run_dir / 'checkpoints'}")
-    chosen = ckpts[:: cfg.stride]
-    if chosen[-1] != ckpts[-1]:
+    chosen = [(step, path) for step, path in ckpts[:: cfg.stride] if step >= cfg.from_step]
+    if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
     jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in cfg.lengths if (step, n) not in done])]
     for step, todo, results in _evaluated(jobs, cfg):
@@ -134,8 +139,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.lengths is not None:
         overrides["lengths"] = args.lengths
     cfg = replace_nested(EvalConfig(), overrides)
-    if cfg.episodes < 1 or cfg.stride < 1 or cfg.processes < 1 or any(not 1 <= n <= 64 for n in cfg.lengths):
-        parser.error("episodes, stride and processes must be >= 1, lengths in 1..64")
+    bad_lengths = any(not 1 <= n <= 64 for n in cfg.lengths)
+    if min(cfg.episodes, cfg.stride, cfg.processes) < 1 or cfg.from_step < 0 or bad_lengths:
+        parser.error("episodes, stride and processes must be >= 1, from-step >= 0, lengths in 1..64")
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")

@@ -4,11 +4,13 @@
 
 Prints, from each run's own files: the first step at which the training
 return (trailing mean over 5 updates) reached 100 and 200 and the mean of
-the last 10 updates; per trust-region rule the clip fraction per action dimension
+the last 10 updates; per trust-region rule the clip fraction and the KL per action dimension
 averaged over all updates and seeds; and per rule the late-training
 (>= half the steps) deterministic eval return averaged over the training
-chain lengths; and per run, whether the longest evaluated (unseen) chain
-scores above every trained length, late in training and per checkpoint.
+chain lengths; per run, whether the longest evaluated (unseen) chain
+scores above every trained length, late in training and per checkpoint;
+per rule the late return on every unseen length evaluated (zero-shot);
+and one table that ranks the rules claim by claim.
 """
 
 from __future__ import annotations
@@ -18,7 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from trainer.runs import eval_means, load_runs, series, smooth
+from trainer.runs import Run, eval_means, load_runs, series, smooth
+
+COLLAPSE = 0.5
+"""a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -40,14 +45,13 @@ def main(argv: list[str] | None = None) -> None:
 
     for rule, runs in groups.items():
         dims = runs[0].trained_lengths
-        fracs = [np.mean([np.nanmean(series(r.progress, f"clip_frac_d{d}")[1]) for r in runs]) for d in dims]
+        fracs = per_dimension(runs, "clip_frac")
         print(f"\nclip fraction per dimension, {rule} ({len(runs)} runs): "
               + " ".join(f"{d}:{f:.2f}" for d, f in zip(dims, fracs, strict=True)))  # fmt: skip
-        late = []
-        for run in runs:
-            means = eval_means(run)
-            half = 0.5 * run.config["total_timesteps"]
-            late.append(np.mean([np.mean([r for s, r in means[n].items() if s >= half]) for n in dims if n in means]))
+        kls = per_dimension(runs, "approx_kl")
+        if np.isfinite(kls).all():
+            print(f"KL per dimension, {rule}: " + " ".join(f"{d}:{k:.4f}" for d, k in zip(dims, kls, strict=True)))
+        late = [late_trained_mean(run) for run in runs]
         if all(np.isfinite(late)):
             print(f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {rule}: {np.mean(late):.1f}")
 
@@ -70,6 +74,96 @@ def main(argv: list[str] | None = None) -> None:
             on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
             print(f"| {run.dir.name} | {unseen} | {late[unseen]:.0f} | {late[best]:.0f} ({best}) "
                   f"| {on_top} of {len(steps)} |")  # fmt: skip
+
+    print(zero_shot_table(groups))
+    print(ranking_table(groups))
+
+
+def per_dimension(runs: list[Run], key: str) -> np.ndarray:
+    """Progress column ``key`` per trained action dimension, averaged over all updates and runs."""
+    return np.array([np.mean([np.nanmean(series(r.progress, f"{key}_d{d}")[1]) for r in runs])
+                     for d in runs[0].trained_lengths])  # fmt: skip
+
+
+def late_means(run: Run) -> dict[int, float]:
+    """{num_joints: mean eval return over the run's checkpoints from half its steps on}."""
+    half = 0.5 * run.config["total_timesteps"]
+    late = {n: [r for s, r in by_step.items() if s >= half] for n, by_step in eval_means(run).items()}
+    return {n: float(np.mean(v)) for n, v in late.items() if v}
+
+
+def late_trained_mean(run: Run) -> float:
+    """Late eval return averaged over the trained chain lengths (NaN if they were not all evaluated)."""
+    late = late_means(run)
+    if not all(n in late for n in run.trained_lengths):
+        return np.nan
+    return float(np.mean([late[n] for n in run.trained_lengths]))
+
+
+def training_marks(run: Run) -> dict[str, float]:
+    """First step at which the trailing mean (5 updates) of the training return reached 200 (inf if never),
+    the mean of the last 10 updates, and whether the run collapsed (last 10 below COLLAPSE x its best)."""
+    steps, ret = series(run.progress, "return_mean")
+    smoothed = smooth(ret, 5)
+    last = float(np.nanmean(ret[-10:]))
+    reached = [s for s, v in zip(steps, smoothed, strict=True) if v >= 200]
+    best = float(np.nanmax(smoothed)) if np.isfinite(smoothed).any() else np.nan
+    collapsed = float(last < COLLAPSE * best)
+    return {"to_200": float(reached[0]) if reached else np.inf, "last": last, "collapsed": collapsed}
+
+
+def zero_shot_table(groups: dict[str, list[Run]]) -> str:
+    """Late eval return per rule: the trained lengths' mean, then every unseen length (mean +- std over runs)."""
+    unseen = sorted({n for runs in groups.values() for r in runs for n in late_means(r) if n > r.config["max_joints"]})
+    if not unseen:
+        return ""
+    lines = ["\n| rule | runs | trained (mean) | " + " | ".join(f"{n} (unseen)" for n in unseen) + " |",
+             "|---|---:|---:|" + "---:|" * len(unseen)]  # fmt: skip
+    for rule, runs in groups.items():
+        cells = [_mean_std([late_trained_mean(r) for r in runs])]
+        cells += [_mean_std([late_means(r).get(n, np.nan) for r in runs]) for n in unseen]
+        lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _mean_std(values: list[float]) -> str:
+    """Mean +- std over runs; '–' unless every run has the value."""
+    v = np.array(values, dtype=float)
+    return f"{v.mean():.0f} ± {v.std():.0f}" if v.size and np.isfinite(v).all() else "–"
+
+
+def ranking_table(groups: dict[str, list[Run]]) -> str:
+    """The rules ranked claim by claim (1 = best; means over runs, the median for steps to 200)."""
+    claims = {  # name: (per-rule value, higher is better, format)
+        "steps to 200 (median)": (lambda runs: float(np.median([training_marks(r)["to_200"] for r in runs])), False),
+        "last 10 updates": (lambda runs: float(np.mean([training_marks(r)["last"] for r in runs])), True),
+        "collapsed runs": (lambda runs: float(sum(training_marks(r)["collapsed"] for r in runs)), False),
+        "late eval, trained lengths": (lambda runs: float(np.mean([late_trained_mean(r) for r in runs])), True),
+        "late eval, longest unseen": (lambda runs: _longest_unseen(runs), True),
+    }
+    values = {claim: {rule: f(runs) for rule, runs in groups.items()} for claim, (f, _) in claims.items()}
+    lines = ["\n| rule | " + " | ".join(claims) + " |", "|---|" + "---:|" * len(claims)]
+    for rule in groups:
+        cells = [_ranked(values[claim], rule, higher, steps="steps" in claim) for claim, (_, higher) in claims.items()]
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _ranked(values: dict[str, float], rule: str, higher: bool, steps: bool) -> str:
+    """'value (rank)' of ``rule`` among ``values``; inf ('never') ranks last, NaN ('–') is not ranked."""
+    v = values[rule]
+    if np.isnan(v):
+        return "–"
+    rank = 1 + sum((x > v) if higher else (x < v) for x in values.values() if not np.isnan(x))
+    text = "never" if v == np.inf else f"{v / 1000:.0f}k" if steps else f"{v:.0f}"
+    return f"{text} ({rank})"
+
+
+def _longest_unseen(runs: list[Run]) -> float:
+    """Mean over runs of the late return on the longest chain evaluated in every run, if it is unseen."""
+    common = set.intersection(*[set(late_means(r)) for r in runs])
+    n = max(common, default=0)
+    return float(np.mean([late_means(r)[n] for r in runs])) if n > runs[0].config["max_joints"] else np.nan
 
 
 if __name__ == "__main__":
