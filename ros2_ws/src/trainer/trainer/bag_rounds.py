@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.util.atomic import atomic_writer
+from trainer.record_bringup import fastdds_profile
 
 DIMS = range(2, 11)
 COLUMNS = [
@@ -500,7 +501,7 @@ def main(argv: list[str] | None = None) -> int:
         )  # fmt: skip
         if cfg.out.exists() and (cfg.out / "rounds.csv").exists():
             print(f"bag_rounds: continuing {cfg.out} ({len(read_rows(cfg.out / 'rounds.csv'))} rounds done)")
-        profile = _fastdds_profile()
+        profile = fastdds_profile()
         if profile:
             os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
         try:
@@ -521,15 +522,6 @@ def _report(out: Path, pattern: str) -> None:
     if table:
         print(format_table(table))
         print(f"bag_rounds: wrote {out / 'comparison.csv'} and {out / 'comparison.png'}")
-
-
-def _fastdds_profile() -> str | None:
-    """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
-    try:
-        import morph_policy_node
-    except ImportError:
-        return None
-    return str(Path(morph_policy_node.__file__).resolve().parent / "fastdds_profile.xml")
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from trainer.record_bringup import _fastdds_profile, _start, _stop, _wait_for_subscriber
+from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
 
@@ -58,7 +58,7 @@ def trainer_command(namespaces: list[str], args, extra: list[str]) -> list[str]:
 def run(args, extra: list[str]) -> int:
     import subprocess
 
-    profile = _fastdds_profile()
+    profile = fastdds_profile()
     if profile:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
     import rclpy

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 
-def _fastdds_profile() -> str | None:
+def fastdds_profile() -> str | None:
     """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
     try:
         import morph_policy_node
@@ -80,7 +80,7 @@ def _wait_for_subscriber(node, proc, topics: list[str], name: str, timeout: floa
 
 
 def run(args) -> int:
-    profile = _fastdds_profile()
+    profile = fastdds_profile()
     if profile:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
     import rclpy
