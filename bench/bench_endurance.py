@@ -45,7 +45,7 @@ def main() -> int:
     import morph_policy_node
     from morph_core.msgs.stamps import answer_tag, from_ns, parse_answer_tag
 
-    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(Path(morph_policy_node.__file__).parent / "fastdds_profile.xml")
+    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(morph_policy_node.FASTDDS_PROFILE)
     ns = f"/endurance{os.getpid()}"
     node_cmd = [str(Path(sys.executable).parent / "morph_policy_node"), "--ros-args", "-r", f"__ns:={ns}"]
     proc = subprocess.Popen(node_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)

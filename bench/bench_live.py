@@ -173,8 +173,7 @@ def main() -> int:
 
     import morph_policy_node
 
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE",
-                          str(Path(morph_policy_node.__file__).parent / "fastdds_profile.xml"))  # fmt: skip
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
     rclpy.init()
     counter = ClockCounter()
     work = Path(tempfile.mkdtemp(prefix="bench_live_"))

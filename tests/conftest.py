@@ -26,7 +26,7 @@ import safetensors.numpy
 import morph_policy_node
 
 BIN = Path(sys.executable).parent
-FASTDDS_PROFILE = Path(morph_policy_node.__file__).parent / "fastdds_profile.xml"
+FASTDDS_PROFILE = morph_policy_node.FASTDDS_PROFILE
 _names = itertools.count()
 
 

@@ -6,6 +6,7 @@ Runs inside a private network namespace (``scripts/test.sh``).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -55,6 +56,19 @@ def test_efforts_have_one_value_per_joint(probe, launch, untrained_checkpoint, j
         lambda: any(tuple(e.data) in {tuple(s.effort) for s in states} for e in efforts), STARTUP,
         "a state reporting one of the policy's efforts as applied (it comes a step after the answer)",
     )  # fmt: skip
+
+
+@pytest.mark.timeout(120)
+def test_nodes_talk_over_udp_without_shared_memory(probe, launch, untrained_checkpoint):
+    # The shipped Fast DDS profile turns shared memory off: a peer SIGKILLed mid-write could leave its port
+    # so that the next publish to it blocks for seconds (docs/design.md). With it on, every participant
+    # creates its segments in /dev/shm as it starts.
+    before = set(Path("/dev/shm").glob("fastrtps_*"))
+    efforts = probe.collect(Float64MultiArray, "effort_commands")
+    launch("swimmer_sim_node", num_joints=3)
+    launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
+    probe.spin_until(lambda: len(efforts) >= 10, STARTUP, "10 effort commands")
+    assert set(Path("/dev/shm").glob("fastrtps_*")) - before == set()
 
 
 @pytest.mark.timeout(120)

@@ -8,9 +8,11 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+import morph_policy_node
 
 
 def generate_launch_description():
@@ -19,8 +21,11 @@ def generate_launch_description():
     lockstep = LaunchConfiguration("lockstep")
     real_time_factor = LaunchConfiguration("real_time_factor")
     episode_steps = LaunchConfiguration("episode_steps")
+    # The nodes' Fast DDS profile (quick discovery, UDP only: docs/design.md), unless the user set their own.
+    profile = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
     return LaunchDescription(
         [
+            SetEnvironmentVariable("FASTRTPS_DEFAULT_PROFILES_FILE", profile),
             DeclareLaunchArgument("num_joints", default_value="6", description="chain length (1..64)"),
             DeclareLaunchArgument("lockstep", default_value="false", description="deterministic closed loop"),
             DeclareLaunchArgument("real_time_factor", default_value="1.0", description="0 = as fast as possible"),

@@ -17,9 +17,8 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-PROFILE = Path(__file__).resolve().parent / "fastdds_profile.xml"
+from morph_policy_node import FASTDDS_PROFILE
 
 
 def _start(module: str, params: dict) -> subprocess.Popen:
@@ -43,7 +42,7 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout: float) -> dict:
     # Nodes started together must find each other quickly: fast initial announcements.
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(PROFILE))
+    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy

@@ -10,10 +10,17 @@ min_joints..max_joints at each reset; its policy samples (``deterministic:=false
 the trainer pushes on ``policy_weights``.
 """
 
+import os
+
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+import morph_policy_node
+
+# The nodes' Fast DDS profile (quick discovery, UDP only: docs/design.md), unless the user set their own.
+PROFILE = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
 
 
 def _nodes(context):
@@ -54,5 +61,5 @@ def generate_launch_description():
     ]
     return LaunchDescription(
         [DeclareLaunchArgument(n, default_value=d, description=h) for n, d, h in args]
-        + [OpaqueFunction(function=_nodes)]
+        + [SetEnvironmentVariable("FASTRTPS_DEFAULT_PROFILES_FILE", PROFILE), OpaqueFunction(function=_nodes)]
     )

@@ -28,7 +28,7 @@ def fastdds_profile() -> str | None:
         import morph_policy_node
     except ImportError:
         return None
-    return str(Path(morph_policy_node.__file__).resolve().parent / "fastdds_profile.xml")
+    return str(morph_policy_node.FASTDDS_PROFILE)
 
 
 def _start(module: str, namespace: str, params: dict) -> subprocess.Popen:
