@@ -5,7 +5,8 @@
 Prints, from each run's own files: the first step at which the training
 return (trailing mean over 5 updates) reached 100 and 200 and the mean of
 the last 10 updates; per trust-region rule the clip fraction and the KL per action dimension
-averaged over all updates and seeds; and per rule the late-training
+averaged over all updates and seeds, the epochs per update where a KL stop
+cut them short, and the KL penalty's final beta per run; and per rule the late-training
 (>= half the steps) deterministic eval return averaged over the training
 chain lengths; per run, whether the longest evaluated (unseen) chain
 scores above every trained length, late in training and per checkpoint;
@@ -51,6 +52,13 @@ def main(argv: list[str] | None = None) -> None:
         kls = per_dimension(runs, "approx_kl")
         if np.isfinite(kls).all():
             print(f"KL per dimension, {rule}: " + " ".join(f"{d}:{k:.4f}" for d, k in zip(dims, kls, strict=True)))
+        logged = [series(r.progress, "epochs")[1] for r in runs if "epochs" in r.progress[0]]
+        epochs = np.mean(np.concatenate(logged)) if logged else np.nan
+        if epochs < runs[0].config["update_epochs"]:  # the KL stop cut updates short (NaN: not logged)
+            print(f"epochs per update, {rule}: {epochs:.1f} of {runs[0].config['update_epochs']}")
+        betas = [series(r.progress, "kl_beta")[1][-1] for r in runs]
+        if np.isfinite(betas).all():
+            print(f"KL penalty beta at the end, {rule}: " + " ".join(f"{b:g}" for b in betas))
         late = [late_trained_mean(run) for run in runs]
         if all(np.isfinite(late)):
             print(f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {rule}: {np.mean(late):.1f}")
