@@ -105,6 +105,7 @@ def test_summary_ranks_the_rules_claim_by_claim_and_reports_zero_shot(tmp_path, 
     # late = checkpoints from 9216 on (12288, 18432): mean return 15.36 + n + 0.5 over episodes 0, 1
     assert "| fixed | 2 | 18 ± 0 | 21 ± 0 |" in out  # trained 2..3: 18.36; unseen 5: 20.86
     assert "| kl-stop | 1 | 37 ± 0 | 42 ± 0 |" in out
+    assert "| last 10 updates | collapsed runs | late eval, trained lengths | late eval, 5 joints (unseen) |" in out
     assert "| fixed | never (2) | 150 (2) | 0 (1) | 18 (2) | 21 (2) |" in out  # trailing means 0, 75, 150
     assert "| kl-stop | 18k (1) | 300 (1) | 0 (1) | 37 (1) | 42 (1) |" in out  # 0, 150, 300: 200 at 18432
     assert "KL per dimension, fixed: 2:0.2000 3:0.2000" in out
