@@ -26,15 +26,19 @@ def rule_color(rule: str) -> str:
     return f"C{rule_names().index(rule) % 10}"
 
 
-def _panels(groups: dict[str, list[Run]], width: float = 5.5):
-    """One panel per rule with runs (at least one panel), sharing the y axis."""
+def _panels(groups: dict[str, list[Run]], width: float = 5.5, per_row: int = 4):
+    """One panel per rule with runs (at least one panel), ``per_row`` to a row, sharing the y axis."""
     rules = list(groups) or [""]
-    fig, axes = plt.subplots(1, len(rules), figsize=(width * len(rules), 4), sharey=True, squeeze=False)
-    return fig, list(zip(axes[0], rules, strict=True))
+    cols = min(per_row, len(rules))
+    rows = -(-len(rules) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols, 4 * rows), sharey=True, squeeze=False)
+    for ax in axes.flat[len(rules) :]:
+        ax.set_visible(False)
+    return fig, list(zip(axes.flat, rules, strict=False))
 
 
 def plot_training_returns(groups, path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(9, 5) if len(groups) > 3 else (7, 4))  # room for many rules
     for rule, runs in groups.items():
         color = rule_color(rule)
         curves = []
@@ -79,7 +83,9 @@ def plot_clip_fractions(groups, path: Path, key: str = "clip_frac", ylabel: str 
             ax.plot(steps[:n], mean, color=cmap(i / max(1, len(dims) - 1)), lw=0.6 + 0.3 * i, label=f"d={d}")
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
-    panels[0][0].set_ylabel(f"{ylabel} (mean over seeds)")
+    for ax, _ in panels:
+        if ax.get_subplotspec().is_first_col():
+            ax.set_ylabel(f"{ylabel} (mean over seeds)")
     panels[-1][0].legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -111,7 +117,9 @@ def plot_eval_per_length(groups, path: Path) -> Path | None:
                     alpha=1.0 if unseen else 0.7, label=f"{n} joints" + (" (unseen)" if unseen else ""))  # fmt: skip
         ax.set_xlabel("environment steps")
         ax.grid(alpha=0.3)
-    panels[0][0].set_ylabel("return over 1000 steps (mean of seeds)")
+    for ax, _ in panels:
+        if ax.get_subplotspec().is_first_col():
+            ax.set_ylabel("return over 1000 steps (mean of seeds)")
     panels[-1][0].legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
