@@ -109,6 +109,8 @@ def test_summary_ranks_the_rules_claim_by_claim_and_reports_zero_shot(tmp_path, 
     assert "| fixed | never (2) | 150 (2) | 0 (1) | 18 (2) | 21 (2) |" in out  # trailing means 0, 75, 150
     assert "| kl-stop | 18k (1) | 300 (1) | 0 (1) | 37 (1) | 42 (1) |" in out  # 0, 150, 300: 200 at 18432
     assert "KL per dimension, fixed: 2:0.2000 3:0.2000" in out
+    assert "| fixed | 0 of 2 | 18k | never | 150 [150..150] | 150 |" in out  # the per-rule training marks
+    assert "| kl-stop | 1 of 1 | 12k | 18k | 300 [300..300] | 300 |" in out
     assert f"epochs per update, kl-stop: 0.2 of {TrainConfig().update_epochs}" in out  # the made-up 0.1..0.3
     assert "KL penalty beta at the end, kl-stop: 0.3" in out
 

@@ -11,7 +11,9 @@ cut them short, and the KL penalty's final beta per run; and per rule the late-t
 chain lengths; per run, whether the longest evaluated (unseen) chain
 scores above every trained length, late in training and per checkpoint;
 per rule the late return on every unseen length evaluated (zero-shot);
-and one table that ranks the rules claim by claim.
+per rule the training marks (runs that reached 200, median steps to 100 and
+200, the last 10 updates, the best trailing mean); and one table that ranks
+the rules claim by claim.
 """
 
 from __future__ import annotations
@@ -83,6 +85,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"| {run.dir.name} | {unseen} | {late[unseen]:.0f} | {late[best]:.0f} ({best}) "
                   f"| {on_top} of {len(steps)} |")  # fmt: skip
 
+    print(training_table(groups))
     print(zero_shot_table(groups))
     print(ranking_table(groups))
 
@@ -114,10 +117,26 @@ def training_marks(run: Run) -> dict[str, float]:
     steps, ret = series(run.progress, "return_mean")
     smoothed = smooth(ret, 5)
     last = float(np.nanmean(ret[-10:]))
-    reached = [s for s, v in zip(steps, smoothed, strict=True) if v >= 200]
+    first = {t: next((float(s) for s, v in zip(steps, smoothed, strict=True) if v >= t), np.inf) for t in (100, 200)}
     best = float(np.nanmax(smoothed)) if np.isfinite(smoothed).any() else np.nan
     collapsed = float(last < COLLAPSE * best)
-    return {"to_200": float(reached[0]) if reached else np.inf, "last": last, "collapsed": collapsed}
+    return {"to_100": first[100], "to_200": first[200], "last": last, "best": best, "collapsed": collapsed}
+
+
+def training_table(groups: dict[str, list[Run]]) -> str:
+    """Per rule: runs that reached 200, median steps to 100 and 200, the last 10 updates (mean [min..max])
+    and the best trailing mean, averaged over runs."""
+    lines = ["\n| rule | reached 200 | steps to 100, median | steps to 200, median | last 10 updates, mean [min..max] "
+             "| best trailing mean (5 updates), mean |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for rule, runs in groups.items():
+        marks = [training_marks(r) for r in runs]
+        to = {t: float(np.median([m[f"to_{t}"] for m in marks])) for t in (100, 200)}
+        steps = {t: "never" if to[t] == np.inf else f"{to[t] / 1000:.0f}k" for t in to}
+        last = [m["last"] for m in marks]
+        reached = sum(np.isfinite(m["to_200"]) for m in marks)
+        lines.append(f"| {rule} | {reached} of {len(runs)} | {steps[100]} | {steps[200]} | {np.mean(last):.0f} "
+                     f"[{min(last):.0f}..{max(last):.0f}] | {np.mean([m['best'] for m in marks]):.0f} |")  # fmt: skip
+    return "\n".join(lines)
 
 
 def zero_shot_table(groups: dict[str, list[Run]]) -> str:
