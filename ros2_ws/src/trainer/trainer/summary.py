@@ -38,13 +38,9 @@ def main(argv: list[str] | None = None) -> None:
     print("| run | >= 100 | >= 200 | mean of the last 10 updates |\n|---|---:|---:|---:|")
     for runs in groups.values():
         for run in runs:
-            steps, ret = series(run.progress, "return_mean")
-            smoothed = smooth(ret, 5)
-            first = [
-                next((f"{s // 1000}k" for s, v in zip(steps, smoothed, strict=True) if v >= t), "never")
-                for t in (100, 200)
-            ]
-            print(f"| {run.dir.name} | {first[0]} | {first[1]} | {np.nanmean(ret[-10:]):.0f} |")
+            marks = training_marks(run)
+            first = ["never" if marks[k] == np.inf else f"{int(marks[k]) // 1000}k" for k in ("to_100", "to_200")]
+            print(f"| {run.dir.name} | {first[0]} | {first[1]} | {marks['last']:.0f} |")
 
     for rule, runs in groups.items():
         dims = runs[0].trained_lengths
@@ -77,8 +73,7 @@ def main(argv: list[str] | None = None) -> None:
             unseen = max(means)
             if unseen <= cfg["max_joints"] or not trained:
                 continue  # no chain longer than the training range was evaluated
-            half = 0.5 * cfg["total_timesteps"]
-            late = {n: np.mean([r for s, r in means[n].items() if s >= half]) for n in [*trained, unseen]}
+            late = {n: late_means(run).get(n, np.nan) for n in [*trained, unseen]}
             best = max(trained, key=late.get)
             steps = sorted(means[unseen])
             on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
