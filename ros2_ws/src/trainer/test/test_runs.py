@@ -12,7 +12,7 @@ import pytest
 
 from morph_core.algo.train import TrainConfig, log_columns
 from morph_core.algo.trust_region import ClippedRatio, register, unregister
-from trainer import plots, summary, train_cli
+from trainer import eval_cli, plots, summary, train_cli
 from trainer.runs import load_run, load_runs, series, smooth
 
 TEST_RULE = "eighth-root"
@@ -70,6 +70,33 @@ def test_a_run_of_a_rule_the_table_does_not_know_is_an_error(tmp_path):
         load_run(run)
     with pytest.raises(ValueError, match="not a training run"):
         load_run(tmp_path / "nowhere")
+
+
+def edit_config(run_dir, **changes):
+    cfg = json.loads((run_dir / "config.json").read_text())
+    (run_dir / "config.json").write_text(json.dumps({**cfg, **changes}))
+
+
+def test_runs_of_one_rule_trained_differently_are_not_pooled(tmp_path, capsys):
+    runs = [write_run(tmp_path / f"fixed-s{s}", "fixed", s) for s in (1, 2, 3)]
+    edit_config(runs[1], processes=2, torch_threads=2, compile=False)  # how it ran, not what it learned
+    cfg = json.loads((runs[2] / "config.json").read_text())
+    del cfg["kl_target"]  # an older run's config, from before the key existed: its default applied
+    (runs[2] / "config.json").write_text(json.dumps(cfg))
+    assert [r.dir for r in load_runs(runs)["fixed"]] == runs
+
+    edit_config(runs[2], anneal_lr=True, gamma=0.99)
+    with pytest.raises(ValueError, match=r"runs of fixed were trained differently \(anneal_lr, gamma\)"):
+        load_runs(runs)
+    with pytest.raises(SystemExit):
+        summary.main(["--run", *map(str, runs)])
+    assert "anneal_lr=True, gamma=0.99" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # refused before evaluating, not after
+        eval_cli.main(["--run", *map(str, runs), "--plots", str(tmp_path / "fig")])
+    assert "trained differently" in capsys.readouterr().err and not (tmp_path / "fig").exists()
+    edit_config(runs[2], kl_target=0.02, anneal_lr=False, gamma=TrainConfig().gamma)
+    with pytest.raises(ValueError, match=r"\(kl_target\)"):
+        load_runs(runs)
 
 
 def test_a_registered_rule_reaches_the_cli_the_plots_and_the_summary(tmp_path, eighth_root, capsys):

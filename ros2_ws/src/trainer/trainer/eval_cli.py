@@ -145,6 +145,13 @@ def main(argv: list[str] | None = None) -> None:
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")
+    if args.plots is not None:
+        from trainer.runs import load_runs
+
+        try:  # the runs' grouping is checked before an evaluation that may take an hour
+            load_runs(args.run)
+        except ValueError as e:
+            parser.error(str(e))
     if not args.no_eval:
         for run in args.run:
             evaluate_run(run, cfg)

@@ -3,7 +3,9 @@
 What the figures (``plots``), the tables (``summary``) and the model picker
 (``ship``) read. Runs are grouped under their ``clip_mode`` in the order of
 ``algo.trust_region.RULES``; a run of a rule the table does not know is an
-error, not a run left out.
+error, not a run left out, and so is a group whose runs were trained
+differently (say constant and annealed learning rates): pooled, their
+seeds would read as one rule's spread.
 """
 
 from __future__ import annotations
@@ -17,7 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.train import TrainConfig
 from morph_core.algo.trust_region import rule_names
+
+# Config keys that say how a run was executed, logged or saved, not what it learned.
+HOW_RUN = frozenset({"seed", "torch_threads", "env_threads", "processes", "compile", "tensorboard",
+                     "progress_bar", "checkpoint_interval"})  # fmt: skip
 
 
 @dataclass
@@ -32,6 +39,13 @@ class Run:
     @property
     def rule(self) -> str:
         return self.config["clip_mode"]
+
+    @property
+    def setup(self) -> dict:
+        """What the run learned with: its config minus ``HOW_RUN``, today's defaults filled in for
+        the keys that older runs' configs lack (those keys did not exist, so their defaults applied)."""
+        defaults = TrainConfig().to_dict()
+        return {k: self.config.get(k, v) for k, v in defaults.items() if k not in HOW_RUN}
 
     @property
     def trained_lengths(self) -> range:
@@ -61,6 +75,14 @@ def load_runs(run_dirs: list[Path]) -> dict[str, list[Run]]:
     for d in run_dirs:
         run = load_run(d)
         groups[run.rule].append(run)
+    for name, runs in groups.items():
+        first = runs[0]
+        for run in runs[1:]:
+            differ = sorted(k for k in first.setup if first.setup[k] != run.setup[k])
+            if differ:
+                ours, theirs = (", ".join(f"{k}={r.setup[k]}" for k in differ) for r in (first, run))
+                raise ValueError(f"runs of {name} were trained differently ({', '.join(differ)}): {first.dir} has "
+                                 f"{ours}, {run.dir} has {theirs}; pass them in separate calls")  # fmt: skip
     return {name: groups[name] for name in rule_names() if groups.get(name)}
 
 

@@ -33,7 +33,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m trainer.summary", description=__doc__)
     parser.add_argument("--run", type=Path, nargs="+", required=True)
     args = parser.parse_args(argv)
-    groups = load_runs(args.run)
+    try:
+        groups = load_runs(args.run)
+    except ValueError as e:
+        parser.error(str(e))
 
     print("| run | >= 100 | >= 200 | mean of the last 10 updates |\n|---|---:|---:|---:|")
     for runs in groups.values():
