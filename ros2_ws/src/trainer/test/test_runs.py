@@ -146,4 +146,11 @@ def test_ship_needs_an_explicit_destination(tmp_path):
     run = write_run(tmp_path / "fixed-s1", "fixed", 1)
     out = subprocess.run([sys.executable, "-m", "trainer.ship", "--run", str(run)], capture_output=True, text=True)
     assert out.returncode != 0 and "--dest" in out.stderr
+    # The best evaluated checkpoint's file is gone (a run kept as data only): the error says how to get it back.
+    dest = tmp_path / "model.safetensors"
+    out = subprocess.run([sys.executable, "-m", "trainer.ship", "--run", str(run), "--dest", str(dest)],
+                         capture_output=True, text=True)  # fmt: skip
+    assert out.returncode == 2 and not dest.exists()
+    assert "best evaluated checkpoint is fixed-s1 at step 18432" in out.stderr
+    assert "morph-train --clip-mode fixed --seed 1 " in out.stderr and "Traceback" not in out.stderr
     assert np.isfinite(float(load_run(run).progress[0]["return_mean"]))

@@ -78,7 +78,12 @@ def main(argv: list[str] | None = None) -> None:
                 (float(np.mean([table[n] for n in train_lengths])), run, cfg, step, dict(sorted(table.items())))
             )
     score, run, cfg, step, table = max(scored, key=lambda s: s[0])
-    policy = GraphActorCritic.load(run / "checkpoints" / f"policy_{step:08d}.safetensors")
+    checkpoint = run / "checkpoints" / f"policy_{step:08d}.safetensors"
+    if not checkpoint.is_file():  # e.g. a run kept as data only (docs/results_data keeps no checkpoints)
+        parser.error(f"the best evaluated checkpoint is {run.name} at step {step} (score {score:.1f}), but "
+                     f"{checkpoint} is missing; train the run again (`{training_command(cfg, run.name)}`, "
+                     "deterministic) and pass its new directory")  # fmt: skip
+    policy = GraphActorCritic.load(checkpoint)
     policy.save(
         args.dest,
         metadata={
