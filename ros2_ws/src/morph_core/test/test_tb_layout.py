@@ -9,6 +9,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.custom_scalar import layout_pb2, metadata
 
+from morph_core.algo.run_log import HISTOGRAM_BINS
 from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag
 from morph_core.algo.train import TrainConfig, log_columns, train
 
@@ -95,6 +96,8 @@ def test_each_update_logs_log_ratio_histograms_per_dimension(run, tag, suffix, e
             std = math.sqrt(max(hv.sum_squares / hv.num - mean * mean, 0.0))
             assert std == pytest.approx(float(row[f"logr_std{suffix}_d{d}"]), rel=1e-3, abs=1e-7)
             assert hv.min < hv.max and np.isfinite([hv.min, hv.max]).all()  # a spread, not a constant
+            # small events (the writer adds an empty bucket on the left), every sample counted
+            assert len(hv.bucket) <= HISTOGRAM_BINS + 1 and sum(hv.bucket) == hv.num
         assert total == epochs * 1024, step  # every sample of every epoch counted (2 swimmers x 512 steps)
 
 

@@ -16,6 +16,12 @@ from pathlib import Path
 from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag
 from morph_core.util.atomic import atomic_writer
 
+HISTOGRAM_BINS = 64
+"""equal-width bins per TensorBoard histogram. The writer's default, 1,549 exponential buckets, makes each
+event ~25 KB, and TensorBoard's writer (without TensorFlow) checksums every byte in pure Python: the 18
+histograms of an update cost ~30 ms, ~3% of a training iteration, against ~6 ms with 64 bins. TensorBoard
+shows ~30 bins anyway."""
+
 
 class RunLog:
     def __init__(self, run_dir: Path, columns: list[str], resume_step: int | None = None, tensorboard: bool = True):
@@ -72,7 +78,7 @@ class RunLog:
         if self.tb is not None:
             for tag, v in values.items():
                 if len(v):
-                    self.tb.add_histogram(tag, v, step)
+                    self.tb.add_histogram(tag, v, step, bins=HISTOGRAM_BINS)
 
     def close(self) -> None:
         if self.tb is not None:
