@@ -73,6 +73,27 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
         assert flag in command
     GraphActorCritic.load(dest)
 
+    # Shipping again: the policy at --dest is a candidate too, scored on its recorded evaluation.
+    ship = [sys.executable, "-m", "trainer.ship", "--run", *map(str, runs), "--dest", str(dest)]
+    meta_path = dest.with_suffix(".json")
+    shipped = json.loads(meta_path.read_text())
+
+    def with_recorded(offset):  # the shipped policy's recorded returns, moved by ``offset``
+        doc = json.loads(json.dumps(shipped))
+        recorded = shipped["metadata"]["eval_mean_return"]
+        doc["metadata"]["eval_mean_return"] = {n: r + offset for n, r in recorded.items()}
+        meta_path.write_text(json.dumps(doc))
+
+    with_recorded(+1.0)  # scores higher than every run's checkpoint: kept, nothing written
+    before = dest.read_bytes(), meta_path.read_text()
+    out = subprocess.run(ship, check=True, capture_output=True, text=True).stdout
+    assert out.startswith(f"kept {dest}") and (dest.read_bytes(), meta_path.read_text()) == before
+    subprocess.run([*ship, "--replace"], check=True, capture_output=True)  # unless told to replace it
+    assert json.loads(meta_path.read_text()) == shipped
+    with_recorded(-1.0)  # scores lower: the best run's checkpoint replaces it
+    out = subprocess.run(ship, check=True, capture_output=True, text=True).stdout
+    assert out.startswith("shipped") and json.loads(meta_path.read_text()) == shipped
+
 
 def rows_of(run):
     with (run / "eval.csv").open() as f:

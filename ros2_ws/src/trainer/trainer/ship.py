@@ -13,6 +13,12 @@ the highest mean deterministic return over the training chain lengths; the
 unseen lengths are reported, not used to choose. (At the paper's constant
 learning rate of 0.01 the last checkpoint is not always the best one.) The JSON beside the weights
 records the source run, its training command and the evaluation table.
+
+A policy already at ``--dest`` is a candidate too: its recorded evaluation is
+scored over the same lengths, and a run's checkpoint replaces it only if it
+scores higher (``--replace`` writes the best run's checkpoint regardless). So
+shipping again over new runs never swaps the shipped policy for a worse one,
+and the shipped policy need not come from a run whose checkpoints are kept.
 """
 
 from __future__ import annotations
@@ -37,6 +43,21 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
     if not by_step:
         raise ValueError(f"{run_dir} has no eval.csv yet: run morph-eval first")
     return by_step
+
+
+def shipped_score(dest: Path, lengths: list[int]) -> tuple[float, str, int] | None:
+    """(mean recorded return over ``lengths``, source run, step) of the policy at ``dest``; None when there is
+    none, or its metadata lacks an evaluation of every one of those lengths (it cannot be compared)."""
+    meta_path = dest.with_suffix(".json")
+    if not (dest.is_file() and meta_path.is_file()):
+        return None
+    try:
+        meta = json.loads(meta_path.read_text()).get("metadata", {})
+        returns = meta["eval_mean_return"]
+        score = float(np.mean([returns[str(n)] for n in lengths]))
+        return score, str(meta["source_run"]), int(meta["global_step"])
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return None
 
 
 def training_command(cfg: dict, run_name: str) -> str:
@@ -68,6 +89,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--dest", type=Path, required=True, help="where to write the policy (.safetensors, with its .json beside it)"
     )
+    parser.add_argument("--replace", action="store_true", help="write the best run's checkpoint even if the policy "
+                        "already at --dest scored higher")  # fmt: skip
     args = parser.parse_args(argv)
     scored = []
     for run in args.run:
@@ -78,6 +101,11 @@ def main(argv: list[str] | None = None) -> None:
                 (float(np.mean([table[n] for n in train_lengths])), run, cfg, step, dict(sorted(table.items())))
             )
     score, run, cfg, step, table = max(scored, key=lambda s: s[0])
+    shipped = shipped_score(args.dest, [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]])
+    if shipped is not None and shipped[0] >= score and not args.replace:
+        print(f"kept {args.dest} ({shipped[1]} step {shipped[2]}, score {shipped[0]:.1f}): the best evaluated "
+              f"checkpoint of the runs, {run.name} step {step}, scores {score:.1f}")  # fmt: skip
+        return
     checkpoint = run / "checkpoints" / f"policy_{step:08d}.safetensors"
     if not checkpoint.is_file():  # e.g. a run kept as data only (docs/results_data keeps no checkpoints)
         parser.error(f"the best evaluated checkpoint is {run.name} at step {step} (score {score:.1f}), but "
