@@ -3,7 +3,7 @@
 # discount. Swimmer's reward is forward speed, and a gait pays off only over many steps; gamma = 0.98
 # (the paper's) looks ~50 steps ahead. Train on 2 joints alone with gamma 0.98, 0.999 and 0.9999, and on
 # the paper's 2..10 mix with 0.9999, SEEDS seeds each, two runs at a time, then evaluate deterministically.
-# About 25 min on 2 cores for 2 seeds.
+# About 15 min on 2 cores for 2 seeds (2026-12-02).
 #   bash scripts/two_joint_results.sh [SEEDS=2] [OUT=runs_two_joint] [STEPS=500000]
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
