@@ -76,13 +76,14 @@ def load_runs(run_dirs: list[Path]) -> dict[str, list[Run]]:
         run = load_run(d)
         groups[run.rule].append(run)
     for name, runs in groups.items():
-        first = runs[0]
+        first, ours = runs[0], runs[0].setup
         for run in runs[1:]:
-            differ = sorted(k for k in first.setup if first.setup[k] != run.setup[k])
+            theirs = run.setup
+            differ = sorted(k for k in ours if ours[k] != theirs[k])
             if differ:
-                ours, theirs = (", ".join(f"{k}={r.setup[k]}" for k in differ) for r in (first, run))
+                a, b = (", ".join(f"{k}={setup[k]}" for k in differ) for setup in (ours, theirs))
                 raise ValueError(f"runs of {name} were trained differently ({', '.join(differ)}): {first.dir} has "
-                                 f"{ours}, {run.dir} has {theirs}; pass them in separate calls")  # fmt: skip
+                                 f"{a}, {run.dir} has {b}; pass them in separate calls")  # fmt: skip
     return {name: groups[name] for name in rule_names() if groups.get(name)}
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from morph_core.algo.train import TrainConfig
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.weights import CheckpointError, load_checkpoint
 from trainer.runs import eval_means, load_run
 
 
@@ -47,16 +48,12 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
 
 def shipped_score(dest: Path, lengths: list[int]) -> tuple[float, str, int] | None:
     """(mean recorded return over ``lengths``, source run, step) of the policy at ``dest``; None when there is
-    none, or its metadata lacks an evaluation of every one of those lengths (it cannot be compared)."""
-    meta_path = dest.with_suffix(".json")
-    if not (dest.is_file() and meta_path.is_file()):
-        return None
+    no usable checkpoint there, or its metadata lacks an evaluation of one of those lengths (no comparison)."""
     try:
-        meta = json.loads(meta_path.read_text()).get("metadata", {})
+        meta = load_checkpoint(dest).metadata
         returns = meta["eval_mean_return"]
-        score = float(np.mean([returns[str(n)] for n in lengths]))
-        return score, str(meta["source_run"]), int(meta["global_step"])
-    except (ValueError, KeyError, TypeError, AttributeError):
+        return float(np.mean([returns[str(n)] for n in lengths])), str(meta["source_run"]), int(meta["global_step"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
         return None
 
 

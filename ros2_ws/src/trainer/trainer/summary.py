@@ -76,7 +76,8 @@ def main(argv: list[str] | None = None) -> None:
             unseen = max(means)
             if unseen <= cfg["max_joints"] or not trained:
                 continue  # no chain longer than the training range was evaluated
-            late = {n: late_means(run).get(n, np.nan) for n in [*trained, unseen]}
+            run_late = late_means(run)
+            late = {n: run_late.get(n, np.nan) for n in [*trained, unseen]}
             best = max(trained, key=late.get)
             steps = sorted(means[unseen])
             on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
