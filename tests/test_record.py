@@ -140,14 +140,14 @@ def test_records_the_closed_loop(probe, launch, untrained_checkpoint, tmp_path, 
         assert len(JAZZY.deserialize_cdr(first, "trajectory_msgs/msg/JointTrajectory").joint_names) == 4
 
 
-def _recorded(bag, namespace, topic) -> int:
-    """Messages of ``topic`` a reader gets from the bag now, while it is being written."""
+def _recorded(bag, namespace, topics) -> int:
+    """The fewest messages of any of ``topics`` a reader gets from the bag now, while it is being written."""
     try:
         reader = BagReader(bag, namespace=namespace)
         reader.read()
     except BagError:  # no storage file yet, or not its first chunk
         return 0
-    return reader.stats.counts[topic]
+    return min(reader.stats.counts[t] for t in topics)
 
 
 @pytest.mark.timeout(180)
@@ -157,18 +157,19 @@ def test_sigkilled_recorder_leaves_a_readable_prefix(probe, launch, untrained_ch
     recorder = launch("morph-record", output=str(bag), storage=storage, chunk_size=4096, flush_period=0.2)
     _start_loop(launch, untrained_checkpoint)
 
-    # Wait until a reader finds 60 policy_info in the bag being written (MCAP: complete chunks;
-    # sqlite3: committed), checking twice a second.
+    # Wait until a reader finds 60 states and 60 policy_info in the bag being written (MCAP: complete
+    # chunks; sqlite3: committed), checking twice a second. Both: the recorder matches the two topics one
+    # by one, so answers to states it never heard may come first.
     seen_live = [0]
     next_check = [0.0]
 
     def enough_on_disk() -> bool:
         if time.monotonic() >= next_check[0]:
             next_check[0] = time.monotonic() + 0.5
-            seen_live[0] = _recorded(bag, namespace, "policy_info")
+            seen_live[0] = _recorded(bag, namespace, ("joint_states", "policy_info"))
         return seen_live[0] >= 60
 
-    probe.spin_until(enough_on_disk, 2 * STARTUP, "60 policy_info readable from the live bag")
+    probe.spin_until(enough_on_disk, 2 * STARTUP, "60 states and 60 policy_info readable from the live bag")
     recorder.proc.kill()
     recorder.proc.wait()
     assert not (bag / "metadata.yaml").exists()
@@ -177,7 +178,8 @@ def test_sigkilled_recorder_leaves_a_readable_prefix(probe, launch, untrained_ch
     records = reader.read()
     assert any("no metadata.yaml" in w for w in reader.stats.warnings)
     assert not reader.stats.rejected
-    assert reader.stats.counts["policy_info"] >= seen_live[0]  # what was readable before the kill still is
+    # what was readable before the kill still is
+    assert min(reader.stats.counts[t] for t in ("joint_states", "policy_info")) >= seen_live[0]
     # States on the 40 ms grid with none missing. (An answer may be in the bag before its state: the
     # policy's answer can overtake the sim's state on the way to the recorder, so the prefix cut at a
     # chunk or commit may hold efforts for states after its last one.)
