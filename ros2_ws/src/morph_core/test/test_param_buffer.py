@@ -58,3 +58,19 @@ def test_zero_grad_that_sets_gradients_to_none_fails_loudly_at_the_next_step(who
     with pytest.raises(FlatGradientError, match="flat parameter buffer"):
         optimizer.step()
     assert torch.equal(flat.theta.detach(), before)  # nothing was stepped
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.1, 1.0, 30.0])
+def test_the_norm_clip_gives_torchs_numbers_bit_for_bit(scale):
+    torch.manual_seed(1)
+    flat = FlatParameters(GraphActorCritic())
+    reference = torch.nn.Parameter(flat.theta.detach().clone())
+    for _ in range(5):
+        grad = torch.randn(flat.theta.numel()) * scale
+        flat.grad.copy_(grad)
+        reference.grad = grad.clone()
+        norm = flat.clip_grad_norm_(0.5)
+        expected = torch.nn.utils.clip_grad_norm_(reference, 0.5)
+        assert torch.equal(norm, expected)
+        assert torch.equal(flat.grad, reference.grad)  # scaled (or, below the bound, left) alike
+    assert flat.theta.grad is flat.grad  # in place: the gradient views still point into the buffer

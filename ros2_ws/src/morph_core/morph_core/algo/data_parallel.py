@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import time
 import traceback
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
@@ -50,6 +51,21 @@ from morph_core.policy.numpy_actor import NumpyPolicy
 
 class HelperError(RuntimeError):
     """A helper process failed or died; the message says which and why."""
+
+
+SPIN_SECONDS = 0.002
+"""how long a process polls a pipe without sleeping before it blocks on it: a minibatch step's reply comes
+within ~3 ms, and waking from a blocking wait cost ~0.1 ms of each step (a tenth of what two processes save)"""
+
+
+def poll_spinning(conn: Connection, spin: float = SPIN_SECONDS) -> bool:
+    """Whether ``conn`` has something to read within ``spin`` seconds, polled without sleeping."""
+    deadline = time.perf_counter() + spin
+    while True:
+        if conn.poll():
+            return True
+        if time.perf_counter() >= deadline:
+            return False
 
 
 def env_bounds(num_envs: int, processes: int) -> list[tuple[int, int]]:
@@ -175,7 +191,7 @@ class Helpers:
     def _receive(self, rank: int):
         conn, proc = self._conns[rank - 1], self._procs[rank - 1]
         try:
-            while not conn.poll(1.0):
+            while not (poll_spinning(conn) or conn.poll(1.0)):
                 if not proc.is_alive():
                     raise HelperError(self._gone(rank))
             reply = conn.recv()
@@ -309,6 +325,7 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
         learner.params.theta.data.copy_(theta)
 
     while True:
+        poll_spinning(conn)  # the next part's command comes within ~1 ms of a step's reply; else recv blocks
         command, *args = conn.recv()
         if command == "close":
             break

@@ -43,6 +43,14 @@ class FlatParameters:
         """Clear every gradient in place (the only safe way to clear them)."""
         self.grad.zero_()
 
+    def clip_grad_norm_(self, max_norm: float) -> torch.Tensor:
+        """Scale the gradient to norm <= ``max_norm``; its norm before. The same numbers as
+        ``torch.nn.utils.clip_grad_norm_(theta, max_norm)`` (the norm of the one tensor's norm, then
+        the clamped factor), without that function's per-call grouping of tensors by device and dtype."""
+        norm = torch.linalg.vector_norm(torch.linalg.vector_norm(self.grad).reshape(1))
+        self.grad.mul_(torch.clamp(max_norm / (norm + 1e-6), max=1.0))
+        return norm
+
     def check(self) -> None:
         """Raise ``FlatGradientError`` unless every gradient is still its view into the buffer."""
         cut = self.theta.grad is not self.grad or any(

@@ -103,10 +103,11 @@ class RolloutBatch:
 
     def minibatch(self, index: torch.Tensor) -> tuple[ChainBatch, torch.Tensor]:
         """The chains at ``index`` (padding trimmed to their longest chain) and their actions, cut alike."""
+        rows = index.numpy()  # gathered in NumPy: this runs before every minibatch step
         chains = ChainBatch.from_padded(
-            self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
+            *(x.numpy()[rows] for x in (self.joint_pos, self.joint_vel, self.global_feats, self.num_joints))
         )
-        actions = self.actions[index, : chains.max_joints]
+        actions = torch.from_numpy(self.actions.numpy()[rows, : chains.max_joints])
         # The cut relies on from_padded trimming to exactly the minibatch's longest chain (the padding
         # beyond it is zero, checked at construction); were it to pad wider, the widths would differ.
         if actions.shape != chains.mask.shape:
@@ -423,7 +424,7 @@ def update(
                 loss, part = minibatch_part(learner.policy, terms, batch, cfg, mb, advantages, 0, peers.world)
                 loss.backward()
                 parts = [part, *peers.gather(flat.grad)]
-            torch.nn.utils.clip_grad_norm_(flat.theta, cfg.max_grad_norm)
+            flat.clip_grad_norm_(cfg.max_grad_norm)
             optimizer.step()
             if peers is not None:
                 peers.stepped()
