@@ -54,8 +54,9 @@ class HelperError(RuntimeError):
 
 
 SPIN_SECONDS = 0.002
-"""how long a process polls a pipe without sleeping before it blocks on it: a minibatch step's reply comes
-within ~3 ms, and waking from a blocking wait cost ~0.1 ms of each step (a tenth of what two processes save)"""
+"""how long a process polls a pipe without sleeping before it blocks on it: during an update the other
+side answers within a minibatch step (~3 ms), and waking from a blocking read cost ~0.1 ms of every step
+(docs/benchmarks.md); between updates the wait is longer, and after 2 ms the process sleeps"""
 
 
 def poll_spinning(conn: Connection, spin: float = SPIN_SECONDS) -> bool:
