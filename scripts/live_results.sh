@@ -3,6 +3,7 @@
 # lockstep sim+policy pairs (scripts/live.sh) against the simulator trainer at the same env-step count,
 # SEEDS seeds of STEPS steps each (paper configuration otherwise), then the curves side by side.
 #   bash scripts/live_results.sh [SEEDS=3] [STEPS=300000] [OUT=runs/live-vs-sim]
+#   LIVE_EXTRA="--learning-rate 0.003" bash scripts/live_results.sh 3 300000 runs/live-lr0.003   # more live-trainer options
 # A run already finished is skipped; an interrupted one resumes.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -19,8 +20,9 @@ for s in $(seq 1 "$seeds"); do
     run="$out/live-s$s"
     if finished "$run"; then continue; fi
     resume=(); [ -f "$run/state.safetensors" ] && resume=(--resume)
+    # shellcheck disable=SC2086  # LIVE_EXTRA holds several options
     bash scripts/live.sh --pairs 4 --out "$run" "${resume[@]}" -- --seed "$s" --total-timesteps "$steps" \
-        > "$run.log" 2>&1
+        ${LIVE_EXTRA:-} > "$run.log" 2>&1
     echo "done $run"
 done
 for s in $(seq 1 "$seeds"); do echo "$s"; done | xargs -P 2 -I{} bash -c '
