@@ -18,9 +18,11 @@ import pytest
 from std_msgs.msg import Int64MultiArray, UInt8MultiArray
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.train import TrainConfig
 from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.protocol.episode_start import unpack_episode_start
 from trainer.live import EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC
+from trainer.live_learner import LIVE_LEARNING_RATE
 
 STARTUP = 120.0
 SMALL = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
@@ -156,6 +158,8 @@ def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path
         assert procs[0].proc.returncode == 0, procs[0].log()[-3000:]
         rows = progress(out)
         assert len(rows) == 2 and all(int(r["batch_size"]) >= 128 for r in rows)
+        # No --learning-rate given: the live trainer's own default, not the paper's (stale samples).
+        assert {float(r["learning_rate"]) for r in rows} == {LIVE_LEARNING_RATE} != {TrainConfig().learning_rate}
         assert f"pair {p0} is running" in procs[0].log()
         links = subprocess.run([*trainer_host, "ip", "-o", "link"], capture_output=True, text=True).stdout
         assert "vB" in links and "vA" not in links

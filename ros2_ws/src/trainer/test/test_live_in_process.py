@@ -4,11 +4,13 @@ trainer cuts them, the behaviour policy lags the set number of versions, and the
 from __future__ import annotations
 
 import csv
+import json
 
 import pytest
 
 from morph_core.algo.train import TrainConfig
 from trainer.live_in_process import InProcessOptions, main, train_in_process
+from trainer.live_learner import LIVE_LEARNING_RATE
 
 TINY = TrainConfig(num_envs=1, num_steps=256, minibatch_size=64, update_epochs=1, total_timesteps=1200,
                    min_joints=2, max_joints=4, tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
@@ -53,6 +55,18 @@ def test_cli_refuses_bad_options_and_an_existing_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "run")])
     assert "already holds a run" in capsys.readouterr().err
+
+
+def test_cli_starts_from_the_live_learning_rate_unless_given_one(tmp_path):
+    tiny = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
+            "--total-timesteps", "128", "--min-joints", "2", "--max-joints", "3", "--compile", "false",
+            "--tensorboard", "false", "--episode-steps", "64"]  # fmt: skip
+    for given, expected in (([], LIVE_LEARNING_RATE), (["--learning-rate", "0.01"], 0.01)):
+        out = tmp_path / f"run{len(given)}"
+        assert main(["--out", str(out), *tiny, *given]) == 0
+        assert json.loads((out / "config.json").read_text())["learning_rate"] == expected
+        assert {float(r["learning_rate"]) for r in rows(out)} == {expected}
+    assert LIVE_LEARNING_RATE < TrainConfig().learning_rate
 
 
 def test_lost_states_are_warned_about_and_a_restarted_sim_is_not():

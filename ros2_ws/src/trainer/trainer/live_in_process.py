@@ -39,7 +39,7 @@ from morph_core.msgs.records import JointStateRecord
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import Transition, TransitionAssembler
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.live_learner import LiveLearner, NonFiniteUpdate
+from trainer.live_learner import LiveLearner, NonFiniteUpdate, live_train_config
 
 
 @dataclass(frozen=True)
@@ -112,13 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory (a fresh one)")
     add_dataclass_options(parser, InProcessOptions)
-    add_dataclass_options(parser, TrainConfig, skip=("anneal_lr",))
+    add_dataclass_options(parser, TrainConfig, skip=("anneal_lr",), defaults=live_train_config())
     args = parser.parse_args(argv)
     if (args.out / "config.json").exists():
         parser.error(f"{args.out} already holds a run")
     try:
         options = replace_nested(InProcessOptions(), overrides_from_args(args, InProcessOptions))
-        cfg = replace_nested(TrainConfig(progress_bar=False), overrides_from_args(args, TrainConfig))
+        cfg = replace_nested(live_train_config(progress_bar=False), overrides_from_args(args, TrainConfig))
     except ValueError as err:
         parser.error(str(err))
     train_in_process(cfg, options, args.out)

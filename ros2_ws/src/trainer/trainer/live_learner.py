@@ -74,6 +74,16 @@ from morph_core.protocol.transition_batch import TransitionBatch
 from morph_core.protocol.transitions import Transition
 from morph_core.util.atomic import atomic_writer
 
+LIVE_LEARNING_RATE = 0.003
+"""the live trainer's learning rate unless one is given: a third of the paper's 0.01 (TrainConfig's). Samples a
+version stale made the decoupled update diverge at 0.01 and not at 0.003, in-process and over DDS
+(docs/results.md, "Why the earlier live attempts diverged")"""
+
+
+def live_train_config(**changes) -> TrainConfig:
+    """TrainConfig's defaults with the live trainer's own (``LIVE_LEARNING_RATE``), then ``changes``."""
+    return dataclasses.replace(TrainConfig(learning_rate=LIVE_LEARNING_RATE), **changes)
+
 
 @dataclass(frozen=True)
 class LiveOptions:

@@ -38,7 +38,7 @@ from morph_core.protocol.transition_batch import MissingPolicyInfoError, Transit
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 from trainer.bag_io import BagError, BagReader
-from trainer.live_learner import LiveOptions
+from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
 
 PPO_TOPICS = ("joint_states", "odom")
 """topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
@@ -83,7 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
     live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live)")
-    live.add_argument("--live", action="store_true", help="learn from running pairs, push weights back")
+    live.add_argument("--live", action="store_true",
+                      help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
+                      f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
     live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
     live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
                       help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
@@ -191,7 +193,7 @@ def _train_live(args, parser) -> int:
         else:
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg = replace_nested(TrainConfig(), overrides)
+            cfg = replace_nested(live_train_config(), overrides)
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice)  # fmt: skip
     except (TypeError, ValueError) as err:

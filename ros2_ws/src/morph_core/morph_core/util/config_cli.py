@@ -46,8 +46,10 @@ def parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
 
 
-def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=()) -> None:
-    """Add one option per field; defaults are left to the dataclass (argparse default: None)."""
+def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=(), defaults=None) -> None:
+    """Add one option per field; defaults are left to the dataclass (argparse default: None). ``defaults``, an
+    instance of ``cls``, is what the help shows as defaults when a tool starts from other values than the
+    class's own."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     for f in dataclasses.fields(cls):
@@ -55,9 +57,13 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = ""
             continue
         kind = hints[f.name]
         if dataclasses.is_dataclass(kind):
-            add_dataclass_options(parser, kind, prefix=f"{prefix}{f.name}-")
+            sub = None if defaults is None else getattr(defaults, f.name)
+            add_dataclass_options(parser, kind, prefix=f"{prefix}{f.name}-", defaults=sub)
             continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if defaults is not None:
+            default = getattr(defaults, f.name)
+        else:
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         conv = parse_bool if kind is bool else kind
         parser.add_argument(
             f"--{prefix}{f.name}".replace("_", "-"),
