@@ -15,13 +15,18 @@ import sys
 from pathlib import Path
 
 import pytest
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int64MultiArray, UInt8MultiArray
+from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train import TrainConfig
 from morph_core.msgs.policy_weights import unpack_policy_weights
+from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.episode_start import unpack_episode_start
-from trainer.live import EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC
+from morph_core.protocol.transitions import TransitionAssembler
+from trainer.live import ANNOUNCEMENTS, CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC
 from trainer.live_learner import LIVE_LEARNING_RATE
 
 STARTUP = 120.0
@@ -140,15 +145,17 @@ def two_hosts():
 
 
 @pytest.mark.timeout(400)
-def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path, untrained_checkpoint):
+@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
+def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path, untrained_checkpoint, listen):
     """A pair on one host, the trainer on the other: the veth link is the only path between them. The trainer
-    can only update on samples that crossed it."""
+    can only update on samples that crossed it: on the pair's topics, or only in its policy node's chunks."""
     import time
 
     pair_host, trainer_host = two_hosts
     p0 = f"{namespace}/p0"
     out = tmp_path / "run"
-    procs = [Trainer([p0], out, tmp_path / "trainer.log", "--max-updates", "2", prefix=trainer_host)]
+    extra = ["--stream-chunks"] if listen == "stream_chunks" else []
+    procs = [Trainer([p0], out, tmp_path / "trainer.log", "--max-updates", "2", *extra, prefix=trainer_host)]
     pair = start_pair(p0, 0, untrained_checkpoint, tmp_path, prefix=pair_host)
     procs += pair.values()
     try:
@@ -166,6 +173,44 @@ def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path
     finally:
         for p in procs:
             p.stop()
+
+
+@pytest.mark.timeout(300)
+def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path, untrained_checkpoint):
+    """stream_chunks: what the policy node received and sent, in its order, within one datagram per chunk; the
+    trainer's decoders and assembler make whole transitions of it."""
+    p0 = f"{namespace}/p0"
+    chunks = probe.collect(UInt8MultiArray, f"{p0}/{CHUNK_TOPIC}", CHUNK_QOS)
+    infos = probe.collect(JointTrajectory, f"{p0}/policy_info")
+    pair = start_pair(p0, 0, untrained_checkpoint, tmp_path)
+    try:
+        probe.spin_until(lambda: len(chunks) >= 20, STARTUP, "20 stream chunks")
+        probe.spin_for(0.5)  # the topic's own messages of the last chunk
+    finally:
+        for p in pair.values():
+            p.stop()
+    unpacked = [unpack_stream_chunk(c.data) for c in chunks]
+    sequences = [seq for seq, _ in unpacked]
+    assert sequences == list(range(sequences[0], sequences[0] + len(chunks)))
+    assert all(len(c.data) <= MAX_CHUNK_BYTES for c in chunks)
+    entries = [e for _, es in unpacked for e in es]
+    assert {e.topic for e in entries} >= set(DATA_TOPICS)
+    decoders = {**DATA_TOPICS, "episode_start": ANNOUNCEMENTS}
+    records = [decoders[e.topic][1](deserialize_message(e.data, decoders[e.topic][0]), e.log_ns) for e in entries]
+    assembler = TransitionAssembler()
+    transitions = assembler.push_many(records) + assembler.flush()
+    assert len(transitions) >= 50 and all(t.has_policy_info for t in transitions)
+    assert assembler.skips.steps_skipped == 0 and assembler.stats.boundaries_stamp_gap == 0
+    # The very messages that went out on policy_info (CDR padding may differ), each after the state it answers.
+    direct = [repr(m) for m in infos]
+    streamed = [repr(deserialize_message(e.data, JointTrajectory)) for e in entries if e.topic == "policy_info"]
+    assert streamed and set(streamed) <= set(direct), (len(streamed), len(set(streamed) - set(direct)), len(direct))
+    seen_states = set()
+    for e, r in zip(entries, records, strict=True):
+        if e.topic == "joint_states":
+            seen_states.add(r.stamp_ns)
+        elif e.topic == "policy_info":
+            assert r.stamp_ns in seen_states
 
 
 @pytest.mark.timeout(600)

@@ -48,6 +48,15 @@ rejected, counted and logged, and the current policy keeps running. Every
 ``weights@<version>`` ('' for a checkpoint file). Setting ``checkpoint``
 replaces pushed weights (and vice versa: the newest action wins).
 
+For a live trainer the node also hands over its whole message stream on
+``stream_chunks`` (``morph_core.msgs.stream_chunk``), every
+``stream_chunk_period`` seconds or 60 KB: each ``episode_start``,
+``joint_states`` and ``odom`` it received and each ``effort_commands`` and
+``policy_info`` it sent, serialized as on the wire, in its order. A trainer
+reading them wakes once per chunk instead of four times per step. Messages
+are serialized after the answer to their state has gone out, and only
+while a reader is matched.
+
 QoS: every input is read best effort, keep last (``joint_states`` and
 ``odom`` depth 5 as sensor data, ``episode_start`` depth 10, volatile): it
 matches reliable and best-effort publishers, never queues stale states, and
@@ -74,6 +83,7 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParam
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -89,6 +99,8 @@ from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
 from morph_core.msgs.policy_weights import policy_version_frame_id
 from morph_core.msgs.stamps import SILENCE_TAG, StampError, answer_tag, check_stamp, to_ns
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from morph_core.msgs.stream_chunk import ChunkWriter
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
@@ -110,6 +122,8 @@ STATES, ODOM, EPISODES, WEIGHTS = "joint_states", "odom", "episode_start", WEIGH
 EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 # The newest weights only; best effort for the same reason as every input (the trainer re-publishes).
 WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+# Chunks are never fragmented (msgs.stream_chunk), so a reliable reader of them is safe from the wedge.
+CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
 def pushed_policy(weights: WeightsMessage) -> tuple[PolicyWeights, NumpyPolicy]:
@@ -171,6 +185,15 @@ class MorphPolicyNode(Node):
                 read_only=True,
             ),
         )
+        self.declare_parameter(
+            "stream_chunk_period",
+            0.1,
+            ParameterDescriptor(
+                description=f"seconds between {CHUNK_TOPIC} (this node's messages, for a live trainer); 0 = none",
+                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0, step=0.0)],
+                read_only=True,
+            ),
+        )
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -194,6 +217,13 @@ class MorphPolicyNode(Node):
         if p("accept_weights").value:
             self.create_subscription(UInt8MultiArray, WEIGHTS_TOPIC, self._on_weights, WEIGHTS_QOS)
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
+        self._chunks = ChunkWriter()
+        self._unserialized: list[tuple[str, int, object]] = []  # (topic, log ns, message) for the next chunk
+        self._streaming = False  # a reader of stream_chunks is matched
+        self.unstreamed = 0
+        if p("stream_chunk_period").value > 0:
+            self._chunk_pub = self.create_publisher(UInt8MultiArray, CHUNK_TOPIC, CHUNK_QOS)
+            self.create_timer(p("stream_chunk_period").value, self._on_chunk_timer)
 
         self.rejected = 0
         self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS])  # on /diagnostics every second
@@ -274,6 +304,7 @@ class MorphPolicyNode(Node):
 
     def _on_episode_start(self, msg: Int64MultiArray) -> None:
         self.counts.received(EPISODES)
+        self._note(EPISODES, msg)
         label = msg.layout.dim[0].label if msg.layout.dim else ""
         try:
             start = unpack_episode_start(0, label, msg.data)
@@ -285,6 +316,7 @@ class MorphPolicyNode(Node):
 
     def _on_odom(self, msg: Odometry) -> None:
         self.counts.received(ODOM)
+        self._note(ODOM, msg)
         q = msg.pose.pose.orientation
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
         quat, body = (q.x, q.y, q.z, q.w), (lin.x, lin.y)
@@ -301,6 +333,7 @@ class MorphPolicyNode(Node):
 
     def _on_joint_states(self, msg: JointState) -> None:
         self.counts.received(STATES)
+        self._note(STATES, msg)
         try:
             pos, vel = validate_joint_state(msg.name, msg.position, msg.velocity)
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
@@ -351,6 +384,7 @@ class MorphPolicyNode(Node):
         self._publish_efforts(out.efforts, answer_tag(stamp.sec, stamp.nanosec))
         if out.mean is not None:
             self._publish_info(msg, names, out.action, out.mean)
+        self._serialize_noted()  # after the answer: the loop waits on it, not on this
 
     def _publish_efforts(self, efforts: np.ndarray, tag: str) -> None:
         n = len(efforts)
@@ -359,6 +393,7 @@ class MorphPolicyNode(Node):
         if not self._weights.trained:
             msg.layout.dim.append(MultiArrayDimension(label=UNTRAINED_LABEL, size=1, stride=1))
         self._effort_pub.publish(msg)
+        self._note("effort_commands", msg)
 
     def _publish_info(self, msg: JointState, names: list[str], action: np.ndarray, mean: np.ndarray) -> None:
         fields = pack_policy_info(action, mean, self._policy.log_std)
@@ -371,6 +406,32 @@ class MorphPolicyNode(Node):
         info.joint_names = names
         info.points = [point]
         self._info_pub.publish(info)
+        self._note("policy_info", info)
+
+    # -- the stream for a live trainer -------------------------------------------
+    def _note(self, topic: str, msg) -> None:
+        if self._streaming:
+            self._unserialized.append((topic, time.time_ns(), msg))
+
+    def _serialize_noted(self) -> None:
+        for topic, log_ns, msg in self._unserialized:
+            try:
+                full = self._chunks.add(topic, log_ns, serialize_message(msg))
+            except ValueError as err:  # larger than a chunk: the trainer sees a gap in the stream there
+                self.unstreamed += 1
+                self.get_logger().warn(f"not streamed ({self.unstreamed} so far): {err}",
+                                       throttle_duration_sec=_LOG_THROTTLE)  # fmt: skip
+                continue
+            if full is not None:
+                self._chunk_pub.publish(UInt8MultiArray(data=full))
+        self._unserialized.clear()
+
+    def _on_chunk_timer(self) -> None:
+        self._serialize_noted()
+        chunk = self._chunks.take()
+        if chunk is not None:
+            self._chunk_pub.publish(UInt8MultiArray(data=chunk))
+        self._streaming = self._chunk_pub.get_subscription_count() > 0
 
 
 def main(args=None) -> NoReturn:

@@ -16,6 +16,15 @@ last 1, for tools that record it), and re-published every ``weights_period``
 seconds: policy nodes read it best effort, so a node that starts or restarts
 late gets the latest within a period.
 
+With ``stream_chunks`` (``--stream-chunks``) the node instead reads each
+pair's ``stream_chunks`` (``msgs.stream_chunk``): the same messages as its
+policy node received and sent them, a few dozen steps per chunk, decoded
+with the same decoders into the same assembler. The trainer then wakes once
+per chunk instead of four times per step and is no extra reader of the
+loop's own topics. It hears what the policy node heard: effort commands of
+other controllers on the namespace are not in the chunks. A chunk lost or
+malformed is counted; the assembler sees a stamp gap there.
+
 Episodes: when a pair appears (at start, or back after a fault) the trainer
 sets its sim's ``episode_steps`` and calls its ``~/reset`` service, so the
 sim starts a fresh episode with a chain length redrawn from the
@@ -54,6 +63,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
 from std_srvs.srv import Trigger
@@ -63,6 +73,8 @@ from morph_core.algo.train import TrainConfig
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from morph_core.msgs.stream_chunk import StreamChunkError, unpack_stream_chunk
 from morph_core.protocol.transitions import (
     SkipCounts,
     StreamStats,
@@ -99,6 +111,16 @@ WEIGHTS_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 """the weights topic: the latest policy kept for late joiners"""
+CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1_000, reliability=ReliabilityPolicy.RELIABLE)
+"""deep for the same reason as DATA_QOS (a chunk holds dozens of steps)"""
+DATA_TOPICS = {
+    "joint_states": (JointState, joint_state_record),
+    "odom": (Odometry, odometry_record),
+    "effort_commands": (Float64MultiArray, effort_record),
+    "policy_info": (JointTrajectory, policy_info_record),
+}
+"""a pair's data topics: message type and decoder into a record"""
+ANNOUNCEMENTS = (Int64MultiArray, episode_start_record)
 REPORT_PERIOD = 10.0
 """seconds between the trainer's report lines"""
 SIM_NODE = "swimmer_sim"
@@ -138,11 +160,21 @@ class _Pair:
     decode_errors: Counter = field(default_factory=Counter)
     dropped_partial: int = 0
     drops: int = 0
+    chunk_sequence: int | None = None
+    """the last stream chunk's sequence number"""
+    chunks_lost: int = 0
 
 
 def _nonzero(skips: SkipCounts) -> str:
     """The reasons that counted, e.g. 'not_applied 12, late_message 3'."""
     return ", ".join(f"{k} {v}" for k, v in skips.as_dict().items() if v) or "none"
+
+
+def _losses(pair: _Pair) -> str:
+    """What a pair's stream lost before the assembler, if anything: chunks, undecodable messages by reason."""
+    lost = [f"{pair.chunks_lost} chunks lost"] if pair.chunks_lost else []
+    lost += [f"{n} {reason}" for reason, n in sorted(pair.decode_errors.items())]
+    return f" ({', '.join(lost)})" if lost else ""
 
 
 class LiveTrainer(Node):
@@ -162,15 +194,13 @@ class LiveTrainer(Node):
         for ns in options.namespaces:
             ns = "/" + ns.strip("/")
             pair = self.pairs[ns] = _Pair(ns)
-            self.create_subscription(Int64MultiArray, f"{ns}/episode_start",
-                                     self._handler(pair, episode_start_record), EPISODE_QOS)  # fmt: skip
-            for msg_type, topic, decode in (
-                (JointState, "joint_states", joint_state_record),
-                (Odometry, "odom", odometry_record),
-                (Float64MultiArray, "effort_commands", effort_record),
-                (JointTrajectory, "policy_info", policy_info_record),
-            ):
-                self.create_subscription(msg_type, f"{ns}/{topic}", self._handler(pair, decode), DATA_QOS)
+            if options.stream_chunks:
+                self.create_subscription(UInt8MultiArray, f"{ns}/{CHUNK_TOPIC}", self._chunk_handler(pair), CHUNK_QOS)
+            else:
+                msg_type, decode = ANNOUNCEMENTS
+                self.create_subscription(msg_type, f"{ns}/episode_start", self._handler(pair, decode), EPISODE_QOS)
+                for topic, (msg_type, decode) in DATA_TOPICS.items():
+                    self.create_subscription(msg_type, f"{ns}/{topic}", self._handler(pair, decode), DATA_QOS)
             self._weights_pubs.append(self.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS))
             self._sim_params[ns] = self.create_client(SetParameters, f"{ns}/{SIM_NODE}/set_parameters",
                                                       callback_group=services)  # fmt: skip
@@ -190,19 +220,43 @@ class LiveTrainer(Node):
 
     # -- input ---------------------------------------------------------------------------
     def _handler(self, pair: _Pair, decode):
-        def on_message(msg) -> None:
-            try:
-                record = decode(msg, time.time_ns())
-            except DecodeError as err:
-                pair.decode_errors[err.reason] += 1
-                return
-            if decode is policy_info_record:
-                pair.versions[record.stamp_ns] = parse_policy_version(msg.header.frame_id)
-                while len(pair.versions) > _VERSIONS_KEPT:
-                    pair.versions.popitem(last=False)
-            self._push(pair, record)
+        return lambda msg: self._take(pair, decode, msg, time.time_ns())
 
-        return on_message
+    def _chunk_handler(self, pair: _Pair):
+        decoders = {**DATA_TOPICS, "episode_start": ANNOUNCEMENTS}
+
+        def on_chunk(chunk: UInt8MultiArray) -> None:
+            try:
+                sequence, entries = unpack_stream_chunk(chunk.data)
+            except StreamChunkError:
+                pair.decode_errors["stream_chunk"] += 1
+                return
+            if pair.chunk_sequence is not None and sequence > pair.chunk_sequence + 1:
+                pair.chunks_lost += sequence - pair.chunk_sequence - 1
+            pair.chunk_sequence = sequence  # lower: a restarted policy node counts from 0 again
+            for entry in entries:
+                msg_type, decode = decoders[entry.topic]
+                try:
+                    msg = deserialize_message(entry.data, msg_type)
+                except Exception:  # noqa: BLE001 - rclpy raises several types for bytes that are not the type's CDR
+                    pair.decode_errors[f"cdr_{entry.topic}"] += 1
+                    continue
+                self._take(pair, decode, msg, entry.log_ns)
+
+        return on_chunk
+
+    def _take(self, pair: _Pair, decode, msg, log_ns: int) -> None:
+        """One message of a pair's stream: decoded into a record (or counted) and pushed to its assembler."""
+        try:
+            record = decode(msg, log_ns)
+        except DecodeError as err:
+            pair.decode_errors[err.reason] += 1
+            return
+        if decode is policy_info_record:
+            pair.versions[record.stamp_ns] = parse_policy_version(msg.header.frame_id)
+            while len(pair.versions) > _VERSIONS_KEPT:
+                pair.versions.popitem(last=False)
+        self._push(pair, record)
 
     def _push(self, pair: _Pair, record) -> None:
         with self._lock:
@@ -315,9 +369,8 @@ class LiveTrainer(Node):
 
     def _report(self) -> None:
         skips, stats = self.skips()
-        parts = [
-            f"{p.ns}: {'up' if p.active else 'down'}, {p.states} states, {p.drops} drops" for p in self.pairs.values()
-        ]
+        parts = [f"{p.ns}: {'up' if p.active else 'down'}, {p.states} states, {p.drops} drops{_losses(p)}"
+                 for p in self.pairs.values()]  # fmt: skip
         self.get_logger().info(
             f"version {self.learner.version}, pool {self.learner.pool_size}/{self.learner.cfg.batch_size}, "
             f"{stats.transitions} transitions in {stats.episodes} runs, {stats.boundaries_stamp_gap} stamp gaps, "

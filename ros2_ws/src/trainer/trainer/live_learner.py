@@ -106,6 +106,9 @@ class LiveOptions:
     nice: int = 0
     """the trainer's niceness (0..19): on the pairs' own machine their control loops come first, and ingest and
     updates take the CPU the loops leave (a lockstep loop is latency-bound: docs/benchmarks.md)"""
+    stream_chunks: bool = False
+    """read each pair's messages from its policy node's ``stream_chunks`` (a few dozen steps per message)
+    instead of its four data topics (four messages per step): far fewer wake-ups (docs/benchmarks.md)"""
 
     def __post_init__(self):
         if not self.namespaces:

@@ -99,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
     live.add_argument("--nice", type=int, default=LiveOptions.nice,
                       help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
+    live.add_argument("--stream-chunks", action="store_true",
+                      help="take each pair's messages from its policy node's stream_chunks, not 4 topics")  # fmt: skip
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
     parser.add_argument(
@@ -195,7 +197,8 @@ def _train_live(args, parser) -> int:
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
             cfg = replace_nested(live_train_config(), overrides)
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
-                              args.silence_timeout, args.max_updates, args.weights_period, args.nice)  # fmt: skip
+                              args.silence_timeout, args.max_updates, args.weights_period, args.nice,
+                              args.stream_chunks)  # fmt: skip
     except (TypeError, ValueError) as err:
         parser.error(str(err))
     return run_live(cfg, options)
