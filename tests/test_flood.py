@@ -20,7 +20,10 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, UInt8MultiArray
+
+from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 
 STARTUP = 60.0
 FLOOD_SECONDS = 5.0
@@ -135,6 +138,7 @@ def test_sim_survives_huge_parameter_requests(probe, launch, namespace):
 # -- policy node -------------------------------------------------------------------------------------------
 def _policy_answering(probe, launch, untrained_checkpoint):
     efforts, stamps = _collect(probe, Float64MultiArray, "effort_commands")
+    chunks, _ = _collect(probe, UInt8MultiArray, CHUNK_TOPIC)  # the node streams too while flooded
     state_pub = probe.node.create_publisher(JointState, "joint_states", 10)
     proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), input_timeout=30.0)
     probe.spin_until(
@@ -142,7 +146,7 @@ def _policy_answering(probe, launch, untrained_checkpoint):
         STARTUP,
         "the policy node",
     )
-    return proc, state_pub, efforts, stamps
+    return proc, state_pub, efforts, stamps, chunks
 
 
 def _valid_state(k: int) -> JointState:
@@ -152,7 +156,7 @@ def _valid_state(k: int) -> JointState:
     return msg
 
 
-def _flood_policy(probe, proc, state_pub, efforts, stamps, send_huge) -> None:
+def _flood_policy(probe, proc, state_pub, efforts, stamps, chunks, send_huge) -> None:
     k = iter(range(10**9))
     start = time.monotonic()
     _flood(probe, send_huge, lambda: state_pub.publish(_valid_state(next(k))))
@@ -163,44 +167,48 @@ def _flood_policy(probe, proc, state_pub, efforts, stamps, send_huge) -> None:
     probe.spin_until(lambda: len(efforts) > n, 10.0, "answers after the flood")
     assert _longest_gap(stamps, start, time.monotonic()) < MAX_GAP, "the policy stopped answering"
     assert {len(e.data) for e in efforts} == {3}, "something answered the huge message"
+    # Streamed throughout, each chunk within its bound (a huge message is left out, not split).
+    probe.spin_until(lambda: len(chunks) > 0, 10.0, "stream chunks")
+    assert all(len(c.data) <= MAX_CHUNK_BYTES and unpack_stream_chunk(c.data)[1] for c in chunks)
     assert proc.alive()
     _stops_on_sigterm(proc)
 
 
 @pytest.mark.timeout(180)
 def test_policy_survives_huge_joint_states(probe, launch, untrained_checkpoint):
-    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint)
     names = [f"j{i}" for i in range(HUGE)]
     zeros = array.array("d", bytes(8 * HUGE))
     huge = JointState(name=names, position=zeros, velocity=zeros)
-    _flood_policy(probe, proc, state_pub, efforts, stamps, lambda: state_pub.publish(huge))
+    _flood_policy(probe, proc, state_pub, efforts, stamps, chunks, lambda: state_pub.publish(huge))
     assert "more than the maximum" in proc.log()
+    assert "not streamed" in proc.log()
 
 
 @pytest.mark.timeout(180)
 def test_policy_survives_huge_odometry(probe, launch, untrained_checkpoint):
-    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint)
     odom_pub = probe.node.create_publisher(Odometry, "odom", 10)
     probe.spin_until(lambda: odom_pub.get_subscription_count() > 0, STARTUP, "the odom subscription")
     huge = Odometry()
     huge.header.frame_id = "o" * (8 * HUGE)
     huge.pose.pose.orientation.w = 1.0
-    _flood_policy(probe, proc, state_pub, efforts, stamps, lambda: odom_pub.publish(huge))
+    _flood_policy(probe, proc, state_pub, efforts, stamps, chunks, lambda: odom_pub.publish(huge))
 
 
 @pytest.mark.timeout(180)
 def test_policy_survives_huge_episode_announcements(probe, launch, untrained_checkpoint):
-    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint)
     episode_pub = probe.node.create_publisher(Int64MultiArray, "episode_start", 10)
     probe.spin_until(lambda: episode_pub.get_subscription_count() > 0, STARTUP, "the episode_start subscription")
     huge = Int64MultiArray(data=array.array("q", bytes(8 * HUGE)))
-    _flood_policy(probe, proc, state_pub, efforts, stamps, lambda: episode_pub.publish(huge))
+    _flood_policy(probe, proc, state_pub, efforts, stamps, chunks, lambda: episode_pub.publish(huge))
     assert "rejected episode_start" in proc.log()
 
 
 @pytest.mark.timeout(180)
 def test_policy_survives_huge_parameter_requests(probe, launch, namespace, untrained_checkpoint):
-    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    proc, state_pub, efforts, stamps, _ = _policy_answering(probe, launch, untrained_checkpoint)
     k = iter(range(10**9))
 
     def answer_some():
@@ -224,12 +232,12 @@ def test_policy_survives_huge_parameter_requests(probe, launch, namespace, untra
 
 @pytest.mark.timeout(180)
 def test_policy_survives_huge_weights(probe, launch, untrained_checkpoint):
-    from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
+    from std_msgs.msg import MultiArrayDimension
 
-    proc, state_pub, efforts, stamps = _policy_answering(probe, launch, untrained_checkpoint)
+    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint)
     weights_pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
     probe.spin_until(lambda: weights_pub.get_subscription_count() > 0, STARTUP, "the policy_weights subscription")
     huge = UInt8MultiArray(data=bytes(8 * HUGE))  # fragmented on the wire; not a policy
     huge.layout.dim = [MultiArrayDimension(label="safetensors", size=8 * HUGE, stride=8 * HUGE)]
-    _flood_policy(probe, proc, state_pub, efforts, stamps, lambda: weights_pub.publish(huge))
+    _flood_policy(probe, proc, state_pub, efforts, stamps, chunks, lambda: weights_pub.publish(huge))
     assert "rejected policy_weights" in proc.log()
