@@ -12,7 +12,6 @@ import numpy as np
 
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.vec_env import MAX_EPISODE_STEPS, EnvThreads
-from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 
 
@@ -33,16 +32,24 @@ def evaluate_policy(
     """
     keys = [n for n in lengths for _ in range(episodes)]
     envs = [MorphSwimmerEnv(num_joints=n) for n in keys]
-    obs = [env.reset(seed=seed + k % episodes)[0] for k, env in enumerate(envs)]
+    width = max(lengths)
+    # The swimmers' observations, padded, one row each (written in place after every step: no per-step dicts).
+    pos, vel = np.zeros((len(envs), width), np.float32), np.zeros((len(envs), width), np.float32)
+    glob, num_joints = np.zeros((len(envs), 4), np.float32), np.array(keys, dtype=np.int64)
+    for k, env in enumerate(envs):
+        env.reset(seed=seed + k % episodes)
+        env.write_observation(pos[k], vel[k], glob[k])
     returns = np.zeros(len(envs))
     alive = np.ones(len(envs), dtype=bool)
     threads = EnvThreads(num_threads)
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
-    width = max(lengths)
 
-    def step(actions: dict[int, np.ndarray], i: int) -> None:
-        o, r, terminated, _, _ = envs[i].step(np.clip(actions[i], -1.0, 1.0))
-        obs[i] = o
+    def step(mean: np.ndarray, rows: dict[int, int], i: int) -> None:
+        a = np.clip(mean[rows[i], : keys[i]], -1.0, 1.0).astype(np.float64)
+        if not np.isfinite(a).all():
+            raise ValueError(f"the policy's action for swimmer {i} ({keys[i]} joints) is not finite: {a}")
+        r, terminated = envs[i].advance(a)
+        envs[i].write_observation(pos[i], vel[i], glob[i])
         returns[i] += r
         alive[i] = not terminated
 
@@ -51,9 +58,8 @@ def evaluate_policy(
             idx = np.flatnonzero(alive)
             if idx.size == 0:
                 break
-            mean = actor.forward(*pad_observations([obs[i] for i in idx], width))[0]
-            actions = {i: mean[row, : envs[i].num_joints] for row, i in enumerate(idx)}
-            threads.map(partial(step, actions), idx)
+            mean = actor.forward(pos[idx], vel[idx], glob[idx], num_joints[idx])[0]
+            threads.map(partial(step, mean, {int(i): row for row, i in enumerate(idx)}), idx)
     finally:
         threads.close()
     keys_arr = np.array(keys)

@@ -126,21 +126,8 @@ class MorphSwimmerEnv(gymnasium.Env):
             raise ValueError(f"action must have shape ({self.num_joints},) for this chain, got {a.shape}")
         if not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a}")
-        d = self.data
-        xy_before = d.qpos[0:2].copy()
-        d.ctrl[:] = a
-        unstable_before = d.warning[_BADQACC].number
-        mujoco.mj_step(self.model, d, nstep=self.frame_skip)
-        # MuJoCo resets the state itself when it diverges (seen on chains of
-        # 50+ joints at Swimmer-v5's timestep): end the episode instead of
-        # carrying on from a silently reset swimmer.
-        unstable = d.warning[_BADQACC].number > unstable_before
-        xy_after = d.qpos[0:2].copy()
-        x_velocity, y_velocity = (xy_after - xy_before) / self.dt
-
-        forward_reward = self.forward_reward_weight * x_velocity
-        ctrl_cost = control_cost(a, self.ctrl_cost_weight)
-        reward = forward_reward - ctrl_cost  # == swimmer_reward(x, x', dt, a): tested bit for bit
+        reward, unstable = self.advance(a)
+        xy_after, (x_velocity, y_velocity), forward_reward, ctrl_cost = self._last_step
         info = {
             "x_position": xy_after[0],
             "y_position": xy_after[1],
@@ -154,6 +141,26 @@ class MorphSwimmerEnv(gymnasium.Env):
         }
         return self._observation(), reward, unstable, False, info
 
+    def advance(self, a: np.ndarray) -> tuple[float, bool]:
+        """``step``'s physics and reward alone: (reward, physics diverged). ``a`` must be a finite float64
+        array of ``num_joints`` entries (``step`` checks that; a vector env checks it once for all swimmers).
+        For loops that read the state themselves (``write_observation``) instead of Gymnasium's dicts."""
+        d = self.data
+        xy_before = d.qpos[0:2].copy()
+        d.ctrl[:] = a
+        unstable_before = d.warning[_BADQACC].number
+        mujoco.mj_step(self.model, d, nstep=self.frame_skip)
+        # MuJoCo resets the state itself when it diverges (seen on chains of
+        # 50+ joints at Swimmer-v5's timestep): end the episode instead of
+        # carrying on from a silently reset swimmer.
+        unstable = d.warning[_BADQACC].number > unstable_before
+        xy_after = d.qpos[0:2].copy()
+        velocity = (xy_after - xy_before) / self.dt
+        forward_reward = self.forward_reward_weight * velocity[0]
+        ctrl_cost = control_cost(a, self.ctrl_cost_weight)
+        self._last_step = (xy_after, velocity, forward_reward, ctrl_cost)
+        return forward_reward - ctrl_cost, unstable  # == swimmer_reward(x, x', dt, a): tested bit for bit
+
     # -- observations --------------------------------------------------------
     def _observation(self):
         qpos, qvel = self.data.qpos, self.data.qvel
@@ -165,6 +172,15 @@ class MorphSwimmerEnv(gymnasium.Env):
             "global": np.array([qpos[2], qvel[2], qvel[0], qvel[1]]),
             "edge_index": self._edge_index.copy(),
         }
+
+    def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
+        """The graph observation written into one row of padded arrays (``policy.chains.pad_observations``'s
+        layout, any float dtype): the first ``num_joints`` entries of ``joint_pos`` and ``joint_vel`` (the rest
+        zeroed) and the 4 global features. The same values as ``_observation()`` padded, without its dict."""
+        qpos, qvel, n = self.data.qpos, self.data.qvel, self.num_joints
+        joint_pos[:n], joint_vel[:n] = qpos[3:], qvel[3:]
+        joint_pos[n:], joint_vel[n:] = 0.0, 0.0
+        global_feats[:] = (qpos[2], qvel[2], qvel[0], qvel[1])
 
     def _reset_info(self) -> dict:
         return {

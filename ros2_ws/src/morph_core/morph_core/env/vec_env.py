@@ -1,7 +1,9 @@
 """Several swimmers stepped together, each redrawing its chain length at every reset.
 
 Observations come out padded to the longest chain the range allows, ready for
-``ChainBatch.from_padded``. Episodes end at the time limit (truncation, with
+``ChainBatch.from_padded``: each swimmer writes its state into its row after
+its step (``MorphSwimmerEnv.advance`` and ``write_observation``, the same
+numbers as Gymnasium's ``step`` without its per-step dicts). Episodes end at the time limit (truncation, with
 the final observation kept for bootstrapping) or when the physics diverges
 (termination); finished swimmers are reset at once.
 """
@@ -18,7 +20,6 @@ import numpy as np
 
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.policy.chains import pad_observations
 
 MAX_EPISODE_STEPS = 1000
 R = TypeVar("R")
@@ -94,13 +95,26 @@ class SwimmerVecEnv:
         self.max_joints = joint_range[1]
         self.max_episode_steps = max_episode_steps
         self.num_envs = num_envs
-        self._obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(self.envs)]
+        self._padded = PaddedObs(
+            np.zeros((num_envs, self.max_joints), np.float32), np.zeros((num_envs, self.max_joints), np.float32),
+            np.zeros((num_envs, 4), np.float32), np.zeros(num_envs, np.int64),
+        )  # fmt: skip
+        for i, env in enumerate(self.envs):
+            env.reset(seed=seed + i)
+            self._write(i)
         self.episode_steps = np.zeros(num_envs, dtype=np.int64)
         self.episode_returns = np.zeros(num_envs, dtype=np.float64)
         self._threads = EnvThreads(min(num_threads, num_envs))
 
     def observations(self) -> PaddedObs:
-        return PaddedObs(*pad_observations(self._obs, self.max_joints))
+        p = self._padded
+        return PaddedObs(p.joint_pos.copy(), p.joint_vel.copy(), p.global_feats.copy(), p.num_joints.copy())
+
+    def _write(self, i: int) -> None:
+        """Swimmer i's observation into row i."""
+        env, p = self.envs[i], self._padded
+        env.write_observation(p.joint_pos[i], p.joint_vel[i], p.global_feats[i])
+        p.num_joints[i] = env.num_joints
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
@@ -120,17 +134,20 @@ class SwimmerVecEnv:
 
     def _step_one(self, i: int, action: np.ndarray):
         env = self.envs[i]
-        obs, r, term, _, _ = env.step(applied_action(action[: env.num_joints]))
+        a = applied_action(action[: env.num_joints]).astype(np.float64)
+        if not np.isfinite(a).all():
+            raise ValueError(f"action of swimmer {i} contains NaN or inf: {a}")
+        r, term = env.advance(a)
         self.episode_steps[i] += 1
         self.episode_returns[i] += r
         trunc = not term and self.episode_steps[i] >= self.max_episode_steps
         final_obs = episode = None
         if term or trunc:
-            final_obs = obs
+            final_obs = env._observation()
             episode = (env.num_joints, float(self.episode_returns[i]), int(self.episode_steps[i]))
             self.episode_steps[i], self.episode_returns[i] = 0, 0.0
-            obs, _ = env.reset()
-        self._obs[i] = obs
+            env.reset()
+        self._write(i)
         return r, term, trunc, final_obs, episode
 
     def close(self) -> None:
@@ -160,7 +177,7 @@ class SwimmerVecEnv:
             mujoco.mj_setState(env.model, env.data, np.asarray(arrays[f"env{i}.mj_state"], dtype=np.float64), spec)
             # No mj_forward here: it would overwrite the restored solver warm start and the
             # trajectories would drift apart at solver tolerance.
-            self._obs[i] = env._observation()
+            self._write(i)
         self.episode_steps[:] = arrays["episode_steps"]
         self.episode_returns[:] = arrays["episode_returns"]
 
