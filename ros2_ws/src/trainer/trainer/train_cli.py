@@ -36,7 +36,7 @@ from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
 
@@ -99,8 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
     live.add_argument("--nice", type=int, default=LiveOptions.nice,
                       help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
-    live.add_argument("--stream-chunks", action="store_true",
-                      help="take each pair's messages from its policy node's stream_chunks, not 4 topics")  # fmt: skip
+    live.add_argument("--stream-chunks", type=parse_bool, nargs="?", const=True, default=LiveOptions.stream_chunks,
+                      metavar="BOOL", help="take each pair's messages from its policy node's stream_chunks instead "
+                      f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
     parser.add_argument(
