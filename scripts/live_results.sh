@@ -2,8 +2,8 @@
 # Reproduce docs/results.md's "Learning live over DDS": live training from an untrained policy with K=4
 # lockstep sim+policy pairs (scripts/live.sh) against the simulator trainer at the same env-step count,
 # SEEDS seeds of STEPS steps each (paper configuration otherwise), then the curves side by side.
-#   bash scripts/live_results.sh [SEEDS=3] [STEPS=300000] [OUT=runs/live-vs-sim]
-#   LIVE_EXTRA="--learning-rate 0.003" bash scripts/live_results.sh 3 300000 runs/live-lr0.003   # more live-trainer options
+#   bash scripts/live_results.sh [SEEDS=3] [STEPS=300000] [OUT=runs/live-vs-sim]   # docs/results.md: OUT=runs/live-lr0.003
+#   LIVE_EXTRA="--learning-rate 0.01" bash scripts/live_results.sh 3 300000 runs/live-lr0.01   # more live-trainer options
 # A run already finished is skipped; an interrupted one resumes.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
