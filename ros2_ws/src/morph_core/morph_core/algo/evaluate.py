@@ -45,10 +45,7 @@ def evaluate_policy(
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
 
     def step(mean: np.ndarray, rows: dict[int, int], i: int) -> None:
-        a = np.clip(mean[rows[i], : keys[i]], -1.0, 1.0).astype(np.float64)
-        if not np.isfinite(a).all():
-            raise ValueError(f"the policy's action for swimmer {i} ({keys[i]} joints) is not finite: {a}")
-        r, terminated = envs[i].advance(a)
+        r, terminated = envs[i].advance(np.clip(mean[rows[i], : keys[i]], -1.0, 1.0).astype(np.float64))
         envs[i].write_observation(pos[i], vel[i], glob[i])
         returns[i] += r
         alive[i] = not terminated

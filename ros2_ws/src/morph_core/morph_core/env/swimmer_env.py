@@ -124,8 +124,6 @@ class MorphSwimmerEnv(gymnasium.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (self.num_joints,):
             raise ValueError(f"action must have shape ({self.num_joints},) for this chain, got {a.shape}")
-        if not np.isfinite(a).all():
-            raise ValueError(f"action contains NaN or inf: {a}")
         reward, unstable = self.advance(a)
         xy_after, (x_velocity, y_velocity), forward_reward, ctrl_cost = self._last_step
         info = {
@@ -142,9 +140,11 @@ class MorphSwimmerEnv(gymnasium.Env):
         return self._observation(), reward, unstable, False, info
 
     def advance(self, a: np.ndarray) -> tuple[float, bool]:
-        """``step``'s physics and reward alone: (reward, physics diverged). ``a`` must be a finite float64
-        array of ``num_joints`` entries (``step`` checks that; a vector env checks it once for all swimmers).
-        For loops that read the state themselves (``write_observation``) instead of Gymnasium's dicts."""
+        """``step``'s physics and reward alone: (reward, physics diverged). ``a``: ``num_joints`` float64
+        entries (``step`` checks the shape); NaN or inf raises ``ValueError``. For loops that read the state
+        themselves (``write_observation``) instead of Gymnasium's dicts."""
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains NaN or inf: {a}")
         d = self.data
         xy_before = d.qpos[0:2].copy()
         d.ctrl[:] = a

@@ -134,10 +134,7 @@ class SwimmerVecEnv:
 
     def _step_one(self, i: int, action: np.ndarray):
         env = self.envs[i]
-        a = applied_action(action[: env.num_joints]).astype(np.float64)
-        if not np.isfinite(a).all():
-            raise ValueError(f"action of swimmer {i} contains NaN or inf: {a}")
-        r, term = env.advance(a)
+        r, term = env.advance(applied_action(action[: env.num_joints]).astype(np.float64))
         self.episode_steps[i] += 1
         self.episode_returns[i] += r
         trunc = not term and self.episode_steps[i] >= self.max_episode_steps
