@@ -56,7 +56,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict, deque
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
@@ -302,7 +302,7 @@ class TransitionAssembler:
         self._latest_state: int | None = None  # stamp, for untagged efforts
         self._judged: OrderedDict[int, None] = OrderedDict()
         self._unwrap = YawUnwrapper()
-        self._held: Transition | None = None
+        self._held: dict | None = None  # the latest transition's fields but ``truncated``: known at the next judgement
         self._ready: list[Transition] = []
 
     # -- input ------------------------------------------------------------------
@@ -435,10 +435,10 @@ class TransitionAssembler:
                     self._ready.append(self._release(truncated=True))
             else:
                 if self._held is not None:  # the run goes on
-                    step = replace(step, episode=self._held.episode)
+                    step["episode"] = self._held["episode"]
                     self._ready.append(self._release(truncated=False))
                 else:
-                    step = replace(step, episode=self._new_episode())
+                    step["episode"] = self._new_episode()
                 self._held = step
             self._retire(self._sequence.popleft())
         if final:
@@ -462,7 +462,7 @@ class TransitionAssembler:
         return self._next_episode - 1
 
     def _release(self, truncated: bool) -> Transition:
-        t, self._held = replace(self._held, truncated=truncated), None
+        t, self._held = Transition(**self._held, truncated=truncated), None
         self.stats.transitions += 1
         self.stats.without_policy_info += not t.has_policy_info
         return t
@@ -481,8 +481,9 @@ class TransitionAssembler:
         self.skips.orphan_odometry += slot.odom is not None
         self.skips.orphan_announcement += slot.announced or slot.announced_later
 
-    def _judge(self, a: _Slot, b: _Slot) -> Transition | None:
-        """The transition a -> b, or None (a boundary, or a skip counted under its reason)."""
+    def _judge(self, a: _Slot, b: _Slot) -> dict | None:
+        """The fields of the transition a -> b but its ``episode`` and ``truncated`` (set as the run goes on),
+        or None (a boundary, or a skip counted under its reason)."""
         obs = self._observe(a)  # first, whatever follows: the unwrapper sees every state in order
         boundary = self._boundary(a, b)
         if boundary is not None:
@@ -507,8 +508,7 @@ class TransitionAssembler:
             obs.x, obs_next.x, cfg.control_period, applied_action(action), cfg.forward_reward_weight,
             cfg.ctrl_cost_weight,
         )  # fmt: skip
-        return Transition(
-            episode=-1,
+        return dict(
             stamp_ns=a.stamp,
             names=a.state.names,
             joint_pos=obs.pos,
@@ -519,7 +519,6 @@ class TransitionAssembler:
             has_policy_info=has_info,
             reward=float(reward),
             terminated=False,
-            truncated=False,
             next_joint_pos=obs_next.pos,
             next_joint_vel=obs_next.vel,
             next_global=obs_next.glob,
@@ -600,10 +599,9 @@ class TransitionAssembler:
         else:
             return "no_applied_effort"
 
-        def fits(action: np.ndarray) -> bool:
-            return any(
-                np.allclose(np.clip(action, -1.0, 1.0), x, rtol=0.0, atol=self.config.applied_atol) for x in applied
-            )
+        def fits(action: np.ndarray) -> bool:  # np.allclose(rtol=0) for finite arrays of one shape, faster
+            clipped = np.clip(action, -1.0, 1.0)
+            return any((np.abs(clipped - x) <= self.config.applied_atol).all() for x in applied)
 
         if infos:
             fitting = [i for i in infos if fits(i.action)]
@@ -641,7 +639,14 @@ def assemble(records: Iterable[Record], config: TransitionConfig | None = None) 
 
 
 def _finite(*values) -> bool:
-    return all(np.isfinite(np.asarray(v, dtype=np.float64)).all() for v in values)
+    """Every value finite: numbers, arrays or sequences of numbers (numbers without NumPy: this runs per message)."""
+    for v in values:
+        if isinstance(v, float | int):
+            if not math.isfinite(v):
+                return False
+        elif not np.isfinite(np.asarray(v, dtype=np.float64)).all():
+            return False
+    return True
 
 
 def _same_state(a: JointStateRecord, b: JointStateRecord) -> bool:
