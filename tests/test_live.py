@@ -26,7 +26,7 @@ from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.episode_start import unpack_episode_start
 from morph_core.protocol.transitions import TransitionAssembler
-from trainer.live import ANNOUNCEMENTS, CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC
+from trainer.live import ANNOUNCEMENTS, CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC, chunk_message
 from trainer.live_learner import LIVE_LEARNING_RATE
 
 STARTUP = 120.0
@@ -59,6 +59,23 @@ class Proc:
                 self.proc.wait()
         self._log.close()
         return self.proc.returncode
+
+
+def same_record(a, b) -> bool:
+    """Two records of one type with equal fields, arrays bit for bit."""
+    import dataclasses
+
+    import numpy as np
+
+    if type(a) is not type(b):
+        return False
+    pairs = [(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)]
+    return all(np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y for x, y in pairs)
+
+
+def reads(listen: str) -> list[str]:
+    """The trainer's option for where it reads the pairs' messages: their topics or their policy nodes' chunks."""
+    return ["--stream-chunks", "true" if listen == "stream_chunks" else "false"]
 
 
 def Trainer(namespaces: list[str], out: Path, log_path: Path, *extra: str, prefix: list[str] = ()) -> Proc:  # noqa: N802
@@ -154,8 +171,7 @@ def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path
     pair_host, trainer_host = two_hosts
     p0 = f"{namespace}/p0"
     out = tmp_path / "run"
-    extra = ["--stream-chunks"] if listen == "stream_chunks" else []
-    procs = [Trainer([p0], out, tmp_path / "trainer.log", "--max-updates", "2", *extra, prefix=trainer_host)]
+    procs = [Trainer([p0], out, tmp_path / "trainer.log", "--max-updates", "2", *reads(listen), prefix=trainer_host)]
     pair = start_pair(p0, 0, untrained_checkpoint, tmp_path, prefix=pair_host)
     procs += pair.values()
     try:
@@ -196,7 +212,10 @@ def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path
     entries = [e for _, es in unpacked for e in es]
     assert {e.topic for e in entries} >= set(DATA_TOPICS)
     decoders = {**DATA_TOPICS, "episode_start": ANNOUNCEMENTS}
-    records = [decoders[e.topic][1](deserialize_message(e.data, decoders[e.topic][0]), e.log_ns) for e in entries]
+    # Decoded as the trainer decodes chunks, and as rclpy decodes the topics: the same records.
+    records = [decoders[e.topic][1](chunk_message(e), e.log_ns) for e in entries]
+    by_rclpy = [decoders[e.topic][1](deserialize_message(e.data, decoders[e.topic][0]), e.log_ns) for e in entries]
+    assert all(same_record(a, b) for a, b in zip(records, by_rclpy, strict=True))
     assembler = TransitionAssembler()
     transitions = assembler.push_many(records) + assembler.flush()
     assert len(transitions) >= 50 and all(t.has_policy_info for t in transitions)
@@ -214,13 +233,16 @@ def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path
 
 
 @pytest.mark.timeout(600)
-def test_live_training_survives_a_killed_sim_and_a_killed_trainer(probe, namespace, tmp_path, untrained_checkpoint):
+@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
+def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
+    probe, namespace, tmp_path, untrained_checkpoint, listen
+):
     p0, p1 = f"{namespace}/p0", f"{namespace}/p1"
     out = tmp_path / "run"
     weights = WeightsWatch(probe, p0)
     starts = []
     probe.node.create_subscription(Int64MultiArray, f"{p0}/episode_start", starts.append, EPISODE_QOS)
-    trainer = Trainer([p0, p1], out, tmp_path / "trainer.log")
+    trainer = Trainer([p0, p1], out, tmp_path / "trainer.log", *reads(listen))
     pairs = [start_pair(p0, 0, untrained_checkpoint, tmp_path), start_pair(p1, 1, untrained_checkpoint, tmp_path)]
     procs = [trainer, *pairs[0].values(), *pairs[1].values()]
     try:
@@ -261,7 +283,7 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(probe, namespa
         probe.spin_for(1.0)  # what the killed trainer sent is in
         assert all(p.alive() for pair in pairs for p in pair.values() if p is not pairs[1]["sim"])
         n = len(weights.got)
-        trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", "--resume")
+        trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", "--resume", *reads(listen))
         procs.append(trainer)
         probe.spin_until(lambda: len(weights.got) > n, STARTUP, "the resumed trainer's weights")
         # It resumes at the saved version, of the same run. (The probe may first hear a later one: on a
