@@ -8,12 +8,14 @@ network namespace (``scripts/test.sh``).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int64MultiArray, UInt8MultiArray
@@ -63,10 +65,6 @@ class Proc:
 
 def same_record(a, b) -> bool:
     """Two records of one type with equal fields, arrays bit for bit."""
-    import dataclasses
-
-    import numpy as np
-
     if type(a) is not type(b):
         return False
     pairs = [(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a)]
@@ -308,8 +306,6 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
 # -- the policy node's side: weights adopted, late joiners, bad weights ---------------------------------------------
 def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int = 0, damage: str = ""):
     """A weights message for a fresh policy whose log-std is ``log_std`` (visible in every policy_info)."""
-    import dataclasses
-
     import torch
     from safetensors.torch import save as torch_save
     from std_msgs.msg import MultiArrayDimension

@@ -55,14 +55,11 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import parse_answer_tag, to_ns
+from trainer.bag_messages import TOPIC_TYPES
 
 EPISODE_TOPIC = "episode_start"
-EXPECTED_TYPES = {
-    "joint_states": "sensor_msgs/msg/JointState",
-    "odom": "nav_msgs/msg/Odometry",
-    "effort_commands": "std_msgs/msg/Float64MultiArray",
-    "policy_info": "trajectory_msgs/msg/JointTrajectory",
-}
+EXPECTED_TYPES = {name: msgtype for name, msgtype in TOPIC_TYPES.items() if name != EPISODE_TOPIC}
+"""the data topics' types, as the nodes publish them (an announcement may be of any stamped type)"""
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
