@@ -233,7 +233,8 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
     burst_has_big = [False]
     good_stamps: list[int] = []
     used: set[tuple[int, int]] = set()
-    weights_sent: list[tuple[int, int]] = []  # (good version, stamp of the first state after it)
+    # (good version, index of the first good state after it, whether it rode behind a fragmented message)
+    weights_sent: list[tuple[int, int, bool]] = []
     next_sec = [10]
 
     def fresh_stamp() -> tuple[int, int]:
@@ -295,9 +296,10 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
                     break  # one weights message a round: that reader keeps only the newest
             if rng.random() < 0.02:  # now and then a good policy, which must be adopted
                 at_risk["policy_weights"] += topic == "policy_weights"  # a malformed one just before it
+                at_risk["policy_weights"] += burst_has_big[0]  # itself, behind a fragmented message
                 version += 1
                 send("policy_weights", _weights(version, untrained_checkpoint))
-                weights_sent.append((version, len(good_stamps)))
+                weights_sent.append((version, len(good_stamps), burst_has_big[0]))
             good_round()
             burst_has_big[0] = False
 
@@ -311,17 +313,25 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
     # Every good state answered once, and nothing else answered.
     assert all(answers.get(s) == 1 for s in good_stamps), "a good state unanswered or answered twice"
     assert set(answers) == set(good_stamps), "a malformed state was answered"
-    # Every good policy adopted, within the next two answers; no malformed one ever ran.
+    # Every good policy adopted, within the next two answers (or a later one instead), but one that rode in a
+    # burst behind a fragmented message, which a best-effort reader may lose; no malformed one ever ran.
     versions = [v for _, v in infos]
-    for v, k in weights_sent:
-        after = {ver for stamp, ver in infos if stamp in set(good_stamps[k : k + 2])}
-        assert v in after or any(w > v for w in after), f"weights version {v} was not adopted"
+    missed = []
+    for v, k, risky in weights_sent:
+        after = {ver for stamp, ver in infos if stamp in set(good_stamps[k : k + 2]) and ver is not None}
+        if not (v in after or any(w > v for w in after)):
+            assert risky, f"weights version {v} was not adopted"
+            missed.append(v)
+    assert len(missed) < len(weights_sent), "no good policy was adopted"
     assert all(v is None or v < 10**6 for v in versions), "malformed weights were adopted"
     # Exact counts on /diagnostics.
     counts = _wait_counts(probe, diag, dict(sent), at_risk)
     lost = {topic: sent[topic] - counts[topic].received for topic in sent}
-    for topic in sent:  # every good message arrived (each was answered), so what was lost was malformed
-        assert counts[topic].rejected_total == bad[topic] - lost[topic], (topic, counts[topic], bad[topic])
+    # Every good state and odometry arrived (each was answered), and every good policy but those missed (a good
+    # one that arrives is adopted): what else was lost was malformed.
+    lost_bad = {**lost, "policy_weights": lost["policy_weights"] - len(missed)}
+    for topic in sent:
+        assert counts[topic].rejected_total == bad[topic] - lost_bad[topic], (topic, counts[topic], bad[topic])
     assert "stamp" in counts["joint_states"].rejected and "joint_state" in counts["joint_states"].rejected
     # Warnings throttled: rclpy throttles per call site (5 s; weights 1 s).
     log = proc.log()
@@ -331,7 +341,8 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
     growth = rss_after - rss_before
     print(
         f"\npolicy node: {sum(bad.values())} malformed + {len(good_stamps)} good states in {elapsed:.1f} s, "
-        f"{len(weights_sent)} good policies adopted; lost in transport {lost} of {dict(at_risk)} at risk "
+        f"{len(weights_sent) - len(missed)} of {len(weights_sent)} good policies adopted; "
+        f"lost in transport {lost} of {dict(at_risk)} at risk "
         f"({dict(big)} sent large); "
         f"RSS {rss_before} -> {rss_after} kB ({growth:+d}); "
         f"{warned} warning lines; malformed by kind: {dict(sorted(kinds.items()))}"
