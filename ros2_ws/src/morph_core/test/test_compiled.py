@@ -1,5 +1,6 @@
-"""The compiled minibatch loss (forward and backward by Inductor) equals eager PyTorch."""
+"""The minibatch gradient training takes (forward and backward one compiled graph) equals autograd's."""
 
+import copy
 import functools
 
 import numpy as np
@@ -7,8 +8,10 @@ import pytest
 import torch
 
 from morph_core.algo.compiled import compiled
+from morph_core.algo.param_buffer import FlatParameters
 from morph_core.algo.ppo import ppo_loss
 from morph_core.algo.trust_region import get_rule
+from morph_core.algo.update import minibatch_gradient
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
@@ -25,59 +28,87 @@ def _minibatch(rng, size, max_joints, weighted):
     return batch, *tensors, clip_range, weight
 
 
+class _Paths:
+    """A policy's loss under ``rule`` differentiated three ways: plain autograd on the module's own
+    parameters (a copy of it), and the training path's function of the flat parameters, eager and
+    compiled (each made once, so every minibatch goes through the same compiled graph)."""
+
+    def __init__(self, rule):
+        self.plain_policy = GraphActorCritic()
+        self.loss = functools.partial(ppo_loss, rule=get_rule(rule))
+        policy = copy.deepcopy(self.plain_policy)
+        self.flat = FlatParameters(policy)
+        self.fns = {c: minibatch_gradient(policy, self.flat, get_rule(rule), c) for c in (False, True)}
+
+    def __call__(self, args, kwargs):
+        """(loss terms, gradient) by plain autograd; {compile: (gradient, (loss, statistics))}."""
+        self.plain_policy.zero_grad()
+        out = self.loss(self.plain_policy, *args, **kwargs)
+        out[0].backward()
+        plain = (out, torch.cat([p.grad.flatten() for p in self.plain_policy.parameters()]))
+        share = torch.tensor(1.0)
+        return plain, {c: fn(self.flat.theta.detach(), share, *args, **kwargs) for c, fn in self.fns.items()}
+
+
+def _assert_same(plain, flat_results):
+    (loss, pg_loss, v_loss, entropy, log_ratio, clip_share), grad = plain
+    for flat_grad, (flat_loss, stats) in flat_results.values():
+        torch.testing.assert_close(flat_grad, grad, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(flat_loss, loss.detach(), atol=1e-5, rtol=1e-4)
+        for name, value in (("pg_loss", pg_loss), ("v_loss", v_loss), ("entropy", entropy), ("log_ratio", log_ratio)):
+            torch.testing.assert_close(stats[name], value.detach(), atol=1e-5, rtol=1e-4)
+        assert ("clip_share" in stats) == (clip_share is not None)
+        if clip_share is not None:
+            torch.testing.assert_close(stats["clip_share"], clip_share.detach(), atol=1e-5, rtol=1e-4)
+    assert grad.abs().max() > 0
+
+
 @pytest.mark.parametrize("weighted", [False, True])
-def test_compiled_loss_and_gradients_equal_eager(weighted):
-    # Two minibatches with different chain mixes (and sizes): one compiled graph serves both.
-    # Weighted: the off-policy loss, each sample's policy term weighted (algo.update).
+def test_compiled_gradient_of_the_flat_parameters_equals_autograd_on_the_module(weighted):
+    # The training path differentiates the loss as a function of all parameters in one vector, compiled
+    # (forward and backward one graph, by torch.func) or eagerly (by autograd): both equal plain autograd
+    # on the module's own parameters, for two minibatches with different chain mixes (and sizes) through
+    # one compiled graph. Weighted: the off-policy loss, each sample's policy term weighted (algo.update).
     torch.manual_seed(0)
-    policy = GraphActorCritic()
+    paths = _Paths("compensated")
     rng = np.random.default_rng(0)
-    eager_fn = functools.partial(ppo_loss, rule=get_rule("compensated"))
-    fast = compiled(eager_fn)
     for size, max_joints in ((64, 10), (48, 7)):
-        args = _minibatch(rng, size, max_joints, weighted)
-        results = []
-        for fn in (eager_fn, fast):
-            policy.zero_grad()
-            out = fn(policy, *args, 0.5, 0.01)
-            out[0].backward()
-            results.append((out, [p.grad.clone() for p in policy.parameters()]))
-        (eager, eager_grads), (comp, comp_grads) = results
-        for a, b in zip(eager, comp, strict=True):
-            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-        for a, b in zip(eager_grads, comp_grads, strict=True):
-            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-    assert not fast.fell_back  # it really ran compiled
+        _assert_same(*paths((*_minibatch(rng, size, max_joints, weighted), 0.5, 0.01), {}))
+    assert not paths.fns[True].fell_back  # it really ran compiled
 
 
 @pytest.mark.parametrize("rule", ["per-joint-clip", "kl-penalty-per-joint"])
-def test_compiled_loss_of_the_per_joint_rules_equals_eager(rule):
+def test_compiled_gradient_of_the_per_joint_rules_equals_autograd(rule):
     # These rules take the proximal policy's means and log-std (and beta), and per-joint-clip returns its
     # clip share from inside the loss: all of it through the compiled graph, for two chain mixes. (It
     # stays before the test without a compiler: run after that one in the same process, it fell back.)
     torch.manual_seed(0)
-    policy = GraphActorCritic()
+    paths = _Paths(rule)
     rng = np.random.default_rng(1)
-    eager_fn = functools.partial(ppo_loss, rule=get_rule(rule))
-    fast = compiled(eager_fn)
     for size, max_joints in ((64, 10), (48, 7)):
         batch, *rest = _minibatch(rng, size, max_joints, weighted=False)
         with torch.no_grad():
-            old_mean = policy(batch)[0] + torch.as_tensor(rng.normal(0, 0.05, batch.mask.shape), dtype=torch.float32)
+            noise = torch.as_tensor(rng.normal(0, 0.05, batch.mask.shape), dtype=torch.float32)
+            old_mean = paths.plain_policy(batch)[0] + noise
         extra = {"old_mean": old_mean * batch.mask, "old_log_std": torch.tensor(-0.6), "kl_beta": torch.tensor(0.7)}
-        results = []
-        for fn in (eager_fn, fast):
-            policy.zero_grad()
-            out = fn(policy, batch, *rest, 0.5, 0.01, **extra)
-            out[0].backward()
-            results.append((out, [p.grad.clone() for p in policy.parameters()]))
-        (eager, eager_grads), (comp, comp_grads) = results
-        assert (eager[5] is None) == (rule != "per-joint-clip")
-        for a, b in zip(eager, comp, strict=True):
-            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-        for a, b in zip(eager_grads, comp_grads, strict=True):
-            torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-    assert not fast.fell_back
+        plain, flat_results = paths((batch, *rest, 0.5, 0.01), extra)
+        assert (plain[0][5] is None) == (rule != "per-joint-clip")
+        _assert_same(plain, flat_results)
+    assert not paths.fns[True].fell_back
+
+
+def test_a_share_scales_the_gradient_and_the_losses():
+    # A process's part of a split minibatch (algo.data_parallel) scales its loss by its share.
+    torch.manual_seed(0)
+    policy = GraphActorCritic()
+    flat = FlatParameters(policy)
+    args = (*_minibatch(np.random.default_rng(2), 32, 6, weighted=False), 0.5, 0.01)
+    fn = minibatch_gradient(policy, flat, get_rule("compensated"), compile=False)
+    (g1, (l1, s1)), (g4, (l4, s4)) = (fn(flat.theta.detach(), torch.tensor(s), *args) for s in (1.0, 0.25))
+    torch.testing.assert_close(g4, 0.25 * g1)
+    torch.testing.assert_close(l4, 0.25 * l1)
+    torch.testing.assert_close(s4["pg_loss"], 0.25 * s1["pg_loss"])
+    torch.testing.assert_close(s4["log_ratio"], s1["log_ratio"])  # per sample: not scaled
 
 
 def test_without_a_cxx_compiler_training_falls_back_to_eager():
@@ -86,8 +117,14 @@ def test_without_a_cxx_compiler_training_falls_back_to_eager():
     def scaled_softplus(x):
         return torch.nn.functional.softplus(3.0 * x) / 3.0
 
+    eager_calls = []
+
+    def eager_softplus(x):  # the eager form given for the fallback: what runs when compiling fails
+        eager_calls.append(x)
+        return torch.log1p(torch.exp(3.0 * x)) / 3.0
+
     x = torch.linspace(-2, 2, 9)
-    fn = compiled(scaled_softplus)
+    fn = compiled(scaled_softplus, eager=eager_softplus)
     # Inductor's own patch, not monkeypatch: undoing a monkeypatch deleted fx_graph_cache from the config,
     # and every later compile in the process then failed and fell back to eager mode unnoticed.
     no_compiler = {"cpp.cxx": ("/nonexistent/c++",), "fx_graph_cache": False}  # a cached kernel needs no compiler
@@ -96,3 +133,4 @@ def test_without_a_cxx_compiler_training_falls_back_to_eager():
     assert fn.fell_back
     torch.testing.assert_close(y, scaled_softplus(x))
     torch.testing.assert_close(fn(x + 1), scaled_softplus(x + 1))  # later calls stay eager
+    assert len(eager_calls) == 2

@@ -14,10 +14,12 @@ import warnings
 from collections.abc import Callable
 
 
-def compiled(fn: Callable, enabled: bool = True) -> Callable:
-    """``fn`` compiled with dynamic shapes (chain mixes vary per minibatch), or ``fn`` itself."""
+def compiled(fn: Callable, enabled: bool = True, eager: Callable | None = None) -> Callable:
+    """``fn`` compiled with dynamic shapes (chain mixes vary per minibatch); when not ``enabled`` or when
+    compiling fails, ``eager`` (the same computation in a form that runs faster uncompiled) or ``fn``."""
+    eager = fn if eager is None else eager
     if not enabled:
-        return fn
+        return eager
     import torch
 
     fast = torch.compile(fn, dynamic=True)
@@ -32,9 +34,9 @@ def compiled(fn: Callable, enabled: bool = True) -> Callable:
             return fast(*args, **kwargs)
         except Exception as err:  # e.g. no C++ compiler: Inductor fails on the first call only
             warnings.warn(f"torch.compile failed, training goes on in eager mode: {err}", stacklevel=2)
-            fast = fn
+            fast = eager
             call.fell_back = True
-            return fn(*args, **kwargs)
+            return eager(*args, **kwargs)
 
     call.fell_back = False
     return call

@@ -345,10 +345,9 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
             take_parameters()
             mb = torch.from_numpy(shared["mb"][:n])
             advantages = torch.from_numpy(shared["mb_advantages"][:n])
-            learner.params.zero_grad()
-            loss, part = minibatch_part(policy, terms, batch, spec.update, mb, advantages, spec.rank, spec.processes)
-            loss.backward()
-            grad.copy_(learner.params.grad)
+            part_grad, part = minibatch_part(learner, terms, batch, spec.update, mb, advantages, spec.rank,
+                                             spec.processes)  # fmt: skip
+            grad.copy_(part_grad)
             size = len(part.log_ratio)
             shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
             shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()

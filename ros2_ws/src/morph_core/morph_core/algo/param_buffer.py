@@ -3,8 +3,11 @@
 The optimizer and the gradient-norm clip then see one parameter vector
 theta, as PPO is written, and cost a few operations per step instead of a few
 per parameter tensor (30 of them here); for a network this small that
-per-tensor overhead was about a tenth of a minibatch step. Autograd adds
-into an existing ``.grad`` in place, so gradients land in the flat buffer.
+per-tensor overhead was about a tenth of a minibatch step. The update
+differentiates its loss as a function of theta itself (``views``,
+``algo.update.minibatch_gradient``) and copies that gradient into the flat
+buffer; autograd on the module (``backward()``) adds into an existing
+``.grad`` in place, so its gradients land in the flat buffer too.
 
 The trap: ``optimizer.zero_grad()`` and ``module.zero_grad()`` set gradients
 to None by default. Backward would then write into fresh tensors outside the
@@ -27,6 +30,7 @@ class FlatParameters:
     """``module``'s parameters moved into one flat Parameter ``theta``; they become views of it."""
 
     def __init__(self, module: nn.Module):
+        self.names = [name for name, _ in module.named_parameters()]
         self.params = list(module.parameters())
         self.theta = nn.Parameter(torch.cat([p.detach().flatten() for p in self.params]))
         self.grad = torch.zeros_like(self.theta)
@@ -38,6 +42,15 @@ class FlatParameters:
             p.grad = self.grad[offset : offset + n].view_as(p)
             offset += n
         self._grad_views = [p.grad for p in self.params]
+
+    def views(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Parameter name -> its view into ``theta`` (a flat vector laid out as ``self.theta``), for
+        ``torch.func.functional_call``: a function of the parameters as one vector has one gradient."""
+        views, offset = {}, 0
+        for name, p in zip(self.names, self.params, strict=True):
+            views[name] = theta[offset : offset + p.numel()].view(p.shape)
+            offset += p.numel()
+        return views
 
     def zero_grad(self) -> None:
         """Clear every gradient in place (the only safe way to clear them)."""
