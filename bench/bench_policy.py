@@ -2,14 +2,18 @@
 
     python bench/bench_policy.py
 
-One PPO-sized minibatch (256 swimmer states, chains of 2..10 joints): forward,
-backward and a fused-Adam step, one torch thread, with the same parameters,
-measured side by side: the dense layer in eager mode and under torch.compile
-(as training runs it), and PyG's NNConv. Then the heads' activation alone.
+One PPO-sized minibatch (256 swimmer states, chains of 2..10 joints), PPO's
+loss under the compensated clip: forward, backward and a fused-Adam step, one
+torch thread, with the same parameters, measured side by side: the dense layer
+in eager mode, with the loss compiled and autograd's backward, with loss and
+gradient one compiled graph of the flat parameters (as training runs it,
+``update.minibatch_gradient``), and PyG's NNConv. Then the heads' activation
+alone.
 """
 
 from __future__ import annotations
 
+import copy
 import time
 
 import gymnasium
@@ -17,6 +21,10 @@ import torch
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.algo.compiled import compiled
+from morph_core.algo.param_buffer import FlatParameters
+from morph_core.algo.ppo import ppo_loss
+from morph_core.algo.trust_region import get_rule
+from morph_core.algo.update import minibatch_gradient
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
 
@@ -39,25 +47,45 @@ def main() -> None:
     pyg = GraphActorCritic(PolicyConfig(), backend="pyg")
     pyg.load_state_dict(dense.state_dict())
 
-    def loss_of(net, batch, actions):
-        mean, _, value = net(batch)
-        return net.log_prob(batch, actions, mean).mean() + value.pow(2).mean()
+    rule = get_rule("compensated")
+    loss_args = (batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
+                 rule.clip_range(0.2, batch.num_joints.to(torch.float32)), None, 0.5, 0.0)  # fmt: skip
 
-    fast_loss = compiled(loss_of)
-    print("| backend | forward+backward+Adam, 256 states (ms) |\n|---|---:|")
-    for name, net, loss_fn in (
-        ("dense chain NNConv, eager", dense, loss_of),
-        ("dense chain NNConv, torch.compile", dense, fast_loss),
-        ("PyG NNConv, eager", pyg, loss_of),
-    ):
+    def loss_of(net):
+        return ppo_loss(net, *loss_args, rule=rule)[0]
+
+    def autograd_step(net, loss_fn):
         opt = torch.optim.Adam(net.parameters(), lr=1e-5, fused=True)
 
-        def step(net=net, opt=opt, loss_fn=loss_fn):
-            loss = loss_fn(net, batch, actions)
+        def step():
+            loss = loss_fn(net)
             opt.zero_grad()
             loss.backward()
             opt.step()
 
+        return step
+
+    def flat_step(net):
+        policy = copy.deepcopy(net)  # its parameters become views into the flat vector
+        flat = FlatParameters(policy)
+        opt = torch.optim.Adam([flat.theta], lr=1e-5, fused=True)
+        gradient = minibatch_gradient(policy, flat, rule, compile=True)
+        share = torch.tensor(1.0)
+
+        def step():
+            grad, _ = gradient(flat.theta.detach(), share, *loss_args)
+            flat.grad.copy_(grad)
+            opt.step()
+
+        return step
+
+    print("| backend | forward+backward+Adam, 256 states (ms) |\n|---|---:|")
+    for name, step in (
+        ("dense chain NNConv, eager", autograd_step(dense, loss_of)),
+        ("dense chain NNConv, loss compiled, autograd's backward", autograd_step(dense, compiled(loss_of))),
+        ("dense chain NNConv, loss and gradient one compiled graph (training)", flat_step(dense)),
+        ("PyG NNConv, eager", autograd_step(pyg, loss_of)),
+    ):
         print(f"| {name} | {per_call_ms(step, 100):.2f} |")
     x = torch.randn(1536, 64)  # ~the actor head's hidden layer on a minibatch's joints
     t_tanh = per_call_ms(lambda: torch.tanh(x), 1000) * 1e3

@@ -46,8 +46,9 @@ def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequentia
 class TanhMLP(nn.Sequential):
     """Linear, Tanh, ..., Linear (the reference's heads), evaluated through tanh(u) = 2 sigmoid(2u) - 1.
 
-    Same function and gradients (to float rounding), but torch's CPU tanh kernel is ~5x slower than
-    sigmoid here (bench/bench_policy.py) and dominated the update. The factors 2 and the -1 are moved
+    Same function and gradients (to float rounding). Torch's eager CPU tanh kernel was ~5x slower than
+    sigmoid when this was written and dominated the update; in today's compiled update step the sigmoid
+    form is still ~12% faster than plain tanh (docs/benchmarks.md). The factors 2 and the -1 are moved
     into the small weight matrices, W (2s - 1) + b = (2W) s + (b - W 1), so the large activation
     tensors see one sigmoid per layer and nothing else.
     """
