@@ -1,9 +1,10 @@
 """torch.compile for the update step, falling back to eager mode where it cannot run.
 
 The network is small enough that eager PyTorch spends most of a minibatch
-step on per-operation overhead; compiled (forward and backward fused by
-Inductor) the step is ~1.5x faster (bench/bench_train.py). Compiling costs
-~20 s once per process (less with Inductor's on-disk cache) and needs a C++
+step on per-operation overhead; compiled (forward and backward one graph,
+fused by Inductor) the step is ~1.9x faster (bench/bench_policy.py). Compiling
+costs ~30 s once per process (28 s measured with an empty cache, 2026-12-03;
+less with Inductor's on-disk cache) and needs a C++
 compiler: without one, the first call fails, and training goes on eagerly
 after a warning.
 """
