@@ -55,9 +55,8 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import parse_answer_tag, to_ns
-from trainer.bag_messages import TOPIC_TYPES
+from trainer.bag_messages import EPISODE_TOPIC, TOPIC_TYPES
 
-EPISODE_TOPIC = "episode_start"
 EXPECTED_TYPES = {name: msgtype for name, msgtype in TOPIC_TYPES.items() if name != EPISODE_TOPIC}
 """the data topics' types, as the nodes publish them (an announcement may be of any stamped type)"""
 _MCAP_MAGIC = b"\x89MCAP0\r\n"

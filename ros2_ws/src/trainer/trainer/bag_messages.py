@@ -31,6 +31,8 @@ TOPIC_TYPES = {
     "policy_info": "trajectory_msgs/msg/JointTrajectory",
 }
 """relative topic name -> message type, as the two nodes publish them"""
+EPISODE_TOPIC = "episode_start"
+"""the topic announcing episodes (its messages are not data: they say where episodes start)"""
 
 
 def stamp(ns: int):

@@ -47,21 +47,17 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
+from trainer.bag_messages import EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
 # The announcement first: subscribed to before joint_states in the same discovery pass, so a lockstep
 # sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
-DEFAULT_TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_info", "/clock"]
-EPISODE_TOPIC = "episode_start"
+CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
+DEFAULT_TOPICS = [EPISODE_TOPIC, *(t for t in TOPIC_TYPES if t != EPISODE_TOPIC), CLOCK[0]]
 # The project's own conventions. Not the announcement: it is latched (transient local), and only a
 # subscription made after its publisher is seen can ask for transient local and get the current one.
-KNOWN_TYPES = [
-    "joint_states=sensor_msgs/msg/JointState",
-    "odom=nav_msgs/msg/Odometry",
-    "effort_commands=std_msgs/msg/Float64MultiArray",
-    "policy_info=trajectory_msgs/msg/JointTrajectory",
-    "/clock=rosgraph_msgs/msg/Clock",
-]
+KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in TOPIC_TYPES.items() if topic != EPISODE_TOPIC]
+KNOWN_TYPES.append("=".join(CLOCK))
 _LOG_THROTTLE = 5.0
 
 
