@@ -164,7 +164,7 @@ class UpdateConfig:
 @dataclass
 class Learner:
     """The policy being trained, its flat parameter buffer and optimizer, the trust-region rule's state
-    (e.g. the KL penalty's beta) and the (compiled) losses."""
+    (e.g. the KL penalty's beta) and the (compiled) minibatch gradients."""
 
     policy: GraphActorCritic
     params: FlatParameters
