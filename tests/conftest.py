@@ -52,11 +52,14 @@ class RosProbe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def spin_until(self, condition: Callable[[], bool], timeout: float, what: str) -> None:
+    def spin_until(self, condition: Callable[[], bool], timeout: float, what: str | Callable[[], str]) -> None:
+        """Spin until ``condition()``; after ``timeout`` s an AssertionError saying ``what`` was awaited
+        (a callable is called then, so it can show state as of the failure, e.g. a node's log)."""
         deadline = time.monotonic() + timeout
         while not condition():
             if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+                said = what() if callable(what) else what
+                raise AssertionError(f"timed out after {timeout} s waiting for {said}")
             self.executor.spin_once(timeout_sec=0.02)
 
     def spin_for(self, seconds: float) -> None:

@@ -243,9 +243,13 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
     trainer = Trainer([p0, p1], out, tmp_path / "trainer.log", *reads(listen))
     pairs = [start_pair(p0, 0, untrained_checkpoint, tmp_path), start_pair(p1, 1, untrained_checkpoint, tmp_path)]
     procs = [trainer, *pairs[0].values(), *pairs[1].values()]
+
+    def waiting(what: str):  # a timeout says what was awaited and shows the (current) trainer's log then
+        return lambda: f"{what}; trainer log:\n{trainer.log()[-6000:]}"
+
     try:
-        probe.spin_until(lambda: weights.version >= 0, STARTUP, "the initial weights (version 0)")
-        probe.spin_until(lambda: weights.version >= 2, STARTUP, f"2 updates; trainer log:\n{trainer.log()}")
+        probe.spin_until(lambda: weights.version >= 0, STARTUP, waiting("the initial weights (version 0)"))
+        probe.spin_until(lambda: weights.version >= 2, STARTUP, waiting("2 updates"))
         run_id = weights.got[0][1]
         # Versions arrive in order (each again every --weights-period s); a probe that matches late (a loaded
         # machine) first gets the latched latest one, and keep-last-1 may skip a version it was too slow to take.
@@ -256,22 +260,24 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
         assert [int(r["version"]) for r in rows] == list(range(1, len(rows) + 1))
         assert all(int(r["batch_size"]) >= 128 and int(r["pairs"]) in (1, 2) for r in rows), rows
         # A pair that joins after an update began (a loaded machine) counts from the next one.
-        probe.spin_until(lambda: int(progress(out)[-1]["pairs"]) == 2, STARTUP, "an update with both pairs")
+        probe.spin_until(lambda: int(progress(out)[-1]["pairs"]) == 2, STARTUP, waiting("an update with both pairs"))
 
         # The sim of p1 dies mid-episode: its partial episode is dropped, training goes on with p0.
         # (Counted from now: a pair may also go silent and rejoin while the sims start up.)
         silent, running = trainer.log().count(f"pair {p1} silent"), trainer.log().count(f"pair {p1} is running")
         pairs[1]["sim"].proc.kill()
-        probe.spin_until(lambda: trainer.log().count(f"pair {p1} silent") > silent, 30, "the trainer noticing p1 gone")
+        noticed = waiting("the trainer noticing p1 gone")
+        probe.spin_until(lambda: trainer.log().count(f"pair {p1} silent") > silent, 30, noticed)
         n = len(progress(out))
-        probe.spin_until(lambda: len(progress(out)) >= n + 2, STARTUP, "2 updates on p0 alone")
-        assert int(progress(out)[-1]["pairs"]) == 1
+        probe.spin_until(lambda: len(progress(out)) >= n + 2, STARTUP, waiting("2 updates on p0 alone"))
+        assert int(progress(out)[-1]["pairs"]) == 1, waiting("the last update on p0 alone")()
         # It comes back: taken back (episode length set, reset), training on both again.
         pairs[1]["sim"].stop()
         back = start_pair(p1, 1, untrained_checkpoint, tmp_path, which=("sim",))
         procs.append(back["sim"])
-        probe.spin_until(lambda: trainer.log().count(f"pair {p1} is running") > running, STARTUP, "p1 taken back")
-        probe.spin_until(lambda: int(progress(out)[-1]["pairs"]) == 2, STARTUP, "an update with both pairs")
+        taken_back = waiting("p1 taken back")
+        probe.spin_until(lambda: trainer.log().count(f"pair {p1} is running") > running, STARTUP, taken_back)
+        probe.spin_until(lambda: int(progress(out)[-1]["pairs"]) == 2, STARTUP, waiting("an update with both pairs"))
 
         # The trainer dies; the nodes keep running; --resume continues from its last state and re-publishes it.
         trainer.stop(signal.SIGKILL)
@@ -283,14 +289,14 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
         n = len(weights.got)
         trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", "--resume", *reads(listen))
         procs.append(trainer)
-        probe.spin_until(lambda: len(weights.got) > n, STARTUP, "the resumed trainer's weights")
+        probe.spin_until(lambda: len(weights.got) > n, STARTUP, waiting("the resumed trainer's weights"))
         # It resumes at the saved version, of the same run. (The probe may first hear a later one: on a
         # loaded machine it matches the new publisher after a few fast updates, and keep-last-1 latches
         # only the latest.)
-        probe.spin_until(lambda: "resumed at version" in trainer.log(), STARTUP, "the resume line")
+        probe.spin_until(lambda: "resumed at version" in trainer.log(), STARTUP, waiting("the resume line"))
         assert f"resumed at version {saved} " in trainer.log(), trainer.log()
         assert weights.got[n][1] == run_id and weights.got[n][0] >= saved
-        probe.spin_until(lambda: weights.version >= saved + 2, STARTUP, f"2 updates after resume:\n{trainer.log()}")
+        probe.spin_until(lambda: weights.version >= saved + 2, STARTUP, waiting("2 updates after resume"))
         after = [int(r["global_step"]) for r in progress(out)]
         assert after[: len(steps)] == steps and after == sorted(set(after)) and len(after) >= len(steps) + 2
     finally:
