@@ -318,7 +318,8 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
     versions = [v for _, v in infos]
     missed = []
     for v, k, risky in weights_sent:
-        after = {ver for stamp, ver in infos if stamp in set(good_stamps[k : k + 2]) and ver is not None}
+        next_two = set(good_stamps[k : k + 2])
+        after = {ver for stamp, ver in infos if stamp in next_two and ver is not None}
         if not (v in after or any(w > v for w in after)):
             assert risky, f"weights version {v} was not adopted"
             missed.append(v)

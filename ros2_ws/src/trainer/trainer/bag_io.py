@@ -55,9 +55,9 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import parse_answer_tag, to_ns
-from trainer.bag_messages import EPISODE_TOPIC, TOPIC_TYPES
+from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC
 
-EXPECTED_TYPES = {name: msgtype for name, msgtype in TOPIC_TYPES.items() if name != EPISODE_TOPIC}
+EXPECTED_TYPES = DATA_TOPIC_TYPES
 """the data topics' types, as the nodes publish them (an announcement may be of any stamped type)"""
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"

@@ -33,6 +33,8 @@ TOPIC_TYPES = {
 """relative topic name -> message type, as the two nodes publish them"""
 EPISODE_TOPIC = "episode_start"
 """the topic announcing episodes (its messages are not data: they say where episodes start)"""
+DATA_TOPIC_TYPES = {name: msgtype for name, msgtype in TOPIC_TYPES.items() if name != EPISODE_TOPIC}
+"""the data topics' types (all but the announcement)"""
 
 
 def stamp(ns: int):

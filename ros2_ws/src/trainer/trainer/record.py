@@ -47,17 +47,16 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from trainer.bag_messages import EPISODE_TOPIC, TOPIC_TYPES
+from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
 # The announcement first: subscribed to before joint_states in the same discovery pass, so a lockstep
 # sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
-DEFAULT_TOPICS = [EPISODE_TOPIC, *(t for t in TOPIC_TYPES if t != EPISODE_TOPIC), CLOCK[0]]
+DEFAULT_TOPICS = [EPISODE_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
 # The project's own conventions. Not the announcement: it is latched (transient local), and only a
 # subscription made after its publisher is seen can ask for transient local and get the current one.
-KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in TOPIC_TYPES.items() if topic != EPISODE_TOPIC]
-KNOWN_TYPES.append("=".join(CLOCK))
+KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*DATA_TOPIC_TYPES.items(), CLOCK)]
 _LOG_THROTTLE = 5.0
 
 

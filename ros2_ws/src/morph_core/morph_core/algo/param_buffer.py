@@ -35,12 +35,9 @@ class FlatParameters:
         self.theta = nn.Parameter(torch.cat([p.detach().flatten() for p in self.params]))
         self.grad = torch.zeros_like(self.theta)
         self.theta.grad = self.grad
-        offset = 0
-        for p in self.params:
-            n = p.numel()
-            p.data = self.theta.data[offset : offset + n].view_as(p)
-            p.grad = self.grad[offset : offset + n].view_as(p)
-            offset += n
+        data, grads = self.views(self.theta.data).values(), self.views(self.grad).values()
+        for p, view, grad in zip(self.params, data, grads, strict=True):
+            p.data, p.grad = view, grad
         self._grad_views = [p.grad for p in self.params]
 
     def views(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -463,14 +463,12 @@ def update(
             mb = perm[start:stop]
             if peers is None:
                 grad, part = minibatch_part(learner, terms, batch, cfg, mb)
-                flat.grad.copy_(grad)
-                parts = [part]
             else:
                 advantages = normalized_advantages(batch.advantages[mb])
                 peers.start(mb, advantages)
                 grad, part = minibatch_part(learner, terms, batch, cfg, mb, advantages, 0, peers.world)
-                flat.grad.copy_(grad)
-                parts = [part, *peers.gather(flat.grad)]
+            flat.grad.copy_(grad)
+            parts = [part] if peers is None else [part, *peers.gather(flat.grad)]
             flat.clip_grad_norm_(cfg.max_grad_norm)
             optimizer.step()
             if peers is not None:
