@@ -31,7 +31,7 @@ def atomic_writer(path: str | Path, mode: str = "w", previous: str | Path | None
             f.flush()
             os.fsync(f.fileno())
         if previous is not None and path.exists():
-            os.replace(path, previous)
+            _keep_as(path, Path(previous))
         os.replace(tmp, path)
     except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
@@ -40,3 +40,18 @@ def atomic_writer(path: str | Path, mode: str = "w", previous: str | Path | None
             # write() and fsync() errors carry no file name; a run's error should say which file
             raise OSError(err.errno, err.strerror, str(path)) from err
         raise
+
+
+def _keep_as(path: Path, previous: Path) -> None:
+    """Put ``path``'s file at ``previous`` too, ``path`` staying in place until the new file is renamed over
+    it: a hard link renamed onto ``previous``. (Renaming ``path`` itself left a moment with no file under
+    its name: a writer killed then left only the older one.) Without hard links, the plain rename."""
+    link = previous.with_name(f".{previous.name}.link")
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(link)  # a leftover of a writer killed between the link and the rename
+    try:
+        os.link(path, link)
+    except OSError:  # a file system without hard links
+        os.replace(path, previous)
+        return
+    os.replace(link, previous)
