@@ -15,7 +15,7 @@ from morph_core.algo.ppo import compute_gae
 from morph_core.algo.rollout import collect
 from morph_core.algo.train import TrainConfig, helper_spec, train
 from morph_core.algo.trust_region import get_rule
-from morph_core.algo.update import Learner, update
+from morph_core.algo.update import Learner, part_sizes, update
 from morph_core.env.vec_env import SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -97,6 +97,15 @@ def test_the_process_count_is_checked():
         TrainConfig(num_envs=4, processes=5)
     with pytest.raises(ValueError, match="processes must be in 1..2"):  # the last minibatch holds 2 samples
         TrainConfig(num_envs=4, num_steps=33, minibatch_size=65, processes=3)
+
+
+@pytest.mark.parametrize("world", [2, 3, 4])
+def test_every_process_gets_a_part_of_every_minibatch_and_process_0_the_smallest(world):
+    for n in range(world, 600):  # TrainConfig allows as many processes as the smallest minibatch has samples
+        sizes = part_sizes(n, world)
+        assert sum(sizes) == n and min(sizes) >= 1, (n, sizes)
+        assert sizes[0] <= min(sizes[1:]), (n, sizes)
+    assert part_sizes(256, 2)[0] < 128  # the paper's minibatch: process 0 takes fewer than half
 
 
 def test_env_states_split_and_merge_back():

@@ -11,11 +11,14 @@ of every minibatch, and meet once per minibatch step:
   its own action-noise generator.
 - **Update.** Process 0 computes the advantages over the whole rollout, draws
   each epoch's permutation, normalises each minibatch's advantages over the
-  whole minibatch and tells the helpers which samples it holds. Each process
-  computes the gradient of its part of the minibatch, its loss scaled by the
-  part's share, so the parts' gradients add up to the whole minibatch's.
-  Process 0 adds them in rank order, clips, steps Adam and publishes the new
-  parameters, which every helper takes before its next part. The update
+  whole minibatch and hands the helpers the epoch's minibatches at once. Each
+  process computes the gradient of its part of the minibatch, its loss scaled
+  by the part's share, so the parts' gradients add up to the whole
+  minibatch's. Process 0 adds them in rank order, clips, steps Adam and
+  publishes the new parameters, which every helper takes before its next
+  part. Every process gathers its next part's samples while the others still
+  compute or step, and process 0's part is the smaller
+  (``update.PROCESS0_WEIGHT``), as it alone adds, clips and steps. The update
   equals the one-process update to float rounding (``test_data_parallel``).
 - Process 0 alone keeps the optimizer, logs and checkpoints; it asks the
   helpers for their swimmers' and generators' states when it saves.
@@ -43,7 +46,7 @@ import numpy as np
 import torch
 
 from morph_core.algo.rollout import Rollout, collect, rollout_layout
-from morph_core.algo.update import Learner, MinibatchPart, UpdateConfig, minibatch_part, update_terms
+from morph_core.algo.update import Learner, MinibatchPart, UpdateConfig, part_gradient, part_inputs, update_terms
 from morph_core.env.vec_env import SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -236,12 +239,16 @@ class Helpers:
         beta = None if kl_beta is None else kl_beta.clone()
         self._call_all(("begin", beta))
 
-    def start(self, mb: torch.Tensor, advantages: torch.Tensor) -> None:
-        n = len(mb)
-        self.shared["mb"][:n] = mb.numpy()
+    def epoch(self, perm: torch.Tensor, cuts: list[int], advantages: torch.Tensor) -> None:
+        n = len(perm)
+        self.shared["mb"][:n] = perm.numpy()
         self.shared["mb_advantages"][:n] = advantages.numpy()
         for rank in range(1, self.world):
-            self._send(rank, ("part", n))
+            self._send(rank, ("epoch", cuts))
+
+    def start(self, k: int) -> None:
+        for rank in range(1, self.world):
+            self._send(rank, ("part", k))
 
     def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
         parts = []
@@ -320,7 +327,15 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
     theta, grad = torch.from_numpy(shared["theta"]), torch.from_numpy(shared["grad"][slot])
     generator = torch.Generator().manual_seed(helper_seed(spec.seed, spec.rank))
     obs = envs.observations()
-    batch = terms = None
+    batch = terms = ahead = None
+    cuts: list[int] = []
+
+    def prepare(k: int):
+        """(k, the inputs of this helper's part of the epoch's minibatch k)."""
+        lo, hi = cuts[k], cuts[k + 1]
+        inputs = part_inputs(terms, batch, spec.update, perm[lo:hi], perm_advantages[lo:hi], spec.rank,
+                             spec.processes)  # fmt: skip
+        return k, inputs
 
     def take_parameters():
         learner.params.theta.data.copy_(theta)
@@ -340,13 +355,17 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
             batch = rollout.batch(advantages, returns)
             terms = update_terms(learner, batch, spec.update, args[0])
             conn.send(("begun",))
+        elif command == "epoch":
+            cuts = args[0]
+            perm = torch.from_numpy(shared["mb"][: cuts[-1]].copy())
+            perm_advantages = torch.from_numpy(shared["mb_advantages"][: cuts[-1]].copy())
+            ahead = prepare(0)
         elif command == "part":
-            n = args[0]
+            k = args[0]
+            if ahead is None or ahead[0] != k:
+                raise ValueError(f"asked for part {k} of an epoch whose next part is {ahead and ahead[0]}")
             take_parameters()
-            mb = torch.from_numpy(shared["mb"][:n])
-            advantages = torch.from_numpy(shared["mb_advantages"][:n])
-            part_grad, part = minibatch_part(learner, terms, batch, spec.update, mb, advantages, spec.rank,
-                                             spec.processes)  # fmt: skip
+            part_grad, part = part_gradient(learner, terms, ahead[1])
             grad.copy_(part_grad)
             size = len(part.log_ratio)
             shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
@@ -354,6 +373,7 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
             if part.clip_share is not None:
                 shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
             conn.send(("done", size, part.clip_share is not None))
+            ahead = prepare(k + 1) if k + 2 < len(cuts) else None  # gathered while process 0 steps Adam
         elif command == "get_state":
             meta, arrays = envs.get_state()
             conn.send(("state", meta, arrays, generator.get_state()))
