@@ -10,6 +10,7 @@ from functools import partial
 
 import numpy as np
 
+from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.vec_env import MAX_EPISODE_STEPS, EnvThreads
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -45,7 +46,7 @@ def evaluate_policy(
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
 
     def step(mean: np.ndarray, rows: dict[int, int], i: int) -> None:
-        r, terminated = envs[i].advance(np.clip(mean[rows[i], : keys[i]], -1.0, 1.0).astype(np.float64))
+        r, terminated = envs[i].advance(applied_action(mean[rows[i], : keys[i]]).astype(np.float64))
         envs[i].write_observation(pos[i], vel[i], glob[i])
         returns[i] += r
         alive[i] = not terminated

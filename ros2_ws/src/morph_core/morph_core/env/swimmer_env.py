@@ -129,7 +129,7 @@ class MorphSwimmerEnv(gymnasium.Env):
         info = {
             "x_position": xy_after[0],
             "y_position": xy_after[1],
-            "distance_from_origin": np.linalg.norm(xy_after, ord=2),
+            "distance_from_origin": np.linalg.norm(np.array(xy_after), ord=2),
             "x_velocity": x_velocity,
             "y_velocity": y_velocity,
             "reward_forward": forward_reward,
@@ -146,7 +146,7 @@ class MorphSwimmerEnv(gymnasium.Env):
         if not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a}")
         d = self.data
-        xy_before = d.qpos[0:2].copy()
+        x_before, y_before = d.qpos[0], d.qpos[1]  # scalars: this runs for every swimmer at every step
         d.ctrl[:] = a
         unstable_before = d.warning[_BADQACC].number
         mujoco.mj_step(self.model, d, nstep=self.frame_skip)
@@ -154,11 +154,11 @@ class MorphSwimmerEnv(gymnasium.Env):
         # 50+ joints at Swimmer-v5's timestep): end the episode instead of
         # carrying on from a silently reset swimmer.
         unstable = d.warning[_BADQACC].number > unstable_before
-        xy_after = d.qpos[0:2].copy()
-        velocity = (xy_after - xy_before) / self.dt
+        x_after, y_after = d.qpos[0], d.qpos[1]
+        velocity = ((x_after - x_before) / self.dt, (y_after - y_before) / self.dt)
         forward_reward = self.forward_reward_weight * velocity[0]
         ctrl_cost = control_cost(a, self.ctrl_cost_weight)
-        self._last_step = (xy_after, velocity, forward_reward, ctrl_cost)
+        self._last_step = ((x_after, y_after), velocity, forward_reward, ctrl_cost)
         return forward_reward - ctrl_cost, unstable  # == swimmer_reward(x, x', dt, a): tested bit for bit
 
     # -- observations --------------------------------------------------------
