@@ -53,3 +53,20 @@ def test_numpy_batched_act_equals_torch(bidirectional):
     np.testing.assert_allclose(log_prob, t_log_prob.numpy(), atol=1e-4, rtol=1e-5)
     np.testing.assert_allclose(action, (t_mean.numpy() + np.exp(fast.log_std) * noise) * mask, atol=1e-5)
     assert not action[~mask].any()  # padding stays zero
+
+
+def test_a_policy_that_saw_other_chain_mixes_answers_as_a_fresh_one():
+    # The index arrays are kept per chain mix: switching mixes (a swimmer resets to a new length) must
+    # never reuse another mix's, whatever the order, the batch size or the integer type.
+    policy = GraphActorCritic(PolicyConfig())
+    used, rng = NumpyPolicy(policy), np.random.default_rng(3)
+    mixes = [[2, 10, 5], [10, 2, 5], [5], [2, 10, 5, 1], [5, 1], [2, 10, 5]]
+    for counts in mixes + [np.array([5, 1], np.int32), np.array([5], np.int32)]:
+        n = np.asarray(counts)
+        mask = np.arange(10) < n[:, None]
+        pos, vel = rng.normal(0, 1, mask.shape) * mask, rng.normal(0, 2, mask.shape) * mask
+        glob, noise = rng.normal(0, 1, (len(n), 4)), rng.normal(0, 1, mask.shape)
+        got = used.act(pos, vel, glob, n, noise)
+        fresh = NumpyPolicy(policy).act(pos, vel, glob, n, noise)
+        for a, b in zip(got, fresh, strict=True):
+            np.testing.assert_array_equal(a, b)
