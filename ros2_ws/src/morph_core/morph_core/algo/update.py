@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -104,15 +105,14 @@ class RolloutBatch:
     def minibatch(self, index: torch.Tensor) -> tuple[ChainBatch, torch.Tensor]:
         """The chains at ``index`` (padding trimmed to their longest chain) and their actions, cut alike."""
         rows = index.numpy()  # gathered in NumPy: this runs before every minibatch step
-        chains = ChainBatch.from_padded(
-            *(x.numpy()[rows] for x in (self.joint_pos, self.joint_vel, self.global_feats, self.num_joints))
-        )
-        actions = torch.from_numpy(self.actions.numpy()[rows, : chains.max_joints])
-        # The cut relies on from_padded trimming to exactly the minibatch's longest chain (the padding
-        # beyond it is zero, checked at construction); were it to pad wider, the widths would differ.
-        if actions.shape != chains.mask.shape:
-            raise AssertionError(f"actions {tuple(actions.shape)} do not match the chains {tuple(chains.mask.shape)}")
-        return chains, actions
+        num_joints = self.num_joints.numpy()[rows]
+        width = int(num_joints.max()) if rows.size else 0
+        pos, vel, actions = (x.numpy()[rows, :width] for x in (self.joint_pos, self.joint_vel, self.actions))
+        # Built directly, not by ChainBatch.from_padded: the padding is zero (checked at construction), so
+        # its checks and its zeroing of the padding would change nothing (~15 us of a step's gather).
+        mask = np.arange(width) < num_joints[:, None]
+        parts = (pos, vel, self.global_feats.numpy()[rows], num_joints, mask)
+        return ChainBatch(*(torch.from_numpy(x) for x in parts)), torch.from_numpy(actions)
 
 
 @dataclass(frozen=True)
