@@ -74,3 +74,46 @@ def test_the_norm_clip_gives_torchs_numbers_bit_for_bit(scale):
         assert torch.equal(norm, expected)
         assert torch.equal(flat.grad, reference.grad)  # scaled (or, below the bound, left) alike
     assert flat.theta.grad is flat.grad  # in place: the gradient views still point into the buffer
+
+
+def test_optimizer_step_gives_adams_numbers_bit_for_bit_without_its_step():
+    torch.manual_seed(2)
+    flat = FlatParameters(GraphActorCritic())
+    reference = torch.nn.Parameter(flat.theta.detach().clone())
+    ours = flat.guard(torch.optim.Adam([flat.theta], lr=3e-4, eps=1e-5, fused=True))
+    theirs = torch.optim.Adam([reference], lr=3e-4, eps=1e-5, fused=True)
+    through_step = []
+    ours.register_step_pre_hook(lambda *_: through_step.append(1))
+    for k in range(12):
+        grad = torch.randn(flat.theta.numel()) * (10.0 if k % 3 == 0 else 0.01)
+        flat.grad.copy_(grad)
+        reference.grad = grad.clone()
+        for group in (*ours.param_groups, *theirs.param_groups):  # as --anneal-lr changes it between updates
+            group["lr"] = 3e-4 * (1 - k / 12)
+        flat.optimizer_step(ours)
+        theirs.step()
+        assert torch.equal(flat.theta.detach(), reference.detach())
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(ours.state[flat.theta][key], theirs.state[reference][key]), key
+    assert len(through_step) == 1  # the first step creates the state; the others called the kernel directly
+
+
+def test_optimizer_step_still_refuses_gradients_cut_loose_and_other_optimizers_step_as_usual():
+    torch.manual_seed(3)
+    policy = GraphActorCritic()
+    flat = FlatParameters(policy)
+    optimizer = flat.guard(torch.optim.Adam([flat.theta], lr=0.01, fused=True))
+    flat.grad.normal_()
+    flat.optimizer_step(optimizer)  # creates the state
+    before = flat.theta.detach().clone()
+    policy.zero_grad()  # set_to_none=True: the gradients are cut loose from the buffer
+    with pytest.raises(FlatGradientError, match="flat parameter buffer"):
+        flat.optimizer_step(optimizer)
+    assert torch.equal(flat.theta.detach(), before)
+    sgd_flat = FlatParameters(GraphActorCritic())
+    sgd = torch.optim.SGD([sgd_flat.theta], lr=0.1)
+    sgd_flat.grad.fill_(1.0)
+    start = sgd_flat.theta.detach().clone()
+    sgd_flat.optimizer_step(sgd)
+    sgd_flat.optimizer_step(sgd)
+    assert torch.equal(sgd_flat.theta.detach(), start - 0.1 - 0.1)

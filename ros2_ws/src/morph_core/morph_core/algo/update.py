@@ -509,7 +509,7 @@ def update(
             flat.grad.copy_(grad)
             parts = [part] if peers is None else [part, *peers.gather(flat.grad)]
             flat.clip_grad_norm_(cfg.max_grad_norm)
-            optimizer.step()
+            flat.optimizer_step(optimizer)
             if peers is not None:
                 peers.stepped()
             steps.append((mb, parts))  # statistics are reduced after the loop, off the steps' path
