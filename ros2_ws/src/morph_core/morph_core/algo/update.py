@@ -428,20 +428,6 @@ def part_gradient(learner: Learner, terms: UpdateTerms, inputs: PartInputs) -> t
     return grad, part
 
 
-def minibatch_part(
-    learner: Learner,
-    terms: UpdateTerms,
-    batch: RolloutBatch,
-    cfg: UpdateConfig,
-    mb: torch.Tensor,
-    advantages: torch.Tensor | None = None,
-    rank: int = 0,
-    world: int = 1,
-) -> tuple[torch.Tensor, MinibatchPart]:
-    """``part_gradient`` of ``part_inputs``: the gradient and statistics of part ``rank`` of ``mb``."""
-    return part_gradient(learner, terms, part_inputs(terms, batch, cfg, mb, advantages, rank, world))
-
-
 class MinibatchPeers(Protocol):
     """Other processes that compute parts of every minibatch step (``algo.data_parallel``)."""
 
@@ -494,18 +480,17 @@ def update(
         epochs += 1
         perm = torch.randperm(batch.size, generator=generator)
         minibatches = [perm[start:stop] for start, stop in zip(cuts[:-1], cuts[1:], strict=True)]
+        world, advantages = 1, [None] * len(minibatches)  # one process normalises within the loss
         if peers is not None:
-            advantages = [normalized_advantages(batch.advantages[mb]) for mb in minibatches]
+            world, advantages = peers.world, [normalized_advantages(batch.advantages[mb]) for mb in minibatches]
             peers.epoch(perm, cuts, torch.cat(advantages))
-            own = part_inputs(terms, batch, cfg, minibatches[0], advantages[0], 0, peers.world)
+        own = part_inputs(terms, batch, cfg, minibatches[0], advantages[0], 0, world)
         for k, mb in enumerate(minibatches):
-            if peers is None:
-                grad, part = minibatch_part(learner, terms, batch, cfg, mb)
-            else:
+            if peers is not None:
                 peers.start(k)
-                grad, part = part_gradient(learner, terms, own)
-                if k + 1 < len(minibatches):  # gathered while the peers finish their parts
-                    own = part_inputs(terms, batch, cfg, minibatches[k + 1], advantages[k + 1], 0, peers.world)
+            grad, part = part_gradient(learner, terms, own)
+            if k + 1 < len(minibatches):  # gathered while the peers finish their parts
+                own = part_inputs(terms, batch, cfg, minibatches[k + 1], advantages[k + 1], 0, world)
             flat.grad.copy_(grad)
             parts = [part] if peers is None else [part, *peers.gather(flat.grad)]
             flat.clip_grad_norm_(cfg.max_grad_norm)
