@@ -368,8 +368,9 @@ class MinibatchPart(NamedTuple):
 
 PROCESS0_WEIGHT = 0.67
 """process 0's part of a split minibatch, relative to each peer's: besides its part, it gathers its next
-part's samples, adds the parts, clips and steps Adam while the peers wait. At 0.6-0.7 (of 256 samples, 102
-against 154) a two-process update took ~8% less time than at even parts (docs/benchmarks.md)."""
+part's samples, adds the parts, clips and steps Adam while the peers wait. At 0.67 (103 of 256 samples) a
+two-process update took 0.500 s against 0.518-0.534 s at even parts; 0.5, 0.8 and 0.9 were no better
+(docs/benchmarks.md)."""
 
 
 def part_sizes(n: int, world: int) -> list[int]:
