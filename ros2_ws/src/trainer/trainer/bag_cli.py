@@ -29,7 +29,8 @@ import numpy as np
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, StreamStats, TransitionAssembler, TransitionConfig
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.bag_io import EXPECTED_TYPES, BagError, BagReader
+from trainer.bag_io import BagError, BagReader, full_topic_name
+from trainer.bag_messages import DATA_TOPIC_TYPES
 
 
 @dataclass
@@ -78,7 +79,7 @@ def summarize_bag(path: str | Path, config: TransitionConfig, namespace: str | N
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
     ns = reader.namespaces[0]
-    logical = {_full(ns, name): name for name in (*EXPECTED_TYPES, reader.episode_topic)}
+    logical = {full_topic_name(ns, name): name for name in (*DATA_TOPIC_TYPES, reader.episode_topic)}
     topics = []
     for name, info in sorted(reader.topics.items()):
         if name in logical:
@@ -149,10 +150,6 @@ def format_summary(s: BagSummary) -> str:
 
 def _counts(counts: dict) -> str:
     return ", ".join(f"{k} {v}" for k, v in counts.items() if v)
-
-
-def _full(ns: str, name: str) -> str:
-    return name if name.startswith("/") else f"{ns}/{name}"
 
 
 # -- command line ---------------------------------------------------------------------------------

@@ -57,8 +57,6 @@ from morph_core.msgs.records import (
 from morph_core.msgs.stamps import parse_answer_tag, to_ns
 from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC
 
-EXPECTED_TYPES = DATA_TOPIC_TYPES
-"""the data topics' types, as the nodes publish them (an announcement may be of any stamped type)"""
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -479,7 +477,7 @@ class BagReader:
                     bag_topics.setdefault(t.name, (t, s.path))
             ns = self._namespace(namespace, bag_topics, bag)
             self._check(bag, ns, bag_topics, required)
-            logical = {_full(ns, n): n for n in (*EXPECTED_TYPES, episode_topic)}
+            logical = {full_topic_name(ns, n): n for n in (*DATA_TOPIC_TYPES, episode_topic)}
             self._streams += [_labelled(s, logical) for s in opened]
             for name, (t, _) in bag_topics.items():
                 self.topics.setdefault(name, t)
@@ -528,14 +526,12 @@ class BagReader:
 
     def _check(self, bag, ns: str, topics: dict[str, tuple[TopicInfo, Path]], required: Sequence[str]) -> None:
         for name in required:
-            if _full(ns, name) not in topics:
-                raise BagError(
-                    f"{bag}: required topic {_full(ns, name)} is not in the bag (it has: {sorted(topics) or 'none'})"
-                )
-        for name, expected in EXPECTED_TYPES.items():
-            found = topics.get(_full(ns, name))
+            if (full := full_topic_name(ns, name)) not in topics:
+                raise BagError(f"{bag}: required topic {full} is not in the bag (it has: {sorted(topics) or 'none'})")
+        for name, expected in DATA_TOPIC_TYPES.items():
+            found = topics.get(full := full_topic_name(ns, name))
             if found is not None and found[0].msgtype != expected:
-                raise BagError(f"{found[1]}: topic {_full(ns, name)} has type {found[0].msgtype}, expected {expected}")
+                raise BagError(f"{found[1]}: topic {full} has type {found[0].msgtype}, expected {expected}")
         for info, file in topics.values():
             if info.serialization_format != "cdr":
                 raise BagError(f"{file}: topic {info.name} is stored as {info.serialization_format!r}, not cdr")
@@ -565,7 +561,8 @@ def _labelled(storage: _Storage, logical: dict[str, str]) -> Iterator[tuple[int,
         raise BagError(f"{storage.path}: unreadable past some point: {err}") from None
 
 
-def _full(ns: str, name: str) -> str:
+def full_topic_name(ns: str, name: str) -> str:
+    """A pair's topic ``name`` (relative, or absolute like /clock) under namespace ``ns``."""
     return name if name.startswith("/") else f"{ns}/{name}"
 
 
