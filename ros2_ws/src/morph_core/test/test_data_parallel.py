@@ -135,6 +135,47 @@ def test_a_helper_that_dies_stops_training_with_a_clear_error():
         helpers.close()
 
 
+def _helpers_in_an_epoch(cfg: TrainConfig) -> tuple[Helpers, int]:
+    """Helpers started on a real rollout and told the first epoch of an update; its minibatch count."""
+    learner = _learner(cfg)
+    helpers = Helpers(helper_spec(cfg, learner), learner)
+    envs = SwimmerVecEnv(cfg.num_envs, (cfg.min_joints, cfg.max_joints), seed=cfg.seed)
+    rollout = helpers.rollout
+    collect(envs, NumpyPolicy(learner.policy), rollout, envs.observations(), torch.Generator().manual_seed(0))
+    arrays = ("rewards", "values", "terminated", "truncated", "final_values", "last_value")
+    adv, ret = compute_gae(*(torch.from_numpy(getattr(rollout, k)) for k in arrays), cfg.gamma, cfg.gae_lambda)
+    helpers.publish_advantages(adv, ret)
+    helpers.begin(None)
+    n = cfg.num_envs * cfg.num_steps
+    cuts = list(range(0, n + 1, cfg.minibatch_size))
+    helpers.epoch(torch.randperm(n), cuts, torch.randn(n))
+    return helpers, len(cuts) - 1
+
+
+def test_a_helper_that_dies_within_an_epoch_stops_training_with_a_clear_error():
+    # Within an epoch process 0 waits on a semaphore, not a pipe: the helper's death must still end the wait.
+    cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
+    helpers, steps = _helpers_in_an_epoch(cfg)
+    try:
+        pid = helpers._procs[0].pid
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(HelperError, match=rf"helper 1 \(pid {pid}\) died"):
+            for _ in range(steps):  # it may have finished a part before it was killed, not all of them
+                helpers.gather(torch.zeros_like(helpers.theta))
+                helpers.stepped()
+    finally:
+        helpers.close()
+
+
+def test_a_helper_waiting_within_an_epoch_leaves_when_closed():
+    cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
+    helpers, _ = _helpers_in_an_epoch(cfg)
+    proc = helpers._procs[0]
+    helpers.gather(torch.zeros_like(helpers.theta))  # the helper now waits for the new parameters
+    helpers.close()
+    assert proc.exitcode == 0  # it read "close" while waiting and left; killed, it would read -9
+
+
 def test_a_failing_helper_reports_its_error():
     cfg = TrainConfig(num_envs=2, num_steps=16, minibatch_size=16, compile=False, processes=2)
     learner = _learner(cfg)

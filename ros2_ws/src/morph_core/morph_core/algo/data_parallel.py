@@ -24,8 +24,11 @@ of every minibatch, and meet once per minibatch step:
   helpers for their swimmers' and generators' states when it saves.
 
 The data stays in one block of shared memory; commands are small tuples
-through a pipe per helper. A helper that dies closes its pipe, and process 0
-stops with ``HelperError`` instead of waiting for it.
+through a pipe per helper, and within an epoch two semaphores per helper say
+"your part's gradient is ready" and "the new parameters are", polled before
+a process blocks on them (a pipe message cost ~30 µs each way). A helper
+that dies closes its pipe, and process 0 stops with ``HelperError`` instead
+of waiting for it.
 
 A run's random streams depend on the process count: one process draws
 every swimmer's noise from the run's generator, several draw each share's
@@ -36,9 +39,11 @@ a run resumes bit for bit with the count it was started with.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import multiprocessing
 import time
 import traceback
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
 
@@ -57,7 +62,7 @@ class HelperError(RuntimeError):
 
 
 SPIN_SECONDS = 0.002
-"""how long a process polls a pipe without sleeping before it blocks on it: during an update the other
+"""how long a process polls a pipe or a semaphore without sleeping before it blocks on it: during an update the other
 side answers within a minibatch step (~3 ms), and waking from a blocking read cost ~0.1 ms of every step
 (docs/benchmarks.md); between updates the wait is longer, and after 2 ms the process sleeps"""
 
@@ -70,6 +75,18 @@ def poll_spinning(conn: Connection, spin: float = SPIN_SECONDS) -> bool:
             return True
         if time.perf_counter() >= deadline:
             return False
+
+
+def take_spinning(semaphore, check: Callable[[], None], spin: float = SPIN_SECONDS) -> None:
+    """Take ``semaphore``, polled without sleeping for ``spin`` seconds, then waited for in 1-second slices,
+    each followed by ``check()``, which raises if the other side has gone. A semaphore synchronises memory:
+    what a process wrote before it posted is what the taker reads after."""
+    deadline = time.perf_counter() + spin
+    while not semaphore.acquire(False):
+        if time.perf_counter() >= deadline:
+            while not semaphore.acquire(timeout=1.0):
+                check()
+            return
 
 
 def env_bounds(num_envs: int, processes: int) -> list[tuple[int, int]]:
@@ -113,7 +130,7 @@ class SharedArrays:
 
 def shared_layout(num_steps: int, num_envs: int, max_joints: int, num_params: int, processes: int) -> dict:
     """Everything the processes share: the rollout, its advantages and returns, the parameters, the current
-    minibatch and, per helper, one gradient and its part's statistics."""
+    epoch's minibatches and, per helper, one gradient and its part's size and statistics."""
     n, helpers = num_steps * num_envs, processes - 1
     return {
         **{f"rollout.{k}": v for k, v in rollout_layout(num_steps, num_envs, max_joints).items()},
@@ -123,6 +140,7 @@ def shared_layout(num_steps: int, num_envs: int, max_joints: int, num_params: in
         "mb": ((n,), np.int64),
         "mb_advantages": ((n,), np.float32),
         "grad": ((helpers, num_params), np.float32),
+        "part_size": ((helpers, 2), np.int64),  # samples, whether the clip share was written
         "part_losses": ((helpers, 3), np.float32),
         "part_log_ratio": ((helpers, n), np.float32),
         "part_clip_share": ((helpers, n), np.float32),
@@ -167,12 +185,16 @@ class Helpers:
         self._grads = torch.from_numpy(self.shared["grad"])
         context = multiprocessing.get_context("spawn")  # fork would copy torch's and MuJoCo's threads' locks
         self._procs, self._conns = [], []
+        # per helper: its part's gradient is ready (helper -> 0), the new parameters are (0 -> helper)
+        self._done = [context.Semaphore(0) for _ in range(1, spec.processes)]
+        self._go = [context.Semaphore(0) for _ in range(1, spec.processes)]
         try:
             for rank in range(1, spec.processes):
                 ours, theirs = context.Pipe()
+                signals = (self._done[rank - 1], self._go[rank - 1])
                 proc = context.Process(
                     target=helper_main,
-                    args=(dataclasses.replace(spec, rank=rank, shm_name=self.shared.name), theirs),
+                    args=(dataclasses.replace(spec, rank=rank, shm_name=self.shared.name), theirs, signals),
                     name=f"morph-train-helper{rank}",
                     daemon=True,
                 )
@@ -204,6 +226,12 @@ class Helpers:
         if reply[0] == "error":
             raise HelperError(f"training helper {rank} failed:\n{reply[1]}")
         return reply[1:]
+
+    def _check(self, rank: int) -> None:
+        """Raise ``HelperError`` if helper ``rank`` has died or reported an error while process 0 waits."""
+        if self._conns[rank - 1].poll() or not self._procs[rank - 1].is_alive():
+            self._receive(rank)
+            raise HelperError(f"training helper {rank} spoke out of turn")
 
     def _gone(self, rank: int) -> str:
         proc = self._procs[rank - 1]
@@ -246,16 +274,13 @@ class Helpers:
         for rank in range(1, self.world):
             self._send(rank, ("epoch", cuts))
 
-    def start(self, k: int) -> None:
-        for rank in range(1, self.world):
-            self._send(rank, ("part", k))
-
     def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
         parts = []
         for rank in range(1, self.world):
-            size, has_clip_share = self._receive(rank)  # the helper says how many samples its part held
-            grad += self._grads[rank - 1]
+            take_spinning(self._done[rank - 1], functools.partial(self._check, rank))
             slot = rank - 1
+            size, has_clip_share = self.shared["part_size"][slot]
+            grad += self._grads[slot]
             losses = torch.from_numpy(self.shared["part_losses"][slot].copy())
             log_ratio = torch.from_numpy(self.shared["part_log_ratio"][slot, :size].copy())
             clip_share = (
@@ -266,6 +291,8 @@ class Helpers:
 
     def stepped(self) -> None:
         self.publish_parameters()
+        for go in self._go:
+            go.release()
 
     # -- checkpoints ----------------------------------------------------------------
     def get_states(self) -> list[tuple[dict, dict[str, np.ndarray], torch.Tensor]]:
@@ -298,12 +325,16 @@ class Helpers:
             self.shared = None
 
 
-def helper_main(spec: HelperSpec, conn: Connection) -> None:
+class _Closed(Exception):
+    """Process 0 closed the helpers while this one waited within an epoch."""
+
+
+def helper_main(spec: HelperSpec, conn: Connection, signals: tuple) -> None:
     """A helper process: steps its swimmers and computes its parts of the minibatches, as told."""
     try:
-        _serve(spec, conn)
-    except (EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
-        pass  # process 0 has gone: nothing left to do
+        _serve(spec, conn, *signals)
+    except (_Closed, EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
+        pass  # process 0 has gone or stopped: nothing left to do
     except BaseException:
         try:
             conn.send(("error", traceback.format_exc()))
@@ -311,7 +342,7 @@ def helper_main(spec: HelperSpec, conn: Connection) -> None:
             pass
 
 
-def _serve(spec: HelperSpec, conn: Connection) -> None:
+def _serve(spec: HelperSpec, conn: Connection, done, go) -> None:
     torch.set_num_threads(1)
     lo, hi = env_bounds(spec.num_envs, spec.processes)[spec.rank]
     envs = SwimmerVecEnv(hi - lo, (spec.min_joints, spec.max_joints), seed=spec.seed + lo, num_threads=spec.env_threads)
@@ -327,21 +358,24 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
     theta, grad = torch.from_numpy(shared["theta"]), torch.from_numpy(shared["grad"][slot])
     generator = torch.Generator().manual_seed(helper_seed(spec.seed, spec.rank))
     obs = envs.observations()
-    batch = terms = ahead = None
+    batch = terms = None
     cuts: list[int] = []
 
     def prepare(k: int):
-        """(k, the inputs of this helper's part of the epoch's minibatch k)."""
+        """The inputs of this helper's part of the epoch's minibatch k."""
         lo, hi = cuts[k], cuts[k + 1]
-        inputs = part_inputs(terms, batch, spec.update, perm[lo:hi], perm_advantages[lo:hi], spec.rank,
-                             spec.processes)  # fmt: skip
-        return k, inputs
+        return part_inputs(terms, batch, spec.update, perm[lo:hi], perm_advantages[lo:hi], spec.rank,
+                           spec.processes)  # fmt: skip
 
     def take_parameters():
         learner.params.theta.data.copy_(theta)
 
+    def check():  # within an epoch process 0 only ever says "close"; its death reads as EOF
+        if conn.poll():
+            raise _Closed(conn.recv())
+
     while True:
-        poll_spinning(conn)  # the next part's command comes within ~1 ms of a step's reply; else recv blocks
+        poll_spinning(conn)  # within an update the next epoch comes at once; between updates recv blocks
         command, *args = conn.recv()
         if command == "close":
             break
@@ -359,21 +393,21 @@ def _serve(spec: HelperSpec, conn: Connection) -> None:
             cuts = args[0]
             perm = torch.from_numpy(shared["mb"][: cuts[-1]].copy())
             perm_advantages = torch.from_numpy(shared["mb_advantages"][: cuts[-1]].copy())
-            ahead = prepare(0)
-        elif command == "part":
-            k = args[0]
-            if ahead is None or ahead[0] != k:
-                raise ValueError(f"asked for part {k} of an epoch whose next part is {ahead and ahead[0]}")
-            take_parameters()
-            part_grad, part = part_gradient(learner, terms, ahead[1])
-            grad.copy_(part_grad)
-            size = len(part.log_ratio)
-            shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
-            shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()
-            if part.clip_share is not None:
-                shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
-            conn.send(("done", size, part.clip_share is not None))
-            ahead = prepare(k + 1) if k + 2 < len(cuts) else None  # gathered while process 0 steps Adam
+            own = prepare(0)
+            for k in range(len(cuts) - 1):
+                part_grad, part = part_gradient(learner, terms, own)
+                grad.copy_(part_grad)
+                size = len(part.log_ratio)
+                shared["part_size"][slot] = [size, part.clip_share is not None]
+                shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
+                shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()
+                if part.clip_share is not None:
+                    shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
+                done.release()
+                if k + 2 < len(cuts):
+                    own = prepare(k + 1)  # gathered while process 0 adds, clips and steps Adam
+                take_spinning(go, check)
+                take_parameters()
         elif command == "get_state":
             meta, arrays = envs.get_state()
             conn.send(("state", meta, arrays, generator.get_state()))

@@ -440,10 +440,8 @@ class MinibatchPeers(Protocol):
 
     def epoch(self, perm: torch.Tensor, cuts: list[int], advantages: torch.Tensor) -> None:
         """An epoch's minibatches: ``perm[cuts[k]:cuts[k + 1]]``, their advantages (each normalised over its
-        minibatch) in ``perm``'s order. The peers gather their parts ahead of the steps."""
-
-    def start(self, k: int) -> None:
-        """The peers compute their parts of the epoch's minibatch ``k`` at the current parameters."""
+        minibatch) in ``perm``'s order. The peers compute their parts of each minibatch in turn, the first
+        at once, each next one when the optimizer has stepped (``stepped``)."""
 
     def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
         """Add the peers' gradients into ``grad`` (in rank order); their statistics."""
@@ -487,8 +485,6 @@ def update(
             peers.epoch(perm, cuts, torch.cat(advantages))
         own = part_inputs(terms, batch, cfg, minibatches[0], advantages[0], 0, world)
         for k, mb in enumerate(minibatches):
-            if peers is not None:
-                peers.start(k)
             grad, part = part_gradient(learner, terms, own)
             if k + 1 < len(minibatches):  # gathered while the peers finish their parts
                 own = part_inputs(terms, batch, cfg, minibatches[k + 1], advantages[k + 1], 0, world)
