@@ -26,6 +26,18 @@ def _learner(cfg: TrainConfig) -> Learner:
     return Learner.create(GraphActorCritic(PolicyConfig()), cfg.learning_rate, cfg.adam_eps, cfg.compile)
 
 
+def _shared_rollout(cfg: TrainConfig, helpers: Helpers, learner: Learner):
+    """A real rollout (real swimmers) by ``learner``'s policy written into the helpers' shared rollout, with
+    its advantages; its batch."""
+    envs = SwimmerVecEnv(cfg.num_envs, (cfg.min_joints, cfg.max_joints), seed=cfg.seed)
+    rollout = helpers.rollout
+    collect(envs, NumpyPolicy(learner.policy), rollout, envs.observations(), torch.Generator().manual_seed(0))
+    arrays = ("rewards", "values", "terminated", "truncated", "final_values", "last_value")
+    adv, ret = compute_gae(*(torch.from_numpy(getattr(rollout, k)) for k in arrays), cfg.gamma, cfg.gae_lambda)
+    helpers.publish_advantages(adv, ret)
+    return rollout.batch(adv, ret)
+
+
 @pytest.mark.parametrize(
     ("rule", "compiled"),
     [(rule, False) for rule in ("compensated", "per-joint-clip", "kl-penalty", "kl-stop")] + [("compensated", True)],
@@ -38,13 +50,7 @@ def test_the_two_process_update_equals_the_one_process_update(rule, compiled):
     one, two = _learner(cfg), _learner(cfg)
     helpers = Helpers(helper_spec(cfg, two), two)
     try:
-        envs = SwimmerVecEnv(cfg.num_envs, (cfg.min_joints, cfg.max_joints), seed=cfg.seed)
-        rollout = helpers.rollout
-        collect(envs, NumpyPolicy(one.policy), rollout, envs.observations(), torch.Generator().manual_seed(0))
-        arrays = ("rewards", "values", "terminated", "truncated", "final_values", "last_value")
-        adv, ret = compute_gae(*(torch.from_numpy(getattr(rollout, k)) for k in arrays), cfg.gamma, cfg.gae_lambda)
-        helpers.publish_advantages(adv, ret)
-        batch = rollout.batch(adv, ret)
+        batch = _shared_rollout(cfg, helpers, one)
         for _ in range(2):  # twice: the second update starts from the rule state the first one left
             stats_one = update(one, batch, cfg.update_config(), torch.Generator().manual_seed(7))
             stats_two = update(two, batch, cfg.update_config(), torch.Generator().manual_seed(7), peers=helpers)
@@ -139,16 +145,15 @@ def _helpers_in_an_epoch(cfg: TrainConfig) -> tuple[Helpers, int]:
     """Helpers started on a real rollout and told the first epoch of an update; its minibatch count."""
     learner = _learner(cfg)
     helpers = Helpers(helper_spec(cfg, learner), learner)
-    envs = SwimmerVecEnv(cfg.num_envs, (cfg.min_joints, cfg.max_joints), seed=cfg.seed)
-    rollout = helpers.rollout
-    collect(envs, NumpyPolicy(learner.policy), rollout, envs.observations(), torch.Generator().manual_seed(0))
-    arrays = ("rewards", "values", "terminated", "truncated", "final_values", "last_value")
-    adv, ret = compute_gae(*(torch.from_numpy(getattr(rollout, k)) for k in arrays), cfg.gamma, cfg.gae_lambda)
-    helpers.publish_advantages(adv, ret)
-    helpers.begin(None)
-    n = cfg.num_envs * cfg.num_steps
-    cuts = list(range(0, n + 1, cfg.minibatch_size))
-    helpers.epoch(torch.randperm(n), cuts, torch.randn(n))
+    try:
+        _shared_rollout(cfg, helpers, learner)
+        helpers.begin(None)
+        n = cfg.num_envs * cfg.num_steps
+        cuts = list(range(0, n + 1, cfg.minibatch_size))
+        helpers.epoch(torch.randperm(n), cuts, torch.randn(n))
+    except BaseException:
+        helpers.close()
+        raise
     return helpers, len(cuts) - 1
 
 
