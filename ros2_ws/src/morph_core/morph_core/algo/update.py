@@ -26,7 +26,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -108,11 +107,10 @@ class RolloutBatch:
         num_joints = self.num_joints.numpy()[rows]
         width = int(num_joints.max()) if rows.size else 0
         pos, vel, actions = (x.numpy()[rows, :width] for x in (self.joint_pos, self.joint_vel, self.actions))
-        # Built directly, not by ChainBatch.from_padded: the padding is zero (checked at construction), so
-        # its checks and its zeroing of the padding would change nothing (~15 us of a step's gather).
-        mask = np.arange(width) < num_joints[:, None]
-        parts = (pos, vel, self.global_feats.numpy()[rows], num_joints, mask)
-        return ChainBatch(*(torch.from_numpy(x) for x in parts)), torch.from_numpy(actions)
+        # The padding is zero (checked at construction), so from_padded's checks and zeroing of the padding
+        # would change nothing (~15 us of a step's gather).
+        chains = ChainBatch.from_zero_padded(pos, vel, self.global_feats.numpy()[rows], num_joints)
+        return chains, torch.from_numpy(actions)
 
 
 @dataclass(frozen=True)

@@ -74,10 +74,18 @@ class ChainBatch:
         if trim and counts.size:
             j = int(counts.max())
             pos, vel = pos[:, :j], vel[:, :j]
-        mask = np.arange(pos.shape[1]) < counts[:, None]
+        mask = _joint_mask(counts, pos.shape[1])
         # Zero the padding so nothing beyond a chain's end can leak into sums.
         pos, vel = (torch.from_numpy(x.detach().numpy() * mask) for x in (pos, vel))
         return cls(pos, vel, glob, n, torch.from_numpy(mask))
+
+    @classmethod
+    def from_zero_padded(cls, joint_pos, joint_vel, global_feats, num_joints) -> ChainBatch:
+        """Build from NumPy arrays as ``from_padded`` leaves them (float32 and int64, trimmed to the longest
+        chain, zero beyond each chain's end), without its checks and copies: for batches whose padding this
+        code wrote itself (a rollout's minibatches, gathered before every update step)."""
+        mask = _joint_mask(num_joints, joint_pos.shape[1])
+        return cls(*(torch.from_numpy(x) for x in (joint_pos, joint_vel, global_feats, num_joints, mask)))
 
     @classmethod
     def from_observations(cls, observations: Sequence[dict]) -> ChainBatch:
@@ -89,6 +97,11 @@ class ChainBatch:
         return ChainBatch.from_padded(
             self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
         )
+
+
+def _joint_mask(num_joints: np.ndarray, width: int) -> np.ndarray:
+    """[B, width] True where chain b has a joint j (j < num_joints[b])."""
+    return np.arange(width) < num_joints[:, None]
 
 
 def pad_observations(
