@@ -118,34 +118,30 @@ class SwimmerVecEnv:
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
-        outcomes = self._threads.map(lambda i: self._step_one(i, actions[i]), range(self.num_envs))
-        result = StepResult(
-            obs=None,  # type: ignore[arg-type]
-            reward=np.array([o[0] for o in outcomes]),
-            terminated=np.array([o[1] for o in outcomes]),
-            truncated=np.array([o[2] for o in outcomes]),
-        )
-        for i, (_, _, _, final_obs, episode) in enumerate(outcomes):
-            if episode is not None:
-                result.final_obs[i] = final_obs
-                result.episodes.append(episode)
+        applied = applied_action(actions).astype(np.float64)  # all swimmers' at once: one call, not E
+        outcomes = self._threads.map(lambda i: self._advance(i, applied[i]), range(self.num_envs))
+        reward = np.array([r for r, _ in outcomes])
+        terminated = np.array([term for _, term in outcomes])
+        self.episode_steps += 1
+        self.episode_returns += reward
+        truncated = ~terminated & (self.episode_steps >= self.max_episode_steps)
+        result = StepResult(obs=None, reward=reward, terminated=terminated, truncated=truncated)  # type: ignore[arg-type]
+        for i in np.flatnonzero(terminated | truncated).tolist():
+            env = self.envs[i]
+            result.final_obs[i] = env._observation()
+            result.episodes.append((env.num_joints, float(self.episode_returns[i]), int(self.episode_steps[i])))
+            self.episode_steps[i], self.episode_returns[i] = 0, 0.0
+            env.reset()
+            self._write(i)
         result.obs = self.observations()
         return result
 
-    def _step_one(self, i: int, action: np.ndarray):
+    def _advance(self, i: int, applied: np.ndarray) -> tuple[float, bool]:
+        """Swimmer i's step: (reward, physics diverged), its observation written into row i."""
         env = self.envs[i]
-        r, term = env.advance(applied_action(action[: env.num_joints]).astype(np.float64))
-        self.episode_steps[i] += 1
-        self.episode_returns[i] += r
-        trunc = not term and self.episode_steps[i] >= self.max_episode_steps
-        final_obs = episode = None
-        if term or trunc:
-            final_obs = env._observation()
-            episode = (env.num_joints, float(self.episode_returns[i]), int(self.episode_steps[i]))
-            self.episode_steps[i], self.episode_returns[i] = 0, 0.0
-            env.reset()
+        outcome = env.advance(applied[: env.num_joints])
         self._write(i)
-        return r, term, trunc, final_obs, episode
+        return outcome
 
     def close(self) -> None:
         self._threads.close()
