@@ -158,8 +158,15 @@ class NumpyPolicy:
 
     def _links(self, coef: np.ndarray) -> np.ndarray:
         """[L, C] link embeddings after the two NNConv layers; ``coef`` is [e_0, e_1, 1] per slot, zero at cuts."""
-        x = np.ones((coef.shape[0] + 1, 1), dtype=np.float32)
-        for fwd, bwd, root, bias in self.layers:
+        (fwd, bwd, root, bias), *later = self.layers
+        # The first layer's input is 1 on every link, so its products are its weights themselves (exactly:
+        # 1 * w), and its messages are the coefficients times the edge blocks.
+        out = np.repeat(root + bias, coef.shape[0] + 1, axis=0)
+        out[1:] += coef @ fwd
+        if bwd is not None:
+            out[:-1] += coef @ bwd
+        x = np.maximum(out, 0.0)
+        for fwd, bwd, root, bias in later:
             out = x @ root + bias
             out[1:] += (coef[:, :, None] * x[:-1, None, :]).reshape(coef.shape[0], -1) @ fwd
             if bwd is not None:
