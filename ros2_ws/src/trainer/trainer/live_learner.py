@@ -64,7 +64,6 @@ from morph_core.algo.checkpoint import (
 )
 from morph_core.algo.ppo import explained_variance
 from morph_core.algo.run_log import RunLog
-from morph_core.algo.tb_layout import update_histograms
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
 from morph_core.algo.update import Learner, update, with_proximal
@@ -296,7 +295,7 @@ class LiveLearner:
             "pairs": pairs,
         }
         self.log.log(row)
-        self.log.histograms(c["global_step"], update_histograms(stats))
+        self.log.update_histograms(c["global_step"], stats)
         step, last = c["global_step"], c["last_ckpt"]
         if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval:
             c["last_ckpt"] = step

@@ -21,7 +21,9 @@ of every minibatch, and meet once per minibatch step:
   (``update.PROCESS0_WEIGHT``), as it alone adds, clips and steps. The update
   equals the one-process update to float rounding (``test_data_parallel``).
 - Process 0 alone keeps the optimizer, logs and checkpoints; it asks the
-  helpers for their swimmers' and generators' states when it saves.
+  helpers for their swimmers' and generators' states when it saves. The
+  helpers start their next rollout as soon as an update ends, while process
+  0 logs and saves.
 
 The data stays in one block of shared memory; commands are small tuples
 through a pipe per helper, and within an epoch two semaphores per helper say
@@ -176,6 +178,8 @@ class Helpers:
 
     def __init__(self, spec: HelperSpec, learner: Learner):
         self.world = spec.processes
+        self.collecting = False
+        """the helpers are collecting (``start_collect`` without ``finish_collect`` yet)"""
         self.bounds = env_bounds(spec.num_envs, spec.processes)
         self.theta = learner.params.theta
         layout = shared_layout(spec.num_steps, spec.num_envs, spec.max_joints, self.theta.numel(), spec.processes)
@@ -252,10 +256,13 @@ class Helpers:
         self.publish_parameters()
         for rank in range(1, self.world):
             self._send(rank, ("collect",))
+        self.collecting = True
 
     def finish_collect(self) -> list[tuple[int, float, int]]:
         """Wait for the helpers' columns; their finished episodes."""
-        return [episode for rank in range(1, self.world) for episode in self._receive(rank)[0]]
+        episodes = [episode for rank in range(1, self.world) for episode in self._receive(rank)[0]]
+        self.collecting = False
+        return episodes
 
     def publish_advantages(self, advantages: torch.Tensor, returns: torch.Tensor) -> None:
         self.shared["advantages"][:] = advantages.numpy()

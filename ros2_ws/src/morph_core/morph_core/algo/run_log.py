@@ -13,7 +13,7 @@ import csv
 import math
 from pathlib import Path
 
-from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag
+from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag, update_histograms
 from morph_core.util.atomic import atomic_writer
 
 HISTOGRAM_BINS = 64
@@ -79,6 +79,12 @@ class RunLog:
             for tag, v in values.items():
                 if len(v):
                     self.tb.add_histogram(tag, v, step, bins=HISTOGRAM_BINS)
+
+    def update_histograms(self, step: int, stats) -> None:
+        """An update's log-ratio histograms (``tb_layout.update_histograms``), computed only for TensorBoard:
+        without it they cost ~3.5 ms of an iteration for nothing."""
+        if self.tb is not None:
+            self.histograms(step, update_histograms(stats))
 
     def close(self) -> None:
         if self.tb is not None:

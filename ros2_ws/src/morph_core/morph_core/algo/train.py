@@ -30,7 +30,6 @@ from morph_core.algo.data_parallel import Helpers, HelperSpec, env_bounds
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_log import RunLog
-from morph_core.algo.tb_layout import update_histograms
 from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import Learner, UpdateConfig, epoch_columns, minibatch_cuts, update
 from morph_core.env.vec_env import SwimmerVecEnv, merge_env_states, split_env_state
@@ -250,7 +249,7 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
         # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
         t0 = time.perf_counter()
-        if helpers is not None:
+        if helpers is not None and not helpers.collecting:  # else started after the last update (step 4)
             helpers.start_collect()
         obs, episodes = collect(envs, NumpyPolicy(policy), mine, obs, gen)
         if helpers is not None:
@@ -276,7 +275,16 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
         stats = update(learner, batch, update_cfg, gen, peers=helpers)
         update_s = time.perf_counter() - t1
 
-        # 4. Log and checkpoint.
+        # 4. Log and checkpoint. The helpers' next rollout starts first (their swimmers' states taken
+        # before it when a checkpoint is due): this process's logging and saving overlap it. It writes
+        # their columns of the shared rollout, so nothing below reads the batch.
+        explained = explained_variance(batch.values, batch.returns)
+        checkpoint = global_step // cfg.checkpoint_interval > last_ckpt // cfg.checkpoint_interval or (
+            global_step >= cfg.total_timesteps
+        )
+        helper_states = helpers.get_states() if helpers is not None and checkpoint else []
+        if helpers is not None and global_step < cfg.total_timesteps:
+            helpers.start_collect()
         recent = (recent + episodes)[-50:]
         row = {
             "global_step": global_step,
@@ -289,20 +297,17 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
             "episodes": len(episodes),
             "return_mean": float(np.mean([r for _, r, _ in episodes])) if episodes else math.nan,
             **stats.row(cfg.dims),
-            "explained_variance": explained_variance(batch.values, batch.returns),
+            "explained_variance": explained,
             "log_std": float(policy.log_std.detach()),
         }
         for d in cfg.dims:
             rs = [r for n, r, _ in episodes if n == d]
             row[f"return_d{d}"] = float(np.mean(rs)) if rs else math.nan
         log.log(row)
-        log.histograms(global_step, update_histograms(stats))
-        if global_step // cfg.checkpoint_interval > last_ckpt // cfg.checkpoint_interval or (
-            global_step >= cfg.total_timesteps
-        ):
+        log.update_histograms(global_step, stats)
+        if checkpoint:
             last_ckpt = global_step
             policy.save(ckpt_dir / f"policy_{global_step:08d}.safetensors", metadata={"global_step": global_step})
-            helper_states = [] if helpers is None else helpers.get_states()
             env_meta, env_arrays = merge_env_states([envs.get_state(), *[(m, a) for m, a, _ in helper_states]])
             more_rngs = {f"helper{r}": rng for r, (_, _, rng) in enumerate(helper_states, start=1)}
             counters = {"global_step": global_step, "iteration": iteration, "last_ckpt": last_ckpt}

@@ -89,7 +89,6 @@ from morph_core.algo.checkpoint import (
 )
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
-from morph_core.algo.tb_layout import update_histograms
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.update import Learner, RolloutBatch, epoch_columns, update, with_proximal
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -458,7 +457,7 @@ def train_from_data(
             **off_policy_stats(batch, cfg.proximal_weight_cap),
         }
         log.log(row)
-        log.histograms(counters["global_step"], update_histograms(stats))
+        log.update_histograms(counters["global_step"], stats)
         step, last = counters["global_step"], counters["last_ckpt"]
         if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval or current.done >= current.iterations:
             counters["last_ckpt"] = step
