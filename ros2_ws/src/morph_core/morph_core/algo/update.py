@@ -496,13 +496,17 @@ def update(
         epoch_log_ratio = torch.cat([p.log_ratio for _, parts in steps[-len(minibatches) :] for p in parts])
         if rule.stop_after_epoch(epoch_log_ratio, batch.num_joints[perm], cfg):  # an epoch covers perm once
             break
-    mb_losses = [torch.stack([sum(getattr(p, k) for p in parts) for k in ("pg_loss", "v_loss", "entropy")])
-                 for _, parts in steps]  # fmt: skip
+    # Every step's parts in order (``world`` of them, in rank order), reduced in a few operations for all steps.
+    all_parts = [p for _, parts in steps for p in parts]
+    part_losses = torch.stack([torch.stack([getattr(p, k) for p in all_parts]) for k in MinibatchPart._fields[:3]], 1)
+    mb_losses = sum(part_losses[rank::world] for rank in range(world))  # [steps, 3]: each step's parts added
     index = torch.cat([mb for mb, _ in steps])
-    log_ratio = torch.cat([p.log_ratio for _, parts in steps for p in parts])
-    mb_clip_share = [torch.cat([p.clip_share for p in parts]) for _, parts in steps if parts[0].clip_share is not None]
+    log_ratio = torch.cat([p.log_ratio for p in all_parts])
     clip_range = terms.clip_range
-    clipped = torch.cat(mb_clip_share) if mb_clip_share else rule.clipped(log_ratio.exp(), clip_range[index])
+    if all_parts[0].clip_share is not None:
+        clipped = torch.cat([p.clip_share for p in all_parts])
+    else:
+        clipped = rule.clipped(log_ratio.exp(), clip_range[index])
     stats = PerDimensionStats(batch.max_joints)
     stats.add(batch.num_joints[index], log_ratio, clipped, cfg.clip_eps)
     # Every epoch covers the batch once: the first and the last epoch are the first and last N entries.
@@ -516,7 +520,7 @@ def update(
         if rule.uses_old_gaussian:
             kl = exact_kl(learner.policy, batch, terms.old_mean, terms.extra["old_log_std"])
         learner.rule_state = rule.end_update(state, kl, batch.num_joints, cfg)
-    pg_loss, v_loss, entropy = torch.stack(mb_losses).mean(0).tolist()
+    pg_loss, v_loss, entropy = mb_losses.mean(0).tolist()
     beta = math.nan if kl_beta is None else float(kl_beta)
     return UpdateStats(pg_loss, v_loss, entropy, stats, epochs, *per_epoch, kl_beta=beta)
 
