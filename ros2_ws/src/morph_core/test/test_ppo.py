@@ -1,12 +1,14 @@
 """PPO pieces on hand-made numbers: the two clip rules, the clipped loss, GAE, per-dimension stats."""
 
 import math
+from itertools import pairwise
 
 import pytest
 import torch
 
-from morph_core.algo.ppo import PerDimensionStats, compute_gae
+from morph_core.algo.ppo import PerDimensionStats, compute_gae, normalized_advantages, normalized_minibatch_advantages
 from morph_core.algo.trust_region import LossContext, get_rule
+from morph_core.algo.update import minibatch_cuts
 
 
 def clip_range(eps, num_joints, rule):
@@ -95,3 +97,15 @@ def test_per_dimension_stats():
     assert s["clip_frac_d4"] == 0.0  # |exp(-0.3) - 1| = 0.26 < 0.4
     assert math.isclose(s["logr_mean_d4"], -0.125, rel_tol=1e-6)
     assert math.isclose(s["logr_std_d2"], 0.15, rel_tol=1e-6)
+
+
+@pytest.mark.parametrize("size", [6144, 6000, 5121, 300])
+def test_minibatch_advantages_normalised_together_equal_each_minibatch_normalised_alone(size):
+    g = torch.Generator().manual_seed(size)
+    for scale in (1e-3, 1.0, 1e3):
+        advantages = torch.randn(size, generator=g) * scale + 2.0
+        perm = torch.randperm(size, generator=g)
+        cuts = minibatch_cuts(size, 256)
+        alone = torch.cat([normalized_advantages(advantages[perm[a:b]]) for a, b in pairwise(cuts)])
+        # bit for bit, so that the two-process update's numbers do not depend on which form computed them
+        assert torch.equal(normalized_minibatch_advantages(advantages, perm, cuts), alone)

@@ -9,6 +9,7 @@ business (``algo.trust_region``), the rest of PPO is the same for every rule.
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 import torch
@@ -62,6 +63,20 @@ def ppo_loss(
 def normalized_advantages(advantages: torch.Tensor) -> torch.Tensor:
     """Advantages scaled to mean 0 and standard deviation 1 over a minibatch."""
     return (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+
+
+def normalized_minibatch_advantages(advantages: torch.Tensor, perm: torch.Tensor, cuts: list[int]) -> torch.Tensor:
+    """``advantages[perm]``, each minibatch ``cuts[k]:cuts[k + 1]`` of it normalised over itself: the same numbers
+    as ``normalized_advantages`` on each (the means of the equal-sized leading minibatches taken as rows of one
+    matrix, which reduces each row as a vector; the standard deviations one by one, as a row's can differ in its
+    last bit). A few operations per epoch instead of six per minibatch."""
+    x = advantages[perm]
+    size = cuts[1] - cuts[0]
+    rows = next((k for k in range(len(cuts) - 1) if cuts[k + 1] - cuts[k] != size), len(cuts) - 1)
+    m = x[: rows * size].view(rows, size)
+    std = torch.stack([row.std() for row in m])
+    rest = [normalized_advantages(x[a:b]) for a, b in pairwise(cuts[rows:])]
+    return torch.cat([((m - m.mean(1, keepdim=True)) / (std[:, None] + 1e-8)).flatten(), *rest])
 
 
 def compute_gae(

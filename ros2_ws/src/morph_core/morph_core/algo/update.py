@@ -24,6 +24,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 from typing import NamedTuple, Protocol
 
 import torch
@@ -31,7 +32,7 @@ from torch import nn
 
 from morph_core.algo.compiled import compiled
 from morph_core.algo.param_buffer import FlatParameters
-from morph_core.algo.ppo import PerDimensionStats, normalized_advantages, ppo_loss
+from morph_core.algo.ppo import PerDimensionStats, normalized_minibatch_advantages, ppo_loss
 from morph_core.algo.trust_region import LossContext, TrustRegionRule, get_rule, kl_per_joint
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
@@ -479,8 +480,9 @@ def update(
         minibatches = [perm[start:stop] for start, stop in zip(cuts[:-1], cuts[1:], strict=True)]
         world, advantages = 1, [None] * len(minibatches)  # one process normalises within the loss
         if peers is not None:
-            world, advantages = peers.world, [normalized_advantages(batch.advantages[mb]) for mb in minibatches]
-            peers.epoch(perm, cuts, torch.cat(advantages))
+            perm_advantages = normalized_minibatch_advantages(batch.advantages, perm, cuts)
+            world, advantages = peers.world, [perm_advantages[a:b] for a, b in pairwise(cuts)]
+            peers.epoch(perm, cuts, perm_advantages)
         own = part_inputs(terms, batch, cfg, minibatches[0], advantages[0], 0, world)
         for k, mb in enumerate(minibatches):
             grad, part = part_gradient(learner, terms, own)
