@@ -12,7 +12,9 @@ import pytest
 
 from morph_core.algo.evaluate import evaluate_policy
 from morph_core.algo.train import TrainConfig, train
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.numpy_actor import NumpyPolicy
 from trainer.eval_cli import EvalConfig, evaluate_run
 
 SMALL = dict(
@@ -117,6 +119,38 @@ def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
     assert len(one) == 4 * 3 * 2  # 4 checkpoints, 3 lengths, 2 episodes
     assert one == two
     assert (run / "eval.csv").read_text() == (copy / "eval.csv").read_text()
+
+
+class _BangBang(NumpyPolicy):
+    """The policy's own mean action, but +-1 on every joint of a 64-joint chain: driven so from rest, 64
+    joints diverge at their first step (MuJoCo's bad-acceleration warning)."""
+
+    def forward(self, joint_pos, joint_vel, global_feats, num_joints):
+        mean, value = super().forward(joint_pos, joint_vel, global_feats, num_joints)
+        return np.where((num_joints == 64)[:, None], bang(mean.shape[1]), mean).astype(np.float32), value
+
+
+def bang(width: int) -> np.ndarray:
+    return np.where(np.arange(width) % 2 == 0, 1.0, -1.0)
+
+
+def test_a_swimmer_whose_physics_diverges_ends_its_episode_while_the_others_go_on():
+    policy = GraphActorCritic()
+    mixed = evaluate_policy(_BangBang(policy), [64, 3], episodes=3, max_steps=30)  # 64 first: the 3s shift rows
+    ended = []
+    for k in range(3):  # each 64-joint episode, stepped alone as the env steps it
+        env = MorphSwimmerEnv(num_joints=64)
+        env.reset(seed=10_000 + k)
+        total, steps, terminated = 0.0, 0, False
+        while not terminated and steps < 30:
+            _, reward, terminated, _, _ = env.step(bang(64))
+            total, steps = total + reward, steps + 1
+        assert mixed[64][k] == total
+        ended.append(steps)
+    assert ended == [30, 30, 1]  # the third diverged at its first step (seed 10_002) and ended there
+    # the others' rows stay theirs once one swimmer has ended: the returns they get without it (to the
+    # last bits of float32 matrix products, which a batch of other rows can round differently)
+    np.testing.assert_allclose(mixed[3], evaluate_policy(policy, [3], episodes=3, max_steps=30)[3], rtol=1e-6)
 
 
 def test_evaluation_runs_the_policy_the_torch_network_computes():

@@ -45,8 +45,8 @@ def evaluate_policy(
     threads = EnvThreads(num_threads)
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
 
-    def step(mean: np.ndarray, rows: dict[int, int], i: int) -> None:
-        r, terminated = envs[i].advance(applied_action(mean[rows[i], : keys[i]]).astype(np.float64))
+    def step(applied: np.ndarray, rows: dict[int, int] | None, i: int) -> None:
+        r, terminated = envs[i].advance(applied[i if rows is None else rows[i], : keys[i]])
         envs[i].write_observation(pos[i], vel[i], glob[i])
         returns[i] += r
         alive[i] = not terminated
@@ -56,8 +56,13 @@ def evaluate_policy(
             idx = np.flatnonzero(alive)
             if idx.size == 0:
                 break
-            mean = actor.forward(pos[idx], vel[idx], glob[idx], num_joints[idx])[0]
-            threads.map(partial(step, mean, {int(i): row for row, i in enumerate(idx)}), idx)
+            if idx.size == len(envs):  # every swimmer still going (the usual case): its row is its index
+                mean, rows = actor.forward(pos, vel, glob, num_joints)[0], None
+            else:
+                mean = actor.forward(pos[idx], vel[idx], glob[idx], num_joints[idx])[0]
+                rows = {int(i): row for row, i in enumerate(idx)}
+            # clipped and cast for all swimmers in one call each, not one per swimmer
+            threads.map(partial(step, applied_action(mean).astype(np.float64), rows), idx.tolist())
     finally:
         threads.close()
     keys_arr = np.array(keys)
