@@ -123,7 +123,7 @@ def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
 
 class _BangBang(NumpyPolicy):
     """The policy's own mean action, but +-1 on every joint of a 64-joint chain: driven so from rest, 64
-    joints diverge at their first step (MuJoCo's bad-acceleration warning)."""
+    joints can diverge at their first step (MuJoCo's bad-acceleration warning; one of three episodes here)."""
 
     def forward(self, joint_pos, joint_vel, global_feats, num_joints):
         mean, value = super().forward(joint_pos, joint_vel, global_feats, num_joints)
