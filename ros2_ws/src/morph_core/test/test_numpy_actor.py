@@ -53,6 +53,7 @@ def test_numpy_batched_act_equals_torch(bidirectional):
     np.testing.assert_allclose(log_prob, t_log_prob.numpy(), atol=1e-4, rtol=1e-5)
     np.testing.assert_allclose(action, (t_mean.numpy() + np.exp(fast.log_std) * noise) * mask, atol=1e-5)
     assert not action[~mask].any()  # padding stays zero
+    np.testing.assert_array_equal(fast.mean_actions(pos, vel, glob, n), mean)  # the evaluation's, without the critic
 
 
 def test_a_policy_that_saw_other_chain_mixes_answers_as_a_fresh_one():

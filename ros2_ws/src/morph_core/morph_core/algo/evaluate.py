@@ -45,11 +45,10 @@ def evaluate_policy(
     threads = EnvThreads(num_threads)
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
 
-    def step(applied: np.ndarray, rows: dict[int, int] | None, i: int) -> None:
-        r, terminated = envs[i].advance(applied[i if rows is None else rows[i], : keys[i]])
+    def step(applied: np.ndarray, rows: dict[int, int] | None, i: int) -> tuple[float, bool]:
+        outcome = envs[i].advance(applied[i if rows is None else rows[i], : keys[i]])
         envs[i].write_observation(pos[i], vel[i], glob[i])
-        returns[i] += r
-        alive[i] = not terminated
+        return outcome
 
     try:
         for _ in range(max_steps):
@@ -57,12 +56,14 @@ def evaluate_policy(
             if idx.size == 0:
                 break
             if idx.size == len(envs):  # every swimmer still going (the usual case): its row is its index
-                mean, rows = actor.forward(pos, vel, glob, num_joints)[0], None
+                mean, rows = actor.mean_actions(pos, vel, glob, num_joints), None
             else:
-                mean = actor.forward(pos[idx], vel[idx], glob[idx], num_joints[idx])[0]
+                mean = actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx])
                 rows = {int(i): row for row, i in enumerate(idx)}
-            # clipped and cast for all swimmers in one call each, not one per swimmer
-            threads.map(partial(step, applied_action(mean).astype(np.float64), rows), idx.tolist())
+            # clipped and cast for all swimmers in one call each, the outcomes added up as arrays
+            outcomes = threads.map(partial(step, applied_action(mean).astype(np.float64), rows), idx.tolist())
+            returns[idx] += np.array([r for r, _ in outcomes])
+            alive[idx] = ~np.array([terminated for _, terminated in outcomes])
     finally:
         threads.close()
     keys_arr = np.array(keys)

@@ -126,16 +126,27 @@ class NumpyPolicy:
 
     def forward(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[np.ndarray, np.ndarray]:
         """Padded batch [B, J] (zero padding beyond each chain) -> mean [B, J] (zero at padding), value [B]."""
-        b, j = joint_pos.shape
-        chains = self._layout(num_joints, j)
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+        pooled = np.add.reduceat(z, chains.first, axis=0) / chains.count
+        return self._padded_mean(chains, z, joint_pos.shape), _tanh_mlp(pooled, self.critic)[:, 0]
+
+    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints) -> np.ndarray:
+        """``forward``'s mean [B, J] alone, without the critic: what a deterministic evaluation acts on."""
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+        return self._padded_mean(chains, z, joint_pos.shape)
+
+    def _joint_embeddings(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[_Layout, np.ndarray]:
+        """The chains' layout and the [V, C] embedding of every joint (its link's plus its chain's global one)."""
+        chains = self._layout(num_joints, joint_pos.shape[1])
         coef = chains.coef.copy()
         coef[chains.slot, 0] = joint_pos.reshape(-1)[chains.joint_padded]
         coef[chains.slot, 1] = joint_vel.reshape(-1)[chains.joint_padded]
-        z = self._links(coef)[chains.link] + self._global(global_feats)[chains.chain]
-        mean = np.zeros(b * j, dtype=np.float32)
+        return chains, self._links(coef)[chains.link] + self._global(global_feats)[chains.chain]
+
+    def _padded_mean(self, chains: _Layout, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        mean = np.zeros(shape[0] * shape[1], dtype=np.float32)
         mean[chains.joint_padded] = _tanh_mlp(z, self.actor)[:, 0]
-        pooled = np.add.reduceat(z, chains.first, axis=0) / chains.count
-        return mean.reshape(b, j), _tanh_mlp(pooled, self.critic)[:, 0]
+        return mean.reshape(shape)
 
     def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
