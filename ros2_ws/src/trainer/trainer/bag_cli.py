@@ -29,8 +29,7 @@ import numpy as np
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, StreamStats, TransitionAssembler, TransitionConfig
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.bag_io import BagError, BagReader, full_topic_name
-from trainer.bag_messages import DATA_TOPIC_TYPES
+from trainer.bag_io import BagError, BagReader
 
 
 @dataclass
@@ -78,8 +77,7 @@ def summarize_bag(path: str | Path, config: TransitionConfig, namespace: str | N
     transitions = asm.push_many(reader.records()) + asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
-    ns = reader.namespaces[0]
-    logical = {full_topic_name(ns, name): name for name in (*DATA_TOPIC_TYPES, reader.episode_topic)}
+    logical = reader.logical_names(reader.namespaces[0])
     topics = []
     for name, info in sorted(reader.topics.items()):
         if name in logical:

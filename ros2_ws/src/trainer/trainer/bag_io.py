@@ -477,8 +477,7 @@ class BagReader:
                     bag_topics.setdefault(t.name, (t, s.path))
             ns = self._namespace(namespace, bag_topics, bag)
             self._check(bag, ns, bag_topics, required)
-            logical = {full_topic_name(ns, n): n for n in (*DATA_TOPIC_TYPES, episode_topic)}
-            self._streams += [_labelled(s, logical) for s in opened]
+            self._streams += [_labelled(s, self.logical_names(ns)) for s in opened]
             for name, (t, _) in bag_topics.items():
                 self.topics.setdefault(name, t)
             self.namespaces.append(ns)
@@ -523,6 +522,11 @@ class BagReader:
         if len(candidates) > 1:
             raise BagError(f"{bag}: several joint_states topics {candidates}: say which namespace to read")
         return candidates[0][: -len("/joint_states")] if candidates else ""
+
+    def logical_names(self, ns: str) -> dict[str, str]:
+        """Full topic name -> logical name (a data topic or the episode announcements) of the topics this reader
+        decodes under namespace ``ns``; every other topic of a bag is counted as skipped."""
+        return {full_topic_name(ns, n): n for n in (*DATA_TOPIC_TYPES, self.episode_topic)}
 
     def _check(self, bag, ns: str, topics: dict[str, tuple[TopicInfo, Path]], required: Sequence[str]) -> None:
         for name in required:
