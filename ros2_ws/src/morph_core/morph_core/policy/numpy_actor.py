@@ -127,8 +127,7 @@ class NumpyPolicy:
     def forward(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[np.ndarray, np.ndarray]:
         """Padded batch [B, J] (zero padding beyond each chain) -> mean [B, J] (zero at padding), value [B]."""
         chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
-        pooled = np.add.reduceat(z, chains.first, axis=0) / chains.count
-        return self._padded_mean(chains, z, joint_pos.shape), _tanh_mlp(pooled, self.critic)[:, 0]
+        return self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z)
 
     def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints) -> np.ndarray:
         """``forward``'s mean [B, J] alone, without the critic: what a deterministic evaluation acts on."""
@@ -148,10 +147,14 @@ class NumpyPolicy:
         mean[chains.joint_padded] = _tanh_mlp(z, self.actor)[:, 0]
         return mean.reshape(shape)
 
+    def _value(self, chains: _Layout, z: np.ndarray) -> np.ndarray:
+        """[B] the critic on each chain's mean joint embedding."""
+        return _tanh_mlp(np.add.reduceat(z, chains.first, axis=0) / chains.count, self.critic)[:, 0]
+
     def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
-        mean, value = self.forward(joint_pos, joint_vel, global_feats, num_joints)
-        mask = self._layout(num_joints, mean.shape[1]).mask
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+        mean, value, mask = self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z), chains.mask
         action = (mean + math.exp(self.log_std) * noise) * mask
         log_prob = log_density_from_norm(np.square(noise * mask).sum(1), num_joints, self.log_std)
         return action.astype(np.float32), log_prob.astype(np.float32), value, mean
