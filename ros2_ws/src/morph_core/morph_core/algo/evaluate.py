@@ -6,13 +6,11 @@ torch policy to 1e-5): one batched forward pass per step, without torch's per-op
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 
 from morph_core.env.reward import applied_action
-from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.env.vec_env import MAX_EPISODE_STEPS, EnvThreads
+from morph_core.env.swimmer_batch import SwimmerBatch
+from morph_core.env.vec_env import MAX_EPISODE_STEPS
 from morph_core.policy.numpy_actor import NumpyPolicy
 
 
@@ -29,42 +27,39 @@ def evaluate_policy(
     ``policy``: a torch ``GraphActorCritic``, a ``weights.PolicyWeights`` or a ``NumpyPolicy``.
     Episode k of every length starts from reset seed ``seed + k``, so every
     checkpoint faces the same initial states. One forward pass per step serves
-    all ``len(lengths) * episodes`` swimmers.
+    all ``len(lengths) * episodes`` swimmers, and the swimmers of a length step in
+    one MuJoCo call (``SwimmerBatch``, on ``num_threads`` threads).
     """
-    keys = [n for n in lengths for _ in range(episodes)]
-    envs = [MorphSwimmerEnv(num_joints=n) for n in keys]
-    width = max(lengths)
-    # The swimmers' observations, padded, one row each (written in place after every step: no per-step dicts).
-    pos, vel = np.zeros((len(envs), width), np.float32), np.zeros((len(envs), width), np.float32)
-    glob, num_joints = np.zeros((len(envs), 4), np.float32), np.array(keys, dtype=np.int64)
-    for k, env in enumerate(envs):
-        env.reset(seed=seed + k % episodes)
-        env.write_observation(pos[k], vel[k], glob[k])
-    returns = np.zeros(len(envs))
-    alive = np.ones(len(envs), dtype=bool)
-    threads = EnvThreads(num_threads)
+    lengths = list(dict.fromkeys(lengths))  # a length asked twice is evaluated once
+    groups = [SwimmerBatch(n, [seed + k for k in range(episodes)], num_threads) for n in lengths]
+    # The swimmers' observations, padded, one row each; a length's swimmers are rows g*episodes.. of group g.
+    count, width = len(lengths) * episodes, max(lengths)
+    pos, vel = np.zeros((count, width), np.float32), np.zeros((count, width), np.float32)
+    glob, num_joints = np.zeros((count, 4), np.float32), np.repeat(np.array(lengths, dtype=np.int64), episodes)
+    rows = [slice(g * episodes, (g + 1) * episodes) for g in range(len(lengths))]
+    for swimmers, r in zip(groups, rows, strict=True):
+        swimmers.write_observation(pos[r], vel[r], glob[r])
+    returns = np.zeros(count)
+    alive = np.ones(count, dtype=bool)
+    applied = np.zeros((count, width))
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
-
-    def step(applied: np.ndarray, rows: dict[int, int] | None, i: int) -> tuple[float, bool]:
-        outcome = envs[i].advance(applied[i if rows is None else rows[i], : keys[i]])
-        envs[i].write_observation(pos[i], vel[i], glob[i])
-        return outcome
-
-    try:
-        for _ in range(max_steps):
-            idx = np.flatnonzero(alive)
-            if idx.size == 0:
-                break
-            if idx.size == len(envs):  # every swimmer still going (the usual case): its row is its index
-                mean, rows = actor.mean_actions(pos, vel, glob, num_joints), None
+    for _ in range(max_steps):
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            break
+        if idx.size == count:  # every swimmer still going (the usual case)
+            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints)).astype(np.float64)
+        else:  # the ended swimmers' rows keep their last actions and are not stepped
+            applied[idx] = applied_action(actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx]))
+        for swimmers, r in zip(groups, rows, strict=True):
+            going = np.flatnonzero(alive[r])
+            if going.size == swimmers.size:
+                reward, diverged = swimmers.advance(applied[r, : swimmers.num_joints])
+            elif going.size:
+                reward, diverged = swimmers.advance(applied[r][going, : swimmers.num_joints], going)
             else:
-                mean = actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx])
-                rows = {int(i): row for row, i in enumerate(idx)}
-            # clipped and cast for all swimmers in one call each, the outcomes added up as arrays
-            outcomes = threads.map(partial(step, applied_action(mean).astype(np.float64), rows), idx.tolist())
-            returns[idx] += np.array([r for r, _ in outcomes])
-            alive[idx] = ~np.array([terminated for _, terminated in outcomes])
-    finally:
-        threads.close()
-    keys_arr = np.array(keys)
-    return {n: returns[keys_arr == n] for n in lengths}
+                continue
+            returns[r][going] += reward
+            alive[r][going] = ~diverged
+            swimmers.write_observation(pos[r], vel[r], glob[r])
+    return {n: returns[r].copy() for n, r in zip(lengths, rows, strict=True)}

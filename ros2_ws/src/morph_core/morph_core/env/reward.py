@@ -34,8 +34,8 @@ def forward_velocity(x_before: float, x_after: float, dt: float) -> float:
 
 
 def control_cost(action, ctrl_cost_weight: float = CTRL_COST_WEIGHT) -> float:
-    """``ctrl_cost_weight * |a|^2``."""
-    return ctrl_cost_weight * np.square(action).sum()  # the method: np.sum's wrapper costs more than the sum
+    """``ctrl_cost_weight * |a|^2`` (per row for a matrix of actions: the same sum as each row's alone)."""
+    return ctrl_cost_weight * np.square(action).sum(axis=-1)  # the method: np.sum's wrapper costs more
 
 
 def swimmer_reward(
@@ -46,5 +46,6 @@ def swimmer_reward(
     forward_reward_weight: float = FORWARD_REWARD_WEIGHT,
     ctrl_cost_weight: float = CTRL_COST_WEIGHT,
 ) -> float:
-    """Swimmer-v5's reward for one control period (see the module docstring)."""
+    """Swimmer-v5's reward for one control period (see the module docstring); for many swimmers at once
+    given arrays: torso positions (n,) and actions (n, joints)."""
     return forward_reward_weight * forward_velocity(x_before, x_after, dt) - control_cost(action, ctrl_cost_weight)

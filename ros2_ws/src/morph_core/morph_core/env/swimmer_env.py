@@ -20,7 +20,8 @@ from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, contr
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
-_BADQACC = mujoco.mjtWarning.mjWARN_BADQACC
+DIVERGENCE_WARNING = mujoco.mjtWarning.mjWARN_BADQACC
+"""the MuJoCo warning whose count rises when a swimmer's physics diverges (MuJoCo then resets its state)"""
 
 
 def _check_joint_range(num_joints) -> tuple[int, int]:
@@ -87,7 +88,7 @@ class MorphSwimmerEnv(gymnasium.Env):
         # Views into this MjData, taken once: each attribute read builds a new array (~0.1 µs, and the
         # step reads them for every swimmer at every step).
         self._qpos, self._qvel, self._ctrl = self.data.qpos, self.data.qvel, self.data.ctrl
-        self._badqacc = self.data.warning[_BADQACC]
+        self._badqacc = self.data.warning[DIVERGENCE_WARNING]
         self.dt = self.model.opt.timestep * self.frame_skip
         self.action_space = spaces.Box(-1.0, 1.0, shape=(num_joints,), dtype=np.float32)
         self.observation_space = self._observation_space(num_joints)
