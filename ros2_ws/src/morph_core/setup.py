@@ -12,7 +12,7 @@ setup(
     ],
     install_requires=[
         "numpy",
-        "mujoco",
+        "mujoco>=4.0",  # mujoco.batch (the evaluation steps its swimmers in one call)
         "gymnasium",
         "torch",
         "torch-geometric",
