@@ -121,6 +121,15 @@ def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
     assert (run / "eval.csv").read_text() == (copy / "eval.csv").read_text()
 
 
+def test_a_length_given_twice_is_evaluated_and_written_once(tmp_path):
+    run = train(TrainConfig(total_timesteps=256, seed=2, **SMALL), tmp_path / "run")
+    rows = evaluate_run(run, EvalConfig(lengths=[3, 2, 3], episodes=2), log=lambda _: None)
+    keys = [(r["global_step"], r["num_joints"], r["episode"]) for r in rows]
+    assert len(keys) == len(set(keys)) == 2 * 2 * 2  # 2 checkpoints, lengths 3 and 2, 2 episodes
+    returns = evaluate_policy(GraphActorCritic(), [3, 2, 3], episodes=2, max_steps=5)
+    assert list(returns) == [3, 2] and all(len(v) == 2 for v in returns.values())
+
+
 class _BangBang(NumpyPolicy):
     """The policy's own mean action, but +-1 on every joint of a 64-joint chain: driven so from rest, 64
     joints can diverge at their first step (MuJoCo's bad-acceleration warning; one of three episodes here)."""

@@ -82,7 +82,8 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     chosen = [(step, path) for step, path in ckpts[:: cfg.stride] if step >= cfg.from_step]
     if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
-    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in cfg.lengths if (step, n) not in done])]
+    lengths = list(dict.fromkeys(cfg.lengths))  # a length given twice is evaluated (and written) once
+    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in lengths if (step, n) not in done])]
     for step, todo, results in _evaluated(jobs, cfg):
         for n in todo:
             rows += [
