@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import shutil
 import statistics
 import subprocess
@@ -56,7 +57,10 @@ def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
                f"learner.total_timesteps={(1 + iterations) * BATCH}", f"log_dir={work / 'logs'}"]  # fmt: skip
         marks: list[tuple[float, int]] = []
         tail: deque[str] = deque(maxlen=20)  # the run's last lines, for the error
-        with subprocess.Popen(cmd, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        # PyG writes each message-passing module it generates into the temp directory: this run's, not /tmp
+        env = {**os.environ, "TMPDIR": d}
+        with subprocess.Popen(cmd, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True) as proc:  # fmt: skip
             for line in proc.stdout:
                 tail.append(line)
                 cells = [c.strip() for c in line.split("|")]
