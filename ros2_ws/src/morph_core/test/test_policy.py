@@ -2,6 +2,9 @@
 
 import json
 import os
+import subprocess
+import sys
+import tempfile
 
 import gymnasium
 import numpy as np
@@ -169,3 +172,18 @@ def test_packed_chains_lay_the_batch_end_to_end_with_cuts():
     assert packed.joint_padded.tolist() == [0, 1, 3, 4, 5]
     expected = [[0.1, 1.0], [0.2, 2.0], [0.0, 0.0], [0.3, 3.0], [0.4, 4.0], [0.5, 5.0]]  # padding never leaks
     torch.testing.assert_close(packed.edge_attr, torch.tensor(expected))
+
+
+def test_building_a_policy_leaves_no_generated_module_file_in_the_temp_directory():
+    # PyG writes NNConv's generated propagate module into the temp directory, once per process, and keeps
+    # the file; a fresh interpreter shows whether it is still there after a policy is built.
+    code = (
+        "import os, sys\n"
+        "from morph_core.policy.actor_critic import GraphActorCritic\n"
+        "GraphActorCritic()\n"
+        "path = sys.modules['torch_geometric.nn.conv.nn_conv_NNConv_propagate'].__file__\n"
+        "print(path, os.path.exists(path))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    path, exists = out.split()
+    assert os.path.dirname(path) == tempfile.gettempdir() and exists == "False"

@@ -26,6 +26,11 @@ network with the root weight and bias is exactly the paper's layer.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import tempfile
+
 import torch
 from torch import nn
 from torch_geometric.nn import NNConv
@@ -36,7 +41,21 @@ from morph_core.policy.config import BACKENDS
 
 def _nnconv(in_channels: int, out_channels: int, root: bool) -> NNConv:
     edge_net = nn.Linear(NUM_EDGE_FEATURES, in_channels * out_channels)
-    return NNConv(in_channels, out_channels, nn=edge_net, aggr="add", root_weight=root, bias=root)
+    conv = NNConv(in_channels, out_channels, nn=edge_net, aggr="add", root_weight=root, bias=root)
+    _remove_generated_source(NNConv)
+    return conv
+
+
+def _remove_generated_source(cls: type) -> None:
+    """Delete the file PyG wrote ``cls``'s generated ``propagate`` module to. The first ``NNConv`` of a process
+    renders that module from a template into a file of the temp directory, imports it and never deletes
+    the file, so every process that built a policy left one in /tmp (hundreds a day from test runs). The
+    module lives on in memory; only its source file goes (it serves TorchScript, which nothing here uses)."""
+    module = sys.modules.get(f"{cls.__module__}_{cls.__name__}_propagate")  # PyG's name for it
+    path = getattr(module, "__file__", None)
+    if path and os.path.dirname(path) == tempfile.gettempdir():
+        with contextlib.suppress(OSError):  # already gone, or not ours to delete
+            os.unlink(path)
 
 
 class ChainConv(nn.Module):
