@@ -477,7 +477,7 @@ def update(
     for _ in range(cfg.update_epochs):
         epochs += 1
         perm = torch.randperm(batch.size, generator=generator)
-        minibatches = [perm[start:stop] for start, stop in zip(cuts[:-1], cuts[1:], strict=True)]
+        minibatches = [perm[start:stop] for start, stop in pairwise(cuts)]
         world, advantages = 1, [None] * len(minibatches)  # one process normalises within the loss
         if peers is not None:
             perm_advantages = normalized_minibatch_advantages(batch.advantages, perm, cuts)

@@ -20,7 +20,7 @@ import numpy as np
 from mujoco.batch import Batch
 
 from morph_core.env.reward import swimmer_reward
-from morph_core.env.swimmer_env import DIVERGENCE_WARNING, MorphSwimmerEnv
+from morph_core.env.swimmer_env import DIVERGENCE_WARNING, MorphSwimmerEnv, write_graph_observation
 
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -64,12 +64,4 @@ class SwimmerBatch:
     def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
         """Every swimmer's graph observation into its row of padded arrays (``size`` rows, as
         ``MorphSwimmerEnv.write_observation`` writes one)."""
-        qpos, qvel, n = self._qpos, self._qvel, self.num_joints
-        joint_pos[:, :n], joint_vel[:, :n] = qpos[:, 3:], qvel[:, 3:]
-        joint_pos[:, n:], joint_vel[:, n:] = 0.0, 0.0
-        global_feats[:, 0], global_feats[:, 1], global_feats[:, 2], global_feats[:, 3] = (
-            qpos[:, 2],
-            qvel[:, 2],
-            qvel[:, 0],
-            qvel[:, 1],
-        )
+        write_graph_observation(self._qpos, self._qvel, self.num_joints, joint_pos, joint_vel, global_feats)

@@ -24,6 +24,17 @@ DIVERGENCE_WARNING = mujoco.mjtWarning.mjWARN_BADQACC
 """the MuJoCo warning whose count rises when a swimmer's physics diverges (MuJoCo then resets its state)"""
 
 
+def write_graph_observation(qpos, qvel, num_joints: int, joint_pos, joint_vel, global_feats) -> None:
+    """The graph observation of a swimmer's MuJoCo state (``qpos``, ``qvel``) written into padded arrays: the
+    joints' angles and velocities into the first ``num_joints`` entries of ``joint_pos`` and ``joint_vel`` (the
+    rest zeroed), ``GLOBAL_FEATURES`` into ``global_feats``. One swimmer (1-D arrays) or several (a row each)."""
+    n = num_joints
+    joint_pos[..., :n], joint_vel[..., :n] = qpos[..., 3:], qvel[..., 3:]
+    joint_pos[..., n:], joint_vel[..., n:] = 0.0, 0.0
+    global_feats[..., 0], global_feats[..., 1] = qpos[..., 2], qvel[..., 2]  # yaw, yaw rate
+    global_feats[..., 2], global_feats[..., 3] = qvel[..., 0], qvel[..., 1]  # vx, vy
+
+
 def _check_joint_range(num_joints) -> tuple[int, int]:
     if isinstance(num_joints, numbers.Integral) and not isinstance(num_joints, bool):
         n = check_num_joints(num_joints)
@@ -182,10 +193,7 @@ class MorphSwimmerEnv(gymnasium.Env):
         """The graph observation written into one row of padded arrays (``policy.chains.pad_observations``'s
         layout, any float dtype): the first ``num_joints`` entries of ``joint_pos`` and ``joint_vel`` (the rest
         zeroed) and the 4 global features. The same values as ``_observation()`` padded, without its dict."""
-        qpos, qvel, n = self._qpos, self._qvel, self.num_joints
-        joint_pos[:n], joint_vel[:n] = qpos[3:], qvel[3:]
-        joint_pos[n:], joint_vel[n:] = 0.0, 0.0
-        global_feats[0], global_feats[1], global_feats[2], global_feats[3] = qpos[2], qvel[2], qvel[0], qvel[1]
+        write_graph_observation(self._qpos, self._qvel, self.num_joints, joint_pos, joint_vel, global_feats)
 
     def _reset_info(self) -> dict:
         return {
