@@ -136,7 +136,6 @@ class PackedChains:
     joint_padded: [V] each joint's flat index in the padded [B * J] layout.
     """
 
-    num_links: int
     edge_attr: torch.Tensor
     slot_mask: torch.Tensor
     joint_link: torch.Tensor
@@ -160,4 +159,11 @@ class PackedChains:
         slot_mask = np.zeros(num_slots, dtype=bool)
         slot_mask[joint_slot] = True
         t = torch.from_numpy
-        return cls(num_links, t(edge_attr), t(slot_mask), t(joint_slot + 1), t(joint_chain), t(joint_padded))
+        return cls(t(edge_attr), t(slot_mask), t(joint_slot + 1), t(joint_chain), t(joint_padded))
+
+    @property
+    def num_links(self) -> int:
+        """L: one more than the slots between them (none in an empty batch). Read off a tensor's size, so
+        that a compiled graph takes it as a size, not as a constant (``algo.compiled``)."""
+        slots = self.edge_attr.shape[0]
+        return slots + 1 if slots else 0
