@@ -134,3 +134,44 @@ def test_without_a_cxx_compiler_training_falls_back_to_eager():
     torch.testing.assert_close(y, scaled_softplus(x))
     torch.testing.assert_close(fn(x + 1), scaled_softplus(x + 1))  # later calls stay eager
     assert len(eager_calls) == 2
+
+
+def test_a_call_outside_the_traced_sizes_or_constants_gets_a_graph_of_its_own():
+    # The graph is traced with symbolic sizes but assumes what the trace saw: no size of 0 or 1 (a
+    # minibatch of one-joint chains is 1 joint wide) and the constants it was given (the value loss
+    # coefficient). Calls that break either must not reuse it: each gets its own graph, with the right
+    # numbers, and a call like the first again goes back to the first graph.
+    torch.manual_seed(0)
+    paths = _Paths("compensated")
+    rng = np.random.default_rng(3)
+    first = _minibatch(rng, 64, 10, weighted=False)
+    _assert_same(*paths((*first, 0.5, 0.01), {}))
+    n = np.ones(32, dtype=np.int64)
+    one_joint = ChainBatch.from_padded(rng.normal(0, 1, (32, 1)), rng.normal(0, 3, (32, 1)), rng.normal(0, 1, (32, 4)), n)
+    rest = [torch.as_tensor(rng.normal(0, 1, shape), dtype=torch.float32) for shape in ((32, 1), 32, 32, 32)]
+    clip_range = get_rule("compensated").clip_range(0.111, one_joint.num_joints.to(torch.float32))
+    _assert_same(*paths((one_joint, *rest, clip_range, None, 0.5, 0.01), {}))
+    _assert_same(*paths((*first, 0.25, 0.01), {}))  # another value-loss coefficient
+    _assert_same(*paths((*_minibatch(rng, 48, 7, weighted=False), 0.5, 0.01), {}))
+    assert len(paths.fns[True].graphs) == 3
+    assert not paths.fns[True].fell_back
+
+
+def test_calls_beyond_the_graphs_kept_run_eagerly(monkeypatch):
+    import morph_core.algo.compiled as compiled_module
+
+    monkeypatch.setattr(compiled_module, "MAX_GRAPHS", 1)  # the limit, not the compiler: nothing replaced
+    fn = compiled(lambda x, scale: torch.nn.functional.softplus(scale * x) / scale)
+    x = torch.linspace(-2, 2, 9)
+    torch.testing.assert_close(fn(x, 3.0), torch.nn.functional.softplus(3.0 * x) / 3.0)
+    with pytest.warns(UserWarning, match="run eagerly"):
+        y = fn(x, 2.0)
+    torch.testing.assert_close(y, torch.nn.functional.softplus(2.0 * x) / 2.0)
+    assert len(fn.graphs) == 1 and not fn.fell_back
+    torch.testing.assert_close(fn(x + 1, 3.0), torch.nn.functional.softplus(3.0 * (x + 1)) / 3.0)  # still compiled
+
+
+def test_arguments_it_cannot_trace_are_refused_by_name():
+    fn = compiled(lambda x, obj: x * 2)
+    with pytest.raises(TypeError, match="object"):
+        fn(torch.ones(3), object())
