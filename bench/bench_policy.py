@@ -6,9 +6,10 @@ One PPO-sized minibatch (256 swimmer states, chains of 2..10 joints), PPO's
 loss under the compensated clip: forward, backward and a fused-Adam step, one
 torch thread, with the same parameters, measured side by side: the dense layer
 in eager mode, with the loss compiled and autograd's backward, with loss and
-gradient one compiled graph of the flat parameters (as training runs it,
-``update.minibatch_gradient``), and PyG's NNConv. Then the heads' activation
-alone.
+gradient one compiled graph of the flat parameters called through
+``torch.compile`` and called directly (as training runs it,
+``update.minibatch_gradient`` and ``algo.compiled``), and PyG's NNConv. Then
+the heads' activation alone.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import gymnasium
 import torch
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.algo.compiled import compiled
 from morph_core.algo.param_buffer import FlatParameters
 from morph_core.algo.ppo import ppo_loss
 from morph_core.algo.trust_region import get_rule
@@ -65,11 +65,13 @@ def main() -> None:
 
         return step
 
-    def flat_step(net):
+    def flat_step(net, direct=True):
         policy = copy.deepcopy(net)  # its parameters become views into the flat vector
         flat = FlatParameters(policy)
         opt = torch.optim.Adam([flat.theta], lr=1e-5, fused=True)
         gradient = minibatch_gradient(policy, flat, rule, compile=True)
+        if not direct:  # the same function through torch.compile's per-call machinery (training before 3eaadb7)
+            gradient = torch.compile(gradient.__wrapped__, dynamic=True, options={"cpp_wrapper": True})
         share = torch.tensor(1.0)
 
         def step():
@@ -79,14 +81,16 @@ def main() -> None:
 
         return step
 
+    loss_compiled = torch.compile(loss_of, dynamic=True, options={"cpp_wrapper": True})
     print("| backend | forward+backward+Adam, 256 states (ms) |\n|---|---:|")
     for name, step in (
         ("dense chain NNConv, eager", autograd_step(dense, loss_of)),
-        ("dense chain NNConv, loss compiled, autograd's backward", autograd_step(dense, compiled(loss_of))),
-        ("dense chain NNConv, loss and gradient one compiled graph (training)", flat_step(dense)),
+        ("dense chain NNConv, loss compiled, autograd's backward", autograd_step(dense, loss_compiled)),
+        ("dense chain NNConv, loss and gradient one graph, through torch.compile", flat_step(dense, direct=False)),
+        ("dense chain NNConv, loss and gradient one graph, called directly (training)", flat_step(dense)),
         ("PyG NNConv, eager", autograd_step(pyg, loss_of)),
     ):
-        print(f"| {name} | {per_call_ms(step, 100):.2f} |")
+        print(f"| {name} | {per_call_ms(step, 300):.2f} |")
     x = torch.randn(1536, 64)  # ~the actor head's hidden layer on a minibatch's joints
     t_tanh = per_call_ms(lambda: torch.tanh(x), 1000) * 1e3
     t_sig = per_call_ms(lambda: torch.sigmoid(2.0 * x).mul(2.0).sub(1.0), 1000) * 1e3

@@ -4,7 +4,7 @@
     python bench/bench_train.py [--iterations 4] [--reference DIR --reference-python PY]
 
 Runs the real training loop (6 envs x 1024 steps, minibatch 256, 10 epochs,
-chains drawn from 2..10, torch.compile on as by default) for one warm-up
+chains drawn from 2..10, the update compiled as by default) for one warm-up
 iteration and a few timed ones, in four settings: one core; both cores
 for the physics with the paper's single torch thread; both cores for
 physics and update by threads; two processes, each with half the swimmers

@@ -146,8 +146,8 @@ def test_a_call_outside_the_traced_sizes_or_constants_gets_a_graph_of_its_own():
     rng = np.random.default_rng(3)
     first = _minibatch(rng, 64, 10, weighted=False)
     _assert_same(*paths((*first, 0.5, 0.01), {}))
-    n = np.ones(32, dtype=np.int64)
-    one_joint = ChainBatch.from_padded(rng.normal(0, 1, (32, 1)), rng.normal(0, 3, (32, 1)), rng.normal(0, 1, (32, 4)), n)
+    states = (rng.normal(0, 1, (32, 1)), rng.normal(0, 3, (32, 1)), rng.normal(0, 1, (32, 4)))
+    one_joint = ChainBatch.from_padded(*states, np.ones(32, dtype=np.int64))
     rest = [torch.as_tensor(rng.normal(0, 1, shape), dtype=torch.float32) for shape in ((32, 1), 32, 32, 32)]
     clip_range = get_rule("compensated").clip_range(0.111, one_joint.num_joints.to(torch.float32))
     _assert_same(*paths((one_joint, *rest, clip_range, None, 0.5, 0.01), {}))

@@ -71,6 +71,7 @@ def compiled(fn: Callable, enabled: bool = True, eager: Callable | None = None) 
 
     call.fell_back = False
     call.graphs = graphs
+    call.__wrapped__ = fn  # what is compiled, e.g. for benchmarking it through torch.compile instead
     return call
 
 

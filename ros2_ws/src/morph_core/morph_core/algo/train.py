@@ -107,7 +107,8 @@ class TrainConfig:
     """processes sharing the swimmers and every minibatch's gradient (algo.data_parallel); 2 uses both cores
     of a 2-core machine. The action noise's random streams depend on it, so a run keeps its count"""
     compile: bool = True
-    """torch.compile the minibatch loss and its backward (~1.5x faster update, ~20 s to compile once;
+    """compile the minibatch loss and its backward into one Inductor graph (algo.compiled; ~1.5x faster
+    update, ~15-30 s to compile once;
     falls back to eager mode with a warning where Inductor cannot run)"""
     tensorboard: bool = True
     """also write TensorBoard scalars"""

@@ -221,8 +221,9 @@ def minibatch_gradient(
     ``clip_share``) are detached.
 
     Compiled, forward and backward are one graph (``torch.func.grad_and_value``) taking the parameters as
-    one input: no autograd engine, no per-parameter gradient accumulation, one guard check per step, which
-    took a minibatch step's fixed cost from ~1.25 to ~0.65 ms (docs/benchmarks.md). Eager (``compile``
+    one input: no autograd engine, no per-parameter gradient accumulation, which took a minibatch step's
+    fixed cost from ~1.25 to ~0.65 ms (docs/benchmarks.md); ``algo.compiled`` calls it without
+    ``torch.compile``'s per-call machinery. Eager (``compile``
     False, or no C++ compiler) the same function is differentiated by autograd, faster than
     ``torch.func`` without a compiler.
     """
