@@ -175,3 +175,11 @@ def test_arguments_it_cannot_trace_are_refused_by_name():
     fn = compiled(lambda x, obj: x * 2)
     with pytest.raises(TypeError, match="object"):
         fn(torch.ones(3), object())
+
+
+def test_the_policy_has_no_tensors_outside_its_parameters():
+    # The compiled gradient takes every parameter through theta; a tensor the policy kept beside them (a
+    # buffer, e.g. running observation statistics) would enter the traced graph as a constant and stay
+    # stale there (algo.compiled). Adding one needs it passed as an argument of the gradient.
+    for backend in ("dense", "pyg"):
+        assert not list(GraphActorCritic(backend=backend).buffers())

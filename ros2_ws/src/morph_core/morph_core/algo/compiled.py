@@ -37,7 +37,9 @@ def compiled(fn: Callable, enabled: bool = True, eager: Callable | None = None) 
     """``fn`` traced and compiled once per argument layout (sizes symbolic: chain mixes vary per minibatch);
     when not ``enabled`` or when compiling fails, ``eager`` (the same computation in a form that runs faster
     uncompiled) or ``fn``. Arguments are tensors, constants (None, bool, int, float, str) and tuples, lists,
-    dicts and dataclasses of them; the result is tensors in such containers."""
+    dicts and dataclasses of them; the result is tensors in such containers. Tensors ``fn`` reads other than
+    through its arguments enter the graph as constants (the update passes all parameters as ``theta``; the
+    policy has no buffers)."""
     eager = fn if eager is None else eager
     if not enabled:
         return eager
