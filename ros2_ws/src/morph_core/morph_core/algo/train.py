@@ -108,8 +108,7 @@ class TrainConfig:
     of a 2-core machine. The action noise's random streams depend on it, so a run keeps its count"""
     compile: bool = True
     """compile the minibatch loss and its backward into one Inductor graph (algo.compiled; ~1.5x faster
-    update, ~15-30 s to compile once;
-    falls back to eager mode with a warning where Inductor cannot run)"""
+    update, ~15-30 s to compile once; falls back to eager mode with a warning where Inductor cannot run)"""
     tensorboard: bool = True
     """also write TensorBoard scalars"""
     progress_bar: bool = True

@@ -223,9 +223,8 @@ def minibatch_gradient(
     Compiled, forward and backward are one graph (``torch.func.grad_and_value``) taking the parameters as
     one input: no autograd engine, no per-parameter gradient accumulation, which took a minibatch step's
     fixed cost from ~1.25 to ~0.65 ms (docs/benchmarks.md); ``algo.compiled`` calls it without
-    ``torch.compile``'s per-call machinery. Eager (``compile``
-    False, or no C++ compiler) the same function is differentiated by autograd, faster than
-    ``torch.func`` without a compiler.
+    ``torch.compile``'s per-call machinery. Eager (``compile`` False, or no C++ compiler) the same function
+    is differentiated by autograd, faster than ``torch.func`` without a compiler.
     """
     module = _RuleLoss(policy, rule)
 
