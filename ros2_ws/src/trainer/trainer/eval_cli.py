@@ -82,13 +82,11 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     chosen = [(step, path) for step, path in ckpts[:: cfg.stride] if step >= cfg.from_step]
     if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
-    lengths = list(dict.fromkeys(cfg.lengths))  # a length given twice is evaluated (and written) once
-    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in lengths if (step, n) not in done])]
-    for step, todo, results in _evaluated(jobs, cfg):
-        for n in todo:
+    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in cfg.lengths if (step, n) not in done])]
+    for step, results in _evaluated(jobs, cfg):
+        for n, returns in results.items():  # once per length, even one given twice (evaluate_policy)
             rows += [
-                {"global_step": step, "num_joints": n, "episode": k, "return": float(r)}
-                for k, r in enumerate(results[n])
+                {"global_step": step, "num_joints": n, "episode": k, "return": float(r)} for k, r in enumerate(returns)
             ]
         rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), int(r["episode"])))
         # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
@@ -96,7 +94,7 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
             w.writeheader()
             w.writerows(rows)
-        means = " ".join(f"{n}:{results[n].mean():.1f}" for n in todo)
+        means = " ".join(f"{n}:{returns.mean():.1f}" for n, returns in results.items())
         log(f"{run_dir.name} step {step}: {means}")
     return rows
 
@@ -114,16 +112,16 @@ def one_blas_thread() -> None:
 
 
 def _evaluated(jobs: list[tuple[int, Path, list[int]]], cfg: EvalConfig):
-    """(step, lengths, results) of every job, in order, evaluated ``cfg.processes`` at a time."""
+    """(step, results) of every job, in order, evaluated ``cfg.processes`` at a time."""
     if cfg.processes == 1 or len(jobs) < 2:
         for step, path, todo in jobs:
-            yield step, todo, evaluate_checkpoint(path, todo, cfg)
+            yield step, evaluate_checkpoint(path, todo, cfg)
         return
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or locks
     with ProcessPoolExecutor(min(cfg.processes, len(jobs)), mp_context=context, initializer=one_blas_thread) as pool:
-        futures = [(step, todo, pool.submit(evaluate_checkpoint, path, todo, cfg)) for step, path, todo in jobs]
-        for step, todo, future in futures:
-            yield step, todo, future.result()
+        futures = [(step, pool.submit(evaluate_checkpoint, path, todo, cfg)) for step, path, todo in jobs]
+        for step, future in futures:
+            yield step, future.result()
 
 
 def main(argv: list[str] | None = None) -> None:

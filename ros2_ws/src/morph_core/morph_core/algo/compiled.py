@@ -86,12 +86,17 @@ class _Graph:
     """the trace's size assumptions as compiled Python over ``L['t<i>']`` (the i-th tensor), or None"""
     run: Callable
     out_key: Any
+    names: tuple[str, ...]
+    """``t<i>`` for each tensor: its name in ``shape_guards``"""
+    interp: dict
+    """the functions ``shape_guards`` calls (imported with the tracer, not at start-up)"""
 
     @classmethod
     def trace(cls, fn: Callable, key, leaves: list) -> _Graph:
         import torch._inductor
         from torch._guards import detect_fake_mode
         from torch.fx.experimental.proxy_tensor import make_fx
+        from torch.fx.experimental.symbolic_shapes import SYMPY_INTERP
 
         out_keys = []
 
@@ -108,16 +113,15 @@ class _Graph:
         code = shape_env.produce_guards_expression(fakes, ignore_static=False)
         shape_guards = compile(code, "<shape guards>", "eval") if code else None
         run = torch._inductor.compile(gm, list(leaves), options={"cpp_wrapper": True})
-        return cls(key, shape_guards, run, out_keys[-1])
+        names = tuple(f"t{i}" for i in range(len(leaves)))
+        return cls(key, shape_guards, run, out_keys[-1], names, SYMPY_INTERP)
 
     def fits(self, key, leaves: list) -> bool:
         if key != self.key:
             return False
         if self.shape_guards is None:
             return True
-        from torch.fx.experimental.symbolic_shapes import SYMPY_INTERP
-
-        return bool(eval(self.shape_guards, SYMPY_INTERP, {"L": {f"t{i}": t for i, t in enumerate(leaves)}}))
+        return bool(eval(self.shape_guards, self.interp, {"L": dict(zip(self.names, leaves, strict=True))}))
 
     def __call__(self, leaves: list):
         return _unflatten(self.out_key, iter(self.run(*leaves)))
