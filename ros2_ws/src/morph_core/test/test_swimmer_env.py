@@ -56,6 +56,26 @@ def test_segments_have_swimmer_v5_geometry():
     assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
 
 
+@pytest.mark.parametrize("n", [2, 9])
+def test_collision_detection_off_changes_no_trajectory(n):
+    # The flag is only safe while no geom can collide; with detection back on,
+    # the same controls must give the same states bit for bit.
+    m = swimmer_model(n)
+    assert m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT
+    assert not m.geom_contype.any() and not m.geom_conaffinity.any()
+    on = mujoco.MjModel.from_xml_string(swimmer_mjcf(n))
+    on.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    states = []
+    for model in (m, on):
+        data = mujoco.MjData(model)
+        data.qpos[2:] = 0.3
+        for t in range(600):
+            data.ctrl[:] = np.sin(0.1 * t + np.arange(n))  # reaches the joint limits
+            mujoco.mj_step(model, data)
+        states.append(np.concatenate([data.qpos, data.qvel]))
+    np.testing.assert_array_equal(states[0], states[1])
+
+
 def test_models_are_cached_and_built_from_strings():
     assert swimmer_model(5) is swimmer_model(5)
     assert "motor5_rot" in swimmer_mjcf(5) and "motor6_rot" not in swimmer_mjcf(5)

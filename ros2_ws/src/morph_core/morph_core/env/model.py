@@ -5,6 +5,11 @@ With ``num_joints=2`` the generated model is Gymnasium's ``swimmer.xml``
 segments of the same length behind the tail. The torso frame stays where
 Swimmer-v5 puts it (at the joint between the first two segments' bodies), so
 ``x_velocity`` is measured at the same point for every chain length.
+
+No geom can touch another (``contype`` = ``conaffinity`` = 0, as in
+swimmer.xml), so the model also switches MuJoCo's collision detection off
+(``<flag contact="disable"/>``): the trajectories are the same bit for bit,
+and each step is ~0.9 µs (5-9% of a short chain's step) cheaper.
 """
 
 from __future__ import annotations
@@ -26,7 +31,9 @@ GEAR = 150.0
 
 _HEADER = """<mujoco model="swimmer{n}">
   <compiler angle="degree" inertiafromgeom="true"/>
-  <option density="4000" integrator="RK4" timestep="0.01" viscosity="0.1"/>
+  <option density="4000" integrator="RK4" timestep="0.01" viscosity="0.1">
+    <flag contact="disable"/>
+  </option>
   <default>
     <geom conaffinity="0" condim="1" contype="0" material="geom" rgba="0.8 0.6 .4 1"/>
     <joint armature="0.1"/>
