@@ -5,10 +5,12 @@
 Per K: the pairs start (chains of 2..10 joints, sampling policies), their loop rate is measured with no trainer
 (env-steps/s summed over the pairs, counted from ``/clock``, which each sim publishes once per step: a listener
 on one small topic, the same in both phases), then ``morph-train --live`` starts (the paper's batch of 6,144) and
-the same rate is measured again from its first to its last update (and once more alone after the trainer
-stops: the cost is against the mean of both, as the machine's speed drifts), beside the rate the trainer collects over
-that window (its ``progress.csv``: env_steps between updates over wall time) and its update time. Prints a
-Markdown table (and writes it to ``--out``).
+the same rate is measured again over ``--updates`` updates after ``--warmup-updates`` (the first compiles the
+update, the next work off the samples that came in meanwhile) and once more alone after the trainer stops (the
+cost is against the mean of both, as the machine's speed drifts), beside the rate the trainer collects over that
+window (its ``progress.csv``: env_steps between updates over wall time), its update time and the CPU it used
+in the window (seconds per second, all its threads; ``bench_live_neighbour.py`` measures what that much CPU costs
+the pairs from a process doing nothing else). Prints a Markdown table (and writes it to ``--out``).
 
 ``--ingest-only``: the trainer gets a batch no window fills (it subscribes, decodes and assembles, but never
 updates), and the loop rate with it is measured over ``--seconds`` once every pair has joined: what listening
@@ -84,16 +86,24 @@ class ClockCounter:
         return (self.count - c0) / (time.monotonic() - t0)
 
 
-def _collected(run: Path) -> tuple[float, float, int]:
-    """(env-steps/s collected between the first and last update, mean update seconds, updates)."""
+def _collected(run: Path, first: int = 1) -> tuple[float, float, int]:
+    """(env-steps/s collected from the end of update ``first`` to the last one, mean seconds of the updates in
+    that window, updates so far)."""
     path = run / "progress.csv"
     rows = list(csv.DictReader(open(path))) if path.exists() else []
-    if len(rows) < 2:
-        return float("nan"), float(rows[0]["update_s"]) if rows else float("nan"), len(rows)
-    steps = int(rows[-1]["env_steps"]) - int(rows[0]["env_steps"])
-    wall = float(rows[-1]["wall_time"]) - float(rows[0]["wall_time"])
-    upd = sum(float(r["update_s"]) + float(r["prepare_s"]) for r in rows) / len(rows)
+    window = rows[first - 1 :]
+    if len(window) < 2:
+        return float("nan"), float("nan"), len(rows)
+    steps = int(window[-1]["env_steps"]) - int(window[0]["env_steps"])
+    wall = float(window[-1]["wall_time"]) - float(window[0]["wall_time"])
+    upd = sum(float(r["update_s"]) + float(r["prepare_s"]) for r in window[1:]) / (len(window) - 1)
     return steps / wall, upd, len(rows)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """CPU seconds (user + system, all threads) a live process has used so far (Linux's /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def _joined(log: Path, k: int) -> bool:
@@ -106,6 +116,7 @@ def bench(
     work: Path,
     counter: ClockCounter,
     updates: int,
+    warmup: int,
     ingest_only: bool = False,
     trainer_args: tuple[str, ...] = (),
     real_time_factor: float = 0.0,
@@ -125,8 +136,9 @@ def bench(
             pass
         alone = counter.rate(seconds)
         run = work / f"run{k}"
+        # The update compiled as by default: its first update (compiling) ends before the measured window.
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
-               "--compile", "false", "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
+               "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
         cmd += trainer_args
         if ingest_only:
             cmd += ["--num-envs", "1", "--num-steps", "100000000"]
@@ -136,18 +148,23 @@ def bench(
             deadline = time.monotonic() + 20 * seconds
             while not _joined(work / f"trainer{k}.log", k) and time.monotonic() < deadline:
                 counter.rate(1.0)
+            cpu0, t0 = _cpu_seconds(trainer.pid), time.monotonic()
             with_trainer = counter.rate(seconds)
+            trainer_cpu = (_cpu_seconds(trainer.pid) - cpu0) / (time.monotonic() - t0)
             collected, update_s, updates = float("nan"), float("nan"), 0
         else:
-            # The loop rate with the trainer over the same window as the collection: from its first update on.
+            # The loop rate with the trainer over the same window as the collection: from the end of update
+            # ``warmup`` on. The first update compiles (~25 s), and the next ones work off, back to back, the
+            # samples that came in meanwhile: neither is the trainer's steady state.
             deadline = time.monotonic() + 20 * seconds
-            while _collected(run)[2] < 1 and time.monotonic() < deadline:
+            while _collected(run)[2] < warmup and time.monotonic() < deadline:
                 counter.rate(1.0)
-            c0, t0 = counter.count, time.monotonic()
-            while _collected(run)[2] < updates and time.monotonic() < deadline:
+            c0, cpu0, t0 = counter.count, _cpu_seconds(trainer.pid), time.monotonic()
+            while _collected(run)[2] < warmup + updates and time.monotonic() < deadline:
                 counter.rate(1.0)
             with_trainer = (counter.count - c0) / (time.monotonic() - t0)
-            collected, update_s, updates = _collected(run)
+            trainer_cpu = (_cpu_seconds(trainer.pid) - cpu0) / (time.monotonic() - t0)
+            collected, update_s, _ = _collected(run, warmup)
         # The rate alone once more: the machine's speed drifts within minutes, so the cost is against both.
         _stop([trainer])
         counter.rate(2.0)
@@ -155,14 +172,16 @@ def bench(
     finally:
         _stop(procs)
     return {"K": k, "alone": alone, "with": with_trainer, "after": after, "collected": collected,
-            "update_s": update_s, "updates": updates}  # fmt: skip
+            "update_s": update_s, "updates": updates, "trainer_cpu": trainer_cpu}  # fmt: skip
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, nargs="+", default=[1, 2, 4])
     ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
-    ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over (>= 2)")
+    ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over")
+    ap.add_argument("--warmup-updates", type=int, default=4,
+                    help="updates before the window (the first compiles, the next work off the backlog)")  # fmt: skip
     ap.add_argument("--ingest-only", action="store_true", help="a trainer that never updates (listening alone)")
     ap.add_argument("--real-time-factor", type=float, default=0.0,
                     help="pace the sims (1: real time, 25 steps/s per pair; 4: a 100 Hz loop); 0: unpaced")  # fmt: skip
@@ -182,7 +201,15 @@ def main() -> int:
         for k in args.pairs:
             trainer_args = tuple(args.trainer_args.split())
             r = bench(
-                k, args.seconds, work, counter, args.updates, args.ingest_only, trainer_args, args.real_time_factor
+                k,
+                args.seconds,
+                work,
+                counter,
+                args.updates,
+                args.warmup_updates,
+                args.ingest_only,
+                trainer_args,
+                args.real_time_factor,
             )
             results.append(r)
             print(r, flush=True)
@@ -199,14 +226,15 @@ def main() -> int:
         + (f" Trainer options: {args.trainer_args}." if args.trainer_args else ""),
         "",
         "| K | loop rate, no trainer (before / after) | loop rate, trainer listening | cost | "
-        "collected by the trainer | update (prepare + PPO) | updates |",
-        "|---|---|---|---|---|---|---|",
+        "collected by the trainer | update (prepare + PPO) | updates in the window | trainer's CPU, s/s |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         alone = (r["alone"] + r["after"]) / 2
         cost = 1 - r["with"] / alone if alone else float("nan")
         lines.append(f"| {r['K']} | {r['alone']:.0f} / {r['after']:.0f} | {r['with']:.0f} | {100 * cost:.0f}% | "
-                     f"{r['collected']:.0f} | {r['update_s']:.2f} s | {r['updates']} |")  # fmt: skip
+                     f"{r['collected']:.0f} | {r['update_s']:.2f} s | {r['updates']} | "
+                     f"{r['trainer_cpu']:.2f} |")  # fmt: skip
     table = "\n".join(lines)
     print(table)
     if args.out:
