@@ -47,11 +47,14 @@ def measured(counter: ClockCounter, seconds: float, policy: str | None, duty: fl
     neighbour, start = None, time.monotonic()
     if policy is not None:
         neighbour = subprocess.Popen([sys.executable, "-c", _NEIGHBOUR, policy, str(duty)])
-    counter.rate(1.0)  # settle
-    rate = counter.rate(seconds)
+    try:
+        counter.rate(1.0)  # settle
+        rate = counter.rate(seconds)
+    finally:
+        if neighbour is not None:
+            neighbour.kill()  # also when interrupted: it would compute forever
     if neighbour is None:
         return rate, 0.0
-    neighbour.kill()
     _, _, usage = os.wait4(neighbour.pid, 0)  # reaped here, for its CPU use
     neighbour.returncode = -9
     return rate, (usage.ru_utime + usage.ru_stime) / (time.monotonic() - start)
