@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
@@ -215,3 +215,18 @@ def test_bringup_records_and_exits(untrained_checkpoint, tmp_path, namespace):
     info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert jazzy_metadata_problems(info) == []
     assert np.isfinite([r.log_prob for r in records if isinstance(r, PolicyInfoRecord)]).all()
+
+
+@pytest.mark.timeout(120)
+def test_announcements_heard_before_any_sim_starts(probe, launch, tmp_path, namespace):
+    # A lockstep sim runs episodes within milliseconds of its start: a recorder that subscribed to the
+    # announcements only once it saw the sim recorded data of episodes past max_episodes before hearing them.
+    launch("morph-record", output=str(tmp_path / "bag"), max_episodes=1)
+    topic = f"{namespace}/episode_start"
+
+    def recorder_latched() -> bool:
+        infos = [i for i in probe.node.get_subscriptions_info_by_topic(topic) if i.node_name == "morph_record"]
+        return any(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+
+    probe.spin_until(recorder_latched, STARTUP, "the recorder reading the announcements, transient local")
+    assert not probe.node.get_publishers_info_by_topic(topic)  # with no publisher in sight

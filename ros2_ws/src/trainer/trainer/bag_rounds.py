@@ -169,9 +169,10 @@ def record_round(cfg: RoundsConfig, r: int, checkpoint: Path) -> None:
                  {"output": str(bag), "storage": cfg.storage, "max_episodes": cfg.episodes_per_round})  # fmt: skip
         up.start("policy node", "morph_policy_node.policy_node",
                  {"checkpoint": str(checkpoint), "deterministic": "false", "seed": seed})  # fmt: skip
-        # (The recorder subscribes to the latched episode_start once the sim publishes it, and gets the
-        # first announcement then: transient local.)
+        # The recorder listens to the announcements before the sim starts: it stops at episode
+        # max_episodes + 1, and must hear that announcement before the episode's data.
         wanted = [(f"{ns}/{topic}", node, kind) for topic, node, kind in (
+            ("episode_start", "morph_record", "sub"),
             ("joint_states", "morph_record", "sub"), ("effort_commands", "morph_record", "sub"),
             ("policy_info", "morph_record", "sub"), ("joint_states", "morph_policy", "sub"),
             ("effort_commands", "morph_policy", "pub"), ("policy_info", "morph_policy", "pub"),

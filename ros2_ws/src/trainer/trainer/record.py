@@ -47,16 +47,19 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC
+from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
 # The announcement first: subscribed to before joint_states in the same discovery pass, so a lockstep
 # sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
 DEFAULT_TOPICS = [EPISODE_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
-# The project's own conventions. Not the announcement: it is latched (transient local), and only a
-# subscription made after its publisher is seen can ask for transient local and get the current one.
-KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*DATA_TOPIC_TYPES.items(), CLOCK)]
+# The project's own conventions, subscribed to before any publisher appears. The announcement too, as
+# transient local (its publisher is latched): a lockstep sim runs episodes within milliseconds of its start,
+# and an announcement subscribed to only once discovery saw the sim came after data of later episodes had
+# been recorded (a bag of max_episodes held one episode more). If its publisher turns out volatile,
+# discovery replaces the subscription.
+KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*TOPIC_TYPES.items(), CLOCK)]
 _LOG_THROTTLE = 5.0
 
 
@@ -272,8 +275,8 @@ class RecorderNode(Node):
                 raise BagWriterError(f"topic_types entry {pair!r} is not topic=pkg/msg/Type")
             declared[self.resolve_topic_name(name)] = msgtype
         for topic in self._wanted:
-            if topic in declared:
-                self._subscribe(topic, declared[topic], reliable=True)  # our nodes publish reliably
+            if topic in declared:  # our nodes publish reliably, and latch the announcement
+                self._subscribe(topic, declared[topic], reliable=True, latched=topic == self._episode_topic)
         self._discover()
         self.create_timer(0.1, self._discover)
         self.create_timer(p("flush_period"), self._flush)
