@@ -110,6 +110,24 @@ def _joined(log: Path, k: int) -> bool:
     return log.exists() and log.read_text(errors="replace").count("is running") >= k
 
 
+def start_pairs(
+    namespaces: list[str], work: Path, counter: ClockCounter, procs: list, real_time_factor: float = 0.0
+) -> None:
+    """A lockstep sim and a sampling policy node in each namespace (appended to ``procs``, so the caller
+    stops them whatever happens), then waits until every loop runs."""
+    for i, ns in enumerate(namespaces):
+        sim = {"lockstep": "true", "real_time_factor": real_time_factor, "effort_timeout": 2.0, "min_joints": 2,
+               "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
+        name = ns.strip("/")
+        procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim_{name}.log"))
+        policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
+        procs.append(_node("morph_policy_node.policy_node", ns, policy, work / f"policy_{name}.log"))
+    # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
+    deadline = time.monotonic() + 180
+    while counter.rate(2.0) < 10 * len(namespaces) and time.monotonic() < deadline:
+        pass
+
+
 def bench(
     k: int,
     seconds: float,
@@ -124,16 +142,7 @@ def bench(
     namespaces = [f"/bench{k}_{i}" for i in range(k)]
     procs = []
     try:
-        for i, ns in enumerate(namespaces):
-            sim = {"lockstep": "true", "real_time_factor": real_time_factor, "effort_timeout": 2.0, "min_joints": 2,
-                   "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
-            procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim{k}_{i}.log"))
-            policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
-            procs.append(_node("morph_policy_node.policy_node", ns, policy, work / f"policy{k}_{i}.log"))
-        # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
-        deadline = time.monotonic() + 180
-        while counter.rate(2.0) < 10 * k and time.monotonic() < deadline:
-            pass
+        start_pairs(namespaces, work, counter, procs, real_time_factor)
         alone = counter.rate(seconds)
         run = work / f"run{k}"
         # The update compiled as by default: its first update (compiling) ends before the measured window.

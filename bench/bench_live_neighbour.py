@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import rclpy
-from bench_live import ClockCounter, _node, _stop
+from bench_live import ClockCounter, _stop, start_pairs
 
 POLICIES = ("idle", "nice19", "normal")
 _NEIGHBOUR = """
@@ -77,16 +77,7 @@ def main() -> int:
         for k in args.pairs:
             procs = []
             try:
-                for i in range(k):
-                    ns = f"/neighbour{k}_{i}"
-                    sim = {"lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0, "min_joints": 2,
-                           "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
-                    procs.append(_node("swimmer_sim_node.sim_node", ns, sim, Path(tmp) / f"sim{k}_{i}.log"))
-                    policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
-                    procs.append(_node("morph_policy_node.policy_node", ns, policy, Path(tmp) / f"policy{k}_{i}.log"))
-                deadline = time.monotonic() + 180
-                while counter.rate(2.0) < 10 * k and time.monotonic() < deadline:
-                    pass
+                start_pairs([f"/neighbour{k}_{i}" for i in range(k)], Path(tmp), counter, procs)
                 before, _ = measured(counter, args.seconds, None, 0.0)
                 beside = [(p, d, *measured(counter, args.seconds, p, d)) for d in args.duty for p in args.policies]
                 after, _ = measured(counter, args.seconds, None, 0.0)

@@ -54,11 +54,9 @@ from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOption
 # sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
 DEFAULT_TOPICS = [EPISODE_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
-# The project's own conventions, subscribed to before any publisher appears. The announcement too, as
-# transient local (its publisher is latched): a lockstep sim runs episodes within milliseconds of its start,
-# and an announcement subscribed to only once discovery saw the sim came after data of later episodes had
-# been recorded (a bag of max_episodes held one episode more). If its publisher turns out volatile,
-# discovery replaces the subscription.
+# The project's own conventions, subscribed to before any publisher appears; the announcement as transient
+# local (the sim latches it). Subscribed only once discovery saw the sim, it came after a lockstep loop had
+# run more than max_episodes. A publisher that offers otherwise gets the subscription replaced by discovery.
 KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*TOPIC_TYPES.items(), CLOCK)]
 _LOG_THROTTLE = 5.0
 
