@@ -5,12 +5,13 @@
 Per K: the pairs start (chains of 2..10 joints, sampling policies), their loop rate is measured with no trainer
 (env-steps/s summed over the pairs, counted from ``/clock``, which each sim publishes once per step: a listener
 on one small topic, the same in both phases), then ``morph-train --live`` starts (the paper's batch of 6,144) and
-the same rate is measured again over ``--updates`` updates after ``--warmup-updates`` (the first compiles the
-update, the next work off the samples that came in meanwhile) and once more alone after the trainer stops (the
-cost is against the mean of both, as the machine's speed drifts), beside the rate the trainer collects over that
-window (its ``progress.csv``: env_steps between updates over wall time), its update time and the CPU it used
-in the window (seconds per second, all its threads; ``bench_live_neighbour.py`` measures what that much CPU costs
-the pairs from a process doing nothing else). Prints a Markdown table (and writes it to ``--out``).
+the same rate is measured again over ``--updates`` updates after ``--warmup-updates`` (the first may wait for the
+update to compile, the next work off the samples that came in meanwhile; a trainer that has not made them within
+20 windows, falling behind on full cores, is measured over ``--seconds`` instead) and once more alone after the
+trainer stops (the cost is against the mean of both, as the machine's speed drifts), beside the rate the trainer
+collects over that window (its ``progress.csv``: env_steps between updates over wall time), its update time and
+the CPU it used in the window (seconds per second, all its threads; ``bench_live_neighbour.py`` measures what that
+much CPU costs the pairs from a process doing nothing else). Prints a Markdown table (and writes it to ``--out``).
 
 ``--ingest-only``: the trainer gets a batch no window fills (it subscribes, decodes and assembles, but never
 updates), and the loop rate with it is measured over ``--seconds`` once every pair has joined: what listening
@@ -145,7 +146,7 @@ def bench(
         start_pairs(namespaces, work, counter, procs, real_time_factor)
         alone = counter.rate(seconds)
         run = work / f"run{k}"
-        # The update compiled as by default: its first update (compiling) ends before the measured window.
+        # The update compiled as by default: the compiling ends before the measured window.
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
                "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
         cmd += trainer_args
@@ -163,17 +164,21 @@ def bench(
             collected, update_s, updates = float("nan"), float("nan"), 0
         else:
             # The loop rate with the trainer over the same window as the collection: from the end of update
-            # ``warmup`` on. The first update compiles (~25 s), and the next ones work off, back to back, the
-            # samples that came in meanwhile: neither is the trainer's steady state.
+            # ``warmup`` on. The first update waits for the update to compile (~25 s from the trainer's start),
+            # and the next ones work off, back to back, the samples that came in meanwhile: neither is the
+            # trainer's steady state.
             deadline = time.monotonic() + 20 * seconds
-            while _collected(run)[2] < warmup and time.monotonic() < deadline:
+            while (done := _collected(run)[2]) < warmup and time.monotonic() < deadline:
                 counter.rate(1.0)
+            # A trainer that falls behind (the cores full) may not get there: then a window of ``seconds``.
+            end = deadline if done >= warmup else time.monotonic() + seconds
             c0, cpu0, t0 = counter.count, _cpu_seconds(trainer.pid), time.monotonic()
-            while _collected(run)[2] < warmup + updates and time.monotonic() < deadline:
+            while _collected(run)[2] < warmup + updates and time.monotonic() < end:
                 counter.rate(1.0)
             with_trainer = (counter.count - c0) / (time.monotonic() - t0)
             trainer_cpu = (_cpu_seconds(trainer.pid) - cpu0) / (time.monotonic() - t0)
-            collected, update_s, _ = _collected(run, warmup)
+            collected, update_s, total = _collected(run, warmup)
+            updates = total - done  # in the window: fewer than asked if the deadline came first
         # The rate alone once more: the machine's speed drifts within minutes, so the cost is against both.
         _stop([trainer])
         counter.rate(2.0)
@@ -190,7 +195,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="measuring window per phase")
     ap.add_argument("--updates", type=int, default=3, help="updates to measure the trainer over")
     ap.add_argument("--warmup-updates", type=int, default=4,
-                    help="updates before the window (the first compiles, the next work off the backlog)")  # fmt: skip
+                    help="updates before the window (the first may wait for compiling; the next catch up)")  # fmt: skip
     ap.add_argument("--ingest-only", action="store_true", help="a trainer that never updates (listening alone)")
     ap.add_argument("--real-time-factor", type=float, default=0.0,
                     help="pace the sims (1: real time, 25 steps/s per pair; 4: a 100 Hz loop); 0: unpaced")  # fmt: skip

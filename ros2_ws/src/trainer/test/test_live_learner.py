@@ -185,3 +185,24 @@ def test_a_diverged_update_is_refused_and_the_learner_kept_as_it_was(tmp_path, e
     assert a["version"] == b["version"] == 1 and a["approx_kl"] == b["approx_kl"]
     assert torch.equal(blown.learner.params.theta, fresh.learner.params.theta)
     assert len(list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))) == 1  # the refused update not logged
+
+
+def test_the_update_compiled_ahead_is_the_graph_the_first_update_runs(tmp_path, episodes):
+    """compile_update traces the minibatch gradient on made-up chains before any data: the first real update
+    then finds its graph (none traced anew, no fallback), and nothing the update reads has changed."""
+    from dataclasses import replace
+
+    from morph_core.algo.trust_region import get_rule
+
+    learner = LiveLearner(replace(SMALL, compile=True), tmp_path, max_staleness=1)
+    gradient = learner.learner.minibatch_gradient(get_rule(learner.cfg.update_config().rule))
+    theta, gen = learner.learner.params.theta.detach().clone(), learner.gen.get_state()
+    assert learner.compile_update() > 0
+    assert len(gradient.graphs) == 1 and not gradient.fell_back
+    assert torch.equal(learner.learner.params.theta, theta) and torch.equal(learner.gen.get_state(), gen)
+    assert not learner.learner.optimizer.state and learner.version == 0
+    learner.add_episode(episodes[0], [0] * 40)
+    learner.add_episode(episodes[1], [0] * 40)
+    row = learner.update()
+    assert len(gradient.graphs) == 1 and not gradient.fell_back
+    assert row["version"] == 1 and np.isfinite(row["approx_kl"])

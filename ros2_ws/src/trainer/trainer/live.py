@@ -10,7 +10,8 @@ training from recorded topics, lost or reordered messages counted as skips.
 Each finished episode goes to ``trainer.live_learner.LiveLearner`` with the
 weights version of each step (``policy_info``'s ``header.frame_id``); once it
 holds a batch it updates (in a worker thread, so the subscriptions keep
-draining) and the new policy is published on every namespace's
+draining; the same thread compiles the update as the node starts, while the
+first batch comes in) and the new policy is published on every namespace's
 ``policy_weights`` (``msgs.policy_weights``; reliable, transient local, keep
 last 1, for tools that record it), and re-published every ``weights_period``
 seconds: policy nodes read it best effort, so a node that starts or restarts
@@ -193,6 +194,7 @@ class LiveTrainer(Node):
         self._sim_params: dict[str, object] = {}
         self._sim_reset: dict[str, object] = {}
         self._updating: threading.Thread | None = None
+        self._published = -1  # the version last published
         self._updates_here = 0
         self._done = False
         self._lock = threading.Lock()
@@ -212,6 +214,10 @@ class LiveTrainer(Node):
                                                       callback_group=services)  # fmt: skip
             self._sim_reset[ns] = self.create_client(Trigger, f"{ns}/{SIM_NODE}/reset", callback_group=services)
         self.publish_weights()
+        # The update compiled while the first batch comes in, not when it is full (~25 s in which samples
+        # would pile up and age): the first update waits for it.
+        self._compiling = threading.Thread(target=self._compile_update, daemon=True)
+        self._compiling.start()
         self.create_timer(0.05, self._on_timer)
         self._reported = (0, 0)  # (stamp gaps from lost messages, transitions) at the last report
         self.create_timer(REPORT_PERIOD, self._report)
@@ -318,15 +324,25 @@ class LiveTrainer(Node):
                     self._configure(pair)
         if self._updating is not None and not self._updating.is_alive():
             self._updating = None
-            self.publish_weights()
+            if self.learner.version != self._published:
+                self.publish_weights()
             if self._finished():
                 self._done = True
-        if self._updating is None and not self._done and self.learner.ready():
+        if self._updating is None and not self._done and self.learner.ready() and not self._compiling.is_alive():
             with self._lock:
                 pool = self.learner.take_pool()
             active = sum(p.active for p in self.pairs.values())
             self._updating = threading.Thread(target=self._update, args=(pool, active), daemon=True)
             self._updating.start()
+
+    def _compile_update(self) -> None:
+        try:
+            seconds = self.learner.compile_update()
+        except Exception as err:  # noqa: BLE001 - the first update compiles (or falls back) instead
+            self.get_logger().warn(f"compiling the update ahead failed: {type(err).__name__}: {err}")
+            return
+        if self.learner.cfg.compile:
+            self.get_logger().info(f"update compiled in {seconds:.1f} s")
 
     def _update(self, pool, active: int) -> None:
         try:
@@ -357,6 +373,7 @@ class LiveTrainer(Node):
         msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
         msg.data = data
         self._weights_msg = msg
+        self._published = self.learner.version
         for pub in self._weights_pubs:
             pub.publish(msg)
 

@@ -66,7 +66,7 @@ from morph_core.algo.ppo import explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
-from morph_core.algo.update import Learner, update, with_proximal
+from morph_core.algo.update import Learner, compile_ahead, update, with_proximal
 from morph_core.msgs.policy_weights import pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import TransitionBatch
@@ -303,6 +303,17 @@ class LiveLearner:
                              metadata={"global_step": step, "version": c["version"]})  # fmt: skip
         self._save_state()  # every update: a resumed trainer continues from the version the nodes run
         return row
+
+    def compile_update(self) -> float:
+        """Compile the update before the first batch is in (``algo.update.compile_ahead``; nothing without
+        ``cfg.compile``); returns the seconds it took. The node runs it in its worker thread as it starts."""
+        t0 = time.perf_counter()
+        torch.set_num_threads(self.cfg.torch_threads)  # as the update runs (and compiles) it
+        try:
+            compile_ahead(self.learner, self.cfg.update_config(), self.cfg.max_joints, off_policy=True)
+        finally:
+            torch.set_num_threads(1)
+        return time.perf_counter() - t0
 
     def _learning_state(self) -> tuple:
         """What an update changes (parameters, Adam, the rule's state, the generator), copied."""

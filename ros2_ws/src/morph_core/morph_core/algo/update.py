@@ -527,6 +527,30 @@ def update(
     return UpdateStats(pg_loss, v_loss, entropy, stats, epochs, *per_epoch, kl_beta=beta)
 
 
+def compile_ahead(learner: Learner, cfg: UpdateConfig, max_joints: int, off_policy: bool) -> None:
+    """Compile the minibatch gradient now, on made-up samples (chains of 2..``max_joints`` joints, laid out as
+    ``update`` lays out a real minibatch: off-policy data with its proximal log-probs), so that the first
+    update runs at full speed. For a trainer that waits for its data anyway (a live one), the ~25 s of
+    compiling overlap the first batch's collection instead of stalling the first update while samples
+    pile up. Changes nothing an update reads: no optimizer step, no generator drawn from, the rule's state
+    untouched. Without ``learner.compile`` it does nothing."""
+    if not learner.compile or max_joints < 2:
+        return
+    n = max(cfg.minibatch_size, 2)
+    gen = torch.Generator().manual_seed(0)  # its own: the update's shuffling stays as without the warm-up
+    num_joints = torch.arange(n) % (max_joints - 1) + 2
+    mask = torch.arange(max_joints) < num_joints.unsqueeze(1)
+    pos, vel, actions = (torch.randn(n, max_joints, generator=gen) * mask for _ in range(3))
+    zeros = torch.zeros(n)
+    batch = RolloutBatch(num_joints, pos, vel, torch.randn(n, NUM_GLOBAL_FEATURES, generator=gen), actions,
+                         -torch.rand(n, generator=gen), zeros, torch.randn(n, generator=gen), zeros)  # fmt: skip
+    if off_policy:
+        batch = with_proximal(learner.policy, batch)
+    rule = get_rule(cfg.rule)
+    terms = update_terms(learner, batch, cfg, rule.initial_state(cfg).get("kl_beta"))
+    part_gradient(learner, terms, part_inputs(terms, batch, cfg, torch.arange(n)))
+
+
 @torch.no_grad()
 def proximal_means(policy: GraphActorCritic, batch: RolloutBatch, chunk: int = 1024):
     """([N, J] Gaussian means, log-std) of ``policy`` as it is now (the proximal policy) on ``batch``'s
