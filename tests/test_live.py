@@ -159,6 +159,30 @@ def two_hosts():
             h.wait()
 
 
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
+def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen):
+    """``python -m trainer.live_bringup`` (what ``scripts/live.sh`` runs): K = 2 pairs paced at real time (its
+    default) and the trainer, which updates on both (reading their topics or their policy nodes' chunks) and
+    ends the bring-up."""
+    out = tmp_path / "run"
+    trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")] + reads(listen)
+    cmd = [sys.executable, "-m", "trainer.live_bringup", "--pairs", "2", "--out", str(out), "--updates", "2",
+           "--episode-steps", "60", "--startup-timeout", str(STARTUP), "--timeout", "200",
+           "--", *trainer_options]  # fmt: skip
+    bringup = Proc(cmd, tmp_path / "bringup.log")
+    try:
+        bringup.proc.wait(timeout=240)
+    finally:
+        bringup.stop()
+    log = bringup.log()
+    assert bringup.proc.returncode == 0 and "2 pairs running" in log and "timed out" not in log, log[-3000:]
+    rows = progress(out)
+    assert len(rows) == 2 and all(int(r["batch_size"]) >= 128 for r in rows), log[-3000:]
+    assert max(int(r["pairs"]) for r in rows) == 2
+    assert all(f"pair /swimmer{i} is running" in log for i in range(2))
+
+
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
 def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path, untrained_checkpoint, listen):

@@ -22,9 +22,13 @@ import sys
 import time
 from pathlib import Path
 
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
+TRAINER_INPUTS = (("joint_states", "effort_commands", "policy_info", "odom"), (CHUNK_TOPIC,))
+"""what the trainer subscribes to per pair before its policy node starts: the data topics, or with
+``--stream-chunks`` the policy node's chunks"""
 
 
 def pair_params(
@@ -74,8 +78,8 @@ def run(args, extra: list[str]) -> int:
             sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor)
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
-            topics = [f"{ns}/{t}" for t in ("joint_states", "effort_commands", "policy_info", "odom")]
-            _wait_for_subscriber(node, trainer, topics, TRAINER_NODE, args.startup_timeout)
+            inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
+            _wait_for_subscriber(node, trainer, inputs, TRAINER_NODE, args.startup_timeout)
             specs.append(("morph_policy_node.policy_node", ns, policy))
             procs.append(_start(*specs[-1]))
         print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)

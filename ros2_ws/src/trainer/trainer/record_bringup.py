@@ -65,17 +65,21 @@ def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
     return name in future.result().result.names
 
 
-def _wait_for_subscriber(node, proc, topics: list[str], name: str, timeout: float) -> None:
-    """Until node ``name`` subscribes to every one of ``topics`` (as the ROS graph shows it)."""
+def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, timeout: float) -> None:
+    """Until node ``name`` subscribes to every topic of one of ``alternatives`` (as the ROS graph shows it)."""
     import rclpy
+
+    def missing(topics: list[str]) -> list[str]:
+        return [t for t in topics if not any(i.node_name == name for i in node.get_subscriptions_info_by_topic(t))]
 
     deadline = time.monotonic() + timeout
     while True:
-        missing = [t for t in topics if not any(i.node_name == name for i in node.get_subscriptions_info_by_topic(t))]
-        if not missing:
+        left = [missing(topics) for topics in alternatives]
+        if not all(left):
             return
         if proc.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"{name} did not subscribe to {missing} (exited, or DDS discovery failed)")
+            said = " or ".join(str(m) for m in left)
+            raise RuntimeError(f"{name} did not subscribe to {said} (exited, or DDS discovery failed)")
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
@@ -123,7 +127,7 @@ def run(args) -> int:
         recorder = _start("trainer.record", ns, recorder_params)
         procs.insert(0, recorder)
         topics = ["joint_states", "effort_commands", "policy_info"] + (["episode_start"] if episodes else [])
-        _wait_for_subscriber(node, recorder, [f"{ns}/{t}" for t in topics], "morph_record", args.startup_timeout)
+        _wait_for_subscriber(node, recorder, [[f"{ns}/{t}" for t in topics]], "morph_record", args.startup_timeout)
         procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
         print(f"record_bringup: recording {what}, {args.joints} joints, into {out}", flush=True)
         deadline = time.monotonic() + args.timeout
