@@ -23,10 +23,11 @@ import time
 from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from trainer.bag_messages import DATA_TOPIC_TYPES
 from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
-TRAINER_INPUTS = (("joint_states", "effort_commands", "policy_info", "odom"), (CHUNK_TOPIC,))
+TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
 """what the trainer subscribes to per pair before its policy node starts: the data topics, or with
 ``--stream-chunks`` the policy node's chunks"""
 

@@ -536,7 +536,7 @@ def compile_ahead(learner: Learner, cfg: UpdateConfig, max_joints: int, off_poli
     untouched. Without ``learner.compile`` it does nothing."""
     if not learner.compile or max_joints < 2:
         return
-    n = max(cfg.minibatch_size, 2)
+    n = cfg.minibatch_size
     gen = torch.Generator().manual_seed(0)  # its own: the update's shuffling stays as without the warm-up
     num_joints = torch.arange(n) % (max_joints - 1) + 2
     mask = torch.arange(max_joints) < num_joints.unsqueeze(1)
