@@ -21,6 +21,7 @@ setup(
         "scipy",
         "tqdm",
         "tensorboard",
+        "cryptography",  # Ed25519 signatures on pushed weights (protocol.trust)
     ],
     zip_safe=True,
     maintainer="morph-control developers",

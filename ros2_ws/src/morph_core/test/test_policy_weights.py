@@ -58,7 +58,7 @@ def _header(**over):
 @pytest.mark.parametrize(
     ("labels", "sizes", "data", "match"),
     [
-        (["safetensors"], [96], None, "2 layout dimensions"),
+        (["safetensors"], [96], None, "2 or 3 layout dimensions"),
         (["weights", _header()], [96, 0], None, "labelled 'safetensors'"),
         (["safetensors", _header()], [95, 0], None, "layout says 95 bytes"),
         (["safetensors", "{not json"], [96, 0], None, "not JSON"),
@@ -66,6 +66,10 @@ def _header(**over):
         (["safetensors", _header(version=-1)], [96, 0], None, "version must be"),
         (["safetensors", _header(version=True)], [96, 0], None, "version must be"),
         (["safetensors", _header(version="3")], [96, 0], None, "version must be"),
+        (["safetensors", _header(version=2**63)], [96, 0], None, "version must be"),
+        (["safetensors", _header(epoch=-5)], [96, 0], None, "epoch must be"),
+        (["safetensors", _header(epoch=1.5)], [96, 0], None, "epoch must be"),
+        (["safetensors", _header(), "sig", "more"], [96, 0, 0, 0], None, "2 or 3 layout dimensions"),
         (["safetensors", _header(policy=[1])], [96, 0], None, "must be JSON objects"),
         (["safetensors", _header()], [10, 0], b"0123456789", "not a safetensors file"),
     ],

@@ -9,8 +9,11 @@ build and install on each robot):
     layout.dim[0]       label "safetensors", size = stride = len(data)
     layout.dim[1]       label: one JSON object, size = stride = 0:
                         {"format": "morph_policy_weights/1", "version": <int >= 0>,
-                         "policy": <PolicyConfig as a dict, as the checkpoint's .json>,
-                         "metadata": {...}}
+                         "epoch": <int >= 0, ns>, "policy": <PolicyConfig as a dict,
+                         as the checkpoint's .json>, "metadata": {"run": ..., ...}}
+    layout.dim[2]       (signed weights) label: the signature, size = stride = 0
+                        (``protocol.trust``: Ed25519 over dim[1]'s exact text and
+                        the SHA-256 of data)
 
 The checkpoint's two files travel together in one message, so a node can never
 take weights with another policy's config. safetensors holds only tensors and a
@@ -20,18 +23,26 @@ policy node reports the version it runs in every ``policy_info`` it publishes,
 as ``header.frame_id`` = ``weights@<version>`` (``policy_version_frame_id``),
 so a trainer can tell stale samples.
 
-``unpack_policy_weights`` checks everything that can be checked without the
-model: the labels, the JSON, the version, the config being an object, the
-safetensors header and every tensor being a finite float array. Whether the
-shapes fit the config is the model builder's check (``protocol.policy_updates``).
+``epoch`` is when the trainer's run began (kept across ``--resume``): ordered
+by (epoch, version), a later run's weights are newer than an earlier run's,
+which is what lets a node refuse a replayed old message (``protocol.trust``).
+
+``read_weights_message`` checks the labels, the JSON, the version and epoch
+and the config being an object, without parsing the tensors;
+``unpack_policy_weights`` also parses the safetensors file and checks every
+tensor is a finite float array. Whether the shapes fit the config is the
+model builder's check (``protocol.policy_updates``).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -50,37 +61,69 @@ class PolicyWeightsError(ValueError):
 
 
 @dataclass(frozen=True)
-class PolicyWeights:
-    """One policy as it travels: checked tensors (NumPy) plus the raw bytes and config."""
+class WeightsMessage:
+    """A weights message as it arrived: its header read and checked, its tensors not yet parsed (a node parses
+    them only once the signature says who sent them)."""
 
     version: int
+    epoch: int
+    """when the trainer's run began (ns since 1970, kept on resume); (epoch, version) orders weights across runs"""
     config: dict
     """the policy's config (``PolicyConfig`` fields), as in a checkpoint's .json under "policy\""""
-    data: bytes
+    metadata: dict
+    header: str = field(repr=False)
+    """the header's JSON text as it travelled: what a signature covers (``protocol.trust``)"""
+    data: bytes = field(repr=False)
     """the safetensors file"""
-    tensors: dict[str, np.ndarray] = field(repr=False, compare=False)
-    metadata: dict = field(default_factory=dict)
+    signature: str | None = field(default=None, repr=False)
+    """the third layout dimension's label (``protocol.trust.Signature``), None when unsigned"""
+
+    @property
+    def order(self) -> tuple[int, int]:
+        """Newer weights compare greater: a later run, or a later version of the same run."""
+        return (self.epoch, self.version)
+
+    @cached_property
+    def data_sha256(self) -> str:
+        return hashlib.sha256(self.data).hexdigest()
+
+
+@dataclass(frozen=True)
+class PolicyWeights(WeightsMessage):
+    """One policy as it travels: the message plus its checked tensors (NumPy)."""
+
+    tensors: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+
+
+def weights_header(version: int, config: dict, metadata: dict | None = None, epoch: int = 0) -> str:
+    """The header's JSON text (what the second layout dimension carries and a signature covers)."""
+    return json.dumps(
+        {"format": FORMAT, "version": version, "epoch": epoch, "policy": config, "metadata": metadata or {}},
+        sort_keys=True,
+    )
 
 
 def pack_policy_weights(
-    version: int, config: dict, data: bytes, metadata: dict | None = None
+    version: int, config: dict, data: bytes, metadata: dict | None = None, epoch: int = 0, signer=None
 ) -> tuple[list[tuple[str, int, int]], bytes]:
-    """The message's fields: (layout dims as (label, size, stride), data bytes).
+    """The message's fields: (layout dims as (label, size, stride), data bytes); signed when a
+    ``protocol.trust.Signer`` is given (a third dimension carries the signature).
 
     Checks the content as ``unpack_policy_weights`` would, so a trainer never sends what a node refuses.
     """
-    header = json.dumps(
-        {"format": FORMAT, "version": version, "policy": config, "metadata": metadata or {}}, sort_keys=True
-    )
+    header = weights_header(version, config, metadata, epoch)
     dims = [(DATA_LABEL, len(data), len(data)), (header, 0, 0)]
+    if signer is not None:
+        dims.append((signer.sign(header, hashlib.sha256(data).hexdigest()).label, 0, 0))
     unpack_policy_weights([d[0] for d in dims], [d[1] for d in dims], data)
     return dims, bytes(data)
 
 
-def unpack_policy_weights(labels: Sequence[str], sizes: Sequence[int], data: bytes | Sequence[int]) -> PolicyWeights:
-    """The policy in a message, from its layout's labels and sizes and its data; raises ``PolicyWeightsError``."""
-    if len(labels) != 2 or len(sizes) != 2:
-        raise PolicyWeightsError(f"expected 2 layout dimensions (data, header), got {len(labels)}")
+def read_weights_message(labels: Sequence[str], sizes: Sequence[int], data: bytes | Sequence[int]) -> WeightsMessage:
+    """A message's header and payload, checked as far as can be without parsing the tensors; raises
+    ``PolicyWeightsError``."""
+    if len(labels) not in (2, 3) or len(sizes) != len(labels):
+        raise PolicyWeightsError(f"expected 2 or 3 layout dimensions (data, header, signature), got {len(labels)}")
     if labels[0] != DATA_LABEL:
         raise PolicyWeightsError(f"first layout dimension must be labelled {DATA_LABEL!r}, got {labels[0][:40]!r}")
     data = bytes(data)
@@ -88,21 +131,41 @@ def unpack_policy_weights(labels: Sequence[str], sizes: Sequence[int], data: byt
         raise PolicyWeightsError(f"{len(data)} bytes of weights, more than the limit of {MAX_WEIGHTS_BYTES}")
     if sizes[0] != len(data):
         raise PolicyWeightsError(f"layout says {sizes[0]} bytes, the message holds {len(data)}")
-    if len(labels[1]) > MAX_CONFIG_CHARS:
-        raise PolicyWeightsError(f"header of {len(labels[1])} characters, more than {MAX_CONFIG_CHARS}")
+    version, epoch, config, metadata = parse_weights_header(labels[1])
+    signature = labels[2] if len(labels) == 3 else None
+    return WeightsMessage(version, epoch, config, metadata, labels[1], data, signature)
+
+
+def parse_weights_header(text: str) -> tuple[int, int, dict, dict]:
+    """(version, epoch, policy config, metadata) of a header's JSON text; raises ``PolicyWeightsError``."""
+    if len(text) > MAX_CONFIG_CHARS:
+        raise PolicyWeightsError(f"header of {len(text)} characters, more than {MAX_CONFIG_CHARS}")
     try:
-        header = json.loads(labels[1])
+        header = json.loads(text)
     except ValueError as err:
         raise PolicyWeightsError(f"header is not JSON: {err}") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise PolicyWeightsError(f"header is not a {FORMAT} object")
-    version = header.get("version")
-    if isinstance(version, bool) or not isinstance(version, int) or version < 0:
-        raise PolicyWeightsError(f"version must be an integer >= 0, got {version!r}")
+    version, epoch = header.get("version"), header.get("epoch", 0)
+    for name, value in (("version", version), ("epoch", epoch)):
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < 2**63:
+            raise PolicyWeightsError(f"{name} must be an integer in 0..2^63-1, got {str(value)[:40]}")
     config, metadata = header.get("policy"), header.get("metadata", {})
     if not isinstance(config, dict) or not isinstance(metadata, dict):
         raise PolicyWeightsError("header's 'policy' and 'metadata' must be JSON objects")
-    return PolicyWeights(version, config, data, read_tensors(data), metadata)
+    return version, epoch, config, metadata
+
+
+def unpack_policy_weights(labels: Sequence[str], sizes: Sequence[int], data: bytes | Sequence[int]) -> PolicyWeights:
+    """The policy in a message, from its layout's labels and sizes and its data; raises ``PolicyWeightsError``.
+    The signature, if any, is not checked here (``protocol.trust``)."""
+    return with_tensors(read_weights_message(labels, sizes, data))
+
+
+def with_tensors(message: WeightsMessage) -> PolicyWeights:
+    """The message with its tensors parsed (``read_tensors``); raises ``PolicyWeightsError``."""
+    fields = {f.name: getattr(message, f.name) for f in dataclasses.fields(WeightsMessage)}
+    return PolicyWeights(**fields, tensors=read_tensors(message.data))
 
 
 def read_tensors(data: bytes) -> dict[str, np.ndarray]:

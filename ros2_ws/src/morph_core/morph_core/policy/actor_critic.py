@@ -31,7 +31,7 @@ from morph_core.policy.chain_conv import BACKENDS, ChainConv
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.gaussian import entropy_per_joint, log_density_per_joint
-from morph_core.util.atomic import atomic_write_bytes, atomic_writer
+from morph_core.policy.weights import write_checkpoint
 
 
 def _mlp(sizes: list[int], act: type[nn.Module], last_act: bool) -> nn.Sequential:
@@ -167,11 +167,11 @@ class GraphActorCritic(nn.Module):
     # -- persistence: safetensors + JSON, nothing is ever unpickled ----------
     def save(self, path: str | Path, metadata: dict | None = None) -> None:
         """Write ``path`` (.safetensors) and ``path`` with .json (config + metadata), atomically."""
-        path = Path(path)
-        tensors = {k: v.detach().contiguous() for k, v in self.state_dict().items()}
-        atomic_write_bytes(path, safetensors_bytes(tensors))
-        with atomic_writer(path.with_suffix(".json")) as f:
-            json.dump({"policy": asdict(self.config), "metadata": metadata or {}}, f, indent=2)
+        write_checkpoint(path, self.to_bytes(), asdict(self.config), metadata)
+
+    def to_bytes(self) -> bytes:
+        """The parameters as a safetensors file (what a checkpoint and a weights message hold)."""
+        return safetensors_bytes({k: v.detach().contiguous() for k, v in self.state_dict().items()})
 
     @classmethod
     def load(cls, path: str | Path, backend: str = "dense") -> GraphActorCritic:

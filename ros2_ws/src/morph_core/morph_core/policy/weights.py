@@ -2,7 +2,8 @@
 
 A checkpoint is ``<name>.safetensors`` (the torch policy's state dict, as
 ``GraphActorCritic.save`` writes it) with ``<name>.json`` beside it
-(``{"policy": <PolicyConfig fields>, "metadata": {...}}``). A controller
+(``{"policy": <PolicyConfig fields>, "metadata": {...}}``, and ``"signed_weights"``
+when a trainer signed it: ``SignedWeights``). A controller
 loads it here with NumPy alone (``safetensors`` parses the file; nothing is
 ever unpickled) and runs it with ``numpy_actor.NumpyPolicy``.
 
@@ -14,6 +15,7 @@ and the reason, so a node can refuse it in one line.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -24,6 +26,10 @@ import safetensors.numpy
 from safetensors import SafetensorError
 
 from morph_core.policy.config import NUM_EDGE_FEATURES, NUM_GLOBAL_FEATURES, PolicyConfig
+from morph_core.util.atomic import atomic_write_bytes, atomic_writer
+
+SIGNED_KEY = "signed_weights"
+"""the checkpoint .json's entry for a trainer's signature: {"header": ..., "signature": ...}"""
 
 _HEADER_ALLOWANCE = 1 << 20  # bytes a safetensors header may add to the tensors' own
 # First bytes of what ``torch.save`` writes: a zip archive (current) or a bare pickle (legacy).
@@ -49,6 +55,19 @@ class PolicyWeights:
     """the checkpoint's path, or ``untrained (seed N)``"""
     trained: bool
     metadata: dict = field(default_factory=dict)
+    data_sha256: str = ""
+    """SHA-256 of the safetensors bytes ('' for weights that never were a file or message)"""
+    signed: SignedWeights | None = None
+    """the trainer's signature the checkpoint carries, if any (checked by ``protocol.policy_updates``)"""
+
+
+@dataclass(frozen=True)
+class SignedWeights:
+    """A checkpoint's signature: the weights message header it was signed with, and the signature, as they
+    travelled on ``policy_weights`` (``msgs.policy_weights``, ``protocol.trust``)."""
+
+    header: str
+    signature: str
 
 
 def parameter_shapes(config: PolicyConfig) -> dict[str, tuple[int, ...]]:
@@ -89,7 +108,7 @@ def load_checkpoint(path: str | Path) -> PolicyWeights:
         raise CheckpointError(path, "not a .safetensors file (the config .json must sit beside it)")
     if not path.is_file():
         raise CheckpointError(path, "no such file")
-    config, metadata = _read_config(path)
+    config, metadata, signed = _read_config(path)
     expected = parameter_shapes(config)
     payload = 4 * sum(math.prod(s) for s in expected.values())
     try:
@@ -106,7 +125,8 @@ def load_checkpoint(path: str | Path) -> PolicyWeights:
     except (SafetensorError, ValueError, TypeError, KeyError) as err:
         raise CheckpointError(path, f"not a readable safetensors file ({err})") from None
     _check_arrays(path, arrays, expected)
-    return PolicyWeights(config, arrays, str(path), trained=True, metadata=metadata)
+    digest = hashlib.sha256(data).hexdigest()
+    return PolicyWeights(config, arrays, str(path), trained=True, metadata=metadata, data_sha256=digest, signed=signed)
 
 
 def weights_from_arrays(
@@ -125,7 +145,7 @@ def weights_from_arrays(
     return PolicyWeights(policy_config, arrays, source, trained=trained, metadata=dict(metadata or {}))
 
 
-def _read_config(path: Path) -> tuple[PolicyConfig, dict]:
+def _read_config(path: Path) -> tuple[PolicyConfig, dict, SignedWeights | None]:
     meta_path = path.with_suffix(".json")
     try:
         text = meta_path.read_text()
@@ -144,7 +164,26 @@ def _read_config(path: Path) -> tuple[PolicyConfig, dict]:
     except (ValueError, TypeError) as err:
         raise CheckpointError(path, f"its config {meta_path.name} is wrong ({err})") from None
     metadata = meta.get("metadata")
-    return config, metadata if isinstance(metadata, dict) else {}
+    signed = meta.get(SIGNED_KEY)
+    if signed is not None:
+        if not (isinstance(signed, dict) and all(isinstance(signed.get(k), str) for k in ("header", "signature"))):
+            raise CheckpointError(path, f'its config {meta_path.name} has a malformed "{SIGNED_KEY}" entry')
+        signed = SignedWeights(signed["header"], signed["signature"])
+    return config, metadata if isinstance(metadata, dict) else {}, signed
+
+
+def write_checkpoint(
+    path: str | Path, data: bytes, config: dict, metadata: dict | None = None, signed: SignedWeights | None = None
+) -> None:
+    """Write a checkpoint: ``path`` (.safetensors, the bytes ``data``) and its .json (config, metadata and the
+    signature if any), each atomically. The bytes are written as given, so a signature over them still holds."""
+    path = Path(path)
+    meta = {"policy": config, "metadata": metadata or {}}
+    if signed is not None:
+        meta[SIGNED_KEY] = {"header": signed.header, "signature": signed.signature}
+    atomic_write_bytes(path, data)
+    with atomic_writer(path.with_suffix(".json")) as f:
+        json.dump(meta, f, indent=2)
 
 
 def _check_arrays(path: Path | str, arrays: dict[str, np.ndarray], expected: dict[str, tuple[int, ...]]) -> None:

@@ -8,23 +8,29 @@ import tempfile
 from pathlib import Path
 
 
-def atomic_write_bytes(path: str | Path, data: bytes, previous: str | Path | None = None) -> None:
+def atomic_write_bytes(
+    path: str | Path, data: bytes, previous: str | Path | None = None, file_mode: int | None = None
+) -> None:
     """Write ``data`` to ``path`` atomically; with ``previous``, the file it replaces is kept there (moved
-    only once the new one is complete on disk, so a write that fails, e.g. a full disk, leaves both)."""
-    with atomic_writer(path, "wb", previous=previous) as f:
+    only once the new one is complete on disk, so a write that fails, e.g. a full disk, leaves both).
+    ``file_mode`` (e.g. 0o600 for a private key) instead of a new file's usual mode."""
+    with atomic_writer(path, "wb", previous=previous, file_mode=file_mode) as f:
         f.write(data)
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | Path, mode: str = "w", previous: str | Path | None = None):
-    """Write to a temp file beside ``path``, fsync, then rename over it (POSIX-atomic); ``previous``: see
-    ``atomic_write_bytes``. An ``OSError`` (a full disk: ENOSPC) names ``path``; the old file is untouched."""
+def atomic_writer(path: str | Path, mode: str = "w", previous: str | Path | None = None, file_mode: int | None = None):
+    """Write to a temp file beside ``path``, fsync, then rename over it (POSIX-atomic); ``previous`` and
+    ``file_mode``: see ``atomic_write_bytes``. An ``OSError`` (a full disk: ENOSPC) names ``path``; the old
+    file is untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; the result should read like any new file
+    if file_mode is None:
+        umask = os.umask(0)
+        os.umask(umask)
+        file_mode = 0o666 & ~umask  # mkstemp creates 0600; the result should read like any new file
+    os.chmod(tmp, file_mode)
     try:
         with os.fdopen(fd, mode) as f:
             yield f
