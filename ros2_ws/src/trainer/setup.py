@@ -34,6 +34,7 @@ setup(
             "morph-bag = trainer.bag_cli:main",
             "morph-render = trainer.render_cli:main",
             "morph-export = trainer.export_cli:main",
+            "morph-keys = trainer.keys_cli:main",
         ],
     },
 )

@@ -38,15 +38,24 @@ while the current policy keeps running. An untrained policy runs only with
 ``checkpoint:=''`` and ``allow_untrained:=true``; its efforts then carry a
 second ``layout.dim`` labelled ``untrained_policy``.
 
-Live training (``accept_weights``, default true): a trainer publishes each
-new policy on ``policy_weights`` (``morph_core.msgs.policy_weights``: the
-safetensors bytes, the config and a version). The node checks it as it
-checks a checkpoint (``protocol.policy_updates``, ``policy.weights``) and
-adopts it between two answers, never within one; anything wrong is
-rejected, counted and logged, and the current policy keeps running. Every
-``policy_info`` says which weights produced it: ``header.frame_id`` is
-``weights@<version>`` ('' for a checkpoint file). Setting ``checkpoint``
-replaces pushed weights (and vice versa: the newest action wins).
+Live training: a trainer publishes each new policy on ``policy_weights``
+(``morph_core.msgs.policy_weights``: the safetensors bytes, the config, a
+version and the trainer's Ed25519 signature). Weights are code for the
+robot, so the node takes them only from a trainer it trusts: ``trusted_keys``
+lists public key files (``morph-keys new``; OpenSSH format), and only
+weights one of them signed, newer than any taken before, are adopted
+(``protocol.trust``, ``protocol.policy_updates``). With no trusted key the
+node does not even subscribe, and says so once at start-up; unsigned
+weights are taken only with ``accept_unsigned_weights:=true``, an opt-in for
+tests that the node logs loudly. Adopted weights are checked as a checkpoint
+is and taken between two answers, never within one; anything refused is
+counted by reason on ``/diagnostics`` and logged (throttled), and the
+current policy keeps running. Every ``policy_info`` says which weights
+produced it: ``header.frame_id`` is ``weights@<version>`` ('' for a checkpoint
+file). Setting ``checkpoint`` replaces pushed weights until the trainer's next
+version. A checkpoint file runs whether signed or not (it is on the robot's
+own disk); the node says whether it is signed and by which key, and refuses
+one whose trusted signature does not match its bytes.
 
 For a live trainer the node also hands over its whole message stream on
 ``stream_chunks`` (``morph_core.msgs.stream_chunk``), every
@@ -107,7 +116,8 @@ from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.pairing import StatePairing
-from morph_core.protocol.policy_updates import PolicyUpdates
+from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
+from morph_core.protocol.trust import load_trusted_keys
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
@@ -117,6 +127,7 @@ _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is sile
 _LOG_THROTTLE = 5.0
 _WEIGHTS_LOG_THROTTLE = 1.0
 STATES, ODOM, EPISODES, WEIGHTS = "joint_states", "odom", "episode_start", WEIGHTS_TOPIC  # inputs, as counted
+KEYS = "trusted_keys"  # the key files, counted as an input: each loaded or rejected with its reason
 # Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
 # no publisher can make this reader wait on repairs.
 EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
@@ -181,8 +192,24 @@ class MorphPolicyNode(Node):
             "accept_weights",
             True,
             ParameterDescriptor(
-                description=f"adopt policies a live trainer publishes on {WEIGHTS_TOPIC} (checked; bad ones refused)",
+                description=f"adopt policies a trusted live trainer publishes on {WEIGHTS_TOPIC} (false: never)",
                 read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            KEYS,
+            Parameter.Type.STRING_ARRAY,
+            ParameterDescriptor(
+                description=f"public key files (OpenSSH ssh-ed25519 or PEM) whose signed {WEIGHTS_TOPIC} are adopted;"
+                " none: live updates off",
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "accept_unsigned_weights",
+            False,
+            ParameterDescriptor(
+                description=f"FOR TESTS: adopt unsigned {WEIGHTS_TOPIC} from any peer on the domain", read_only=True
             ),
         )
         self.declare_parameter(
@@ -200,8 +227,9 @@ class MorphPolicyNode(Node):
         p = self.get_parameter
         self._allow_untrained = p("allow_untrained").value
         self._seed = p("seed").value
+        self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS, KEYS])  # on /diagnostics every second
         self._candidate: PolicyWeights | None = None
-        self._updates: PolicyUpdates[tuple[PolicyWeights, NumpyPolicy]] | None = None
+        self._updates = PolicyUpdates(pushed_policy, None, self._trusted_keys(), p("accept_unsigned_weights").value)
         self._use(choose_policy(p("checkpoint").value, self._allow_untrained, self._seed))  # CheckpointError: main()
         self._deterministic = p("deterministic").value
         self._input_timeout = p("input_timeout").value
@@ -214,8 +242,9 @@ class MorphPolicyNode(Node):
         self.create_subscription(Int64MultiArray, "episode_start", self._on_episode_start, EPISODE_QOS)
         self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
-        if p("accept_weights").value:
+        if p("accept_weights").value and self._updates.enabled:
             self.create_subscription(UInt8MultiArray, WEIGHTS_TOPIC, self._on_weights, WEIGHTS_QOS)
+        self._say_how_updates_are_taken(p("accept_weights").value)
         self.create_timer(_WATCHDOG_PERIOD, self._on_watchdog)
         self._chunks = ChunkWriter()
         self._unserialized: list[tuple[str, int, object]] = []  # (topic, log ns, message) for the next chunk
@@ -226,7 +255,6 @@ class MorphPolicyNode(Node):
             self.create_timer(p("stream_chunk_period").value, self._on_chunk_timer)
 
         self.rejected = 0
-        self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS])  # on /diagnostics every second
         self._diagnostics = InputDiagnostics(self, self.counts)
         self._odom = None  # (quaternion, body linear xy, angular z) of the latest valid odometry
         self._unwrap = YawUnwrapper()
@@ -237,16 +265,45 @@ class MorphPolicyNode(Node):
         self._silent = False
 
     # -- policy and parameters ---------------------------------------------------
+    def _trusted_keys(self):
+        """The keys of ``trusted_keys``; a file that holds no usable public key is logged, counted and skipped."""
+        paths = self.get_parameter(KEYS).value or []
+        keys, errors = load_trusted_keys(list(paths))
+        for key in keys.keys.values():
+            self.counts.received(KEYS)
+            self.get_logger().info(f"trusting weights signed by {key.fingerprint} ({key.source})")
+        for err in errors:
+            self.counts.received(KEYS)
+            self.counts.rejected(KEYS, "key_file", str(err))
+            self.get_logger().error(f"trusted key file refused, its signatures will not be taken: {err}")
+        return keys
+
+    def _say_how_updates_are_taken(self, accept_weights: bool) -> None:
+        log = self.get_logger()
+        if not accept_weights:
+            log.info(f"live policy updates are off (accept_weights:=false): {WEIGHTS_TOPIC} is not read")
+        elif not self._updates.enabled:
+            log.info(
+                f"live policy updates are OFF: no trusted key, so {WEIGHTS_TOPIC} is not read. To take a trainer's "
+                "weights, make a key pair (morph-keys new KEY), start the trainer with --signing-key KEY and this "
+                f"node with -p {KEYS}:=[KEY.pub]"
+            )
+        if accept_weights and self._updates.accept_unsigned:
+            log.warn(
+                f"accept_unsigned_weights:=true: ANY peer on this DDS domain can replace this robot's policy through "
+                f"{WEIGHTS_TOPIC}. For tests only; use {KEYS} on a robot"
+            )
+
     def _use(self, weights: PolicyWeights) -> None:
-        """Run a checkpoint (or an untrained policy) from now on; pushed weights newer than nothing follow."""
+        """Run a checkpoint (or an untrained policy) from now on; pushed weights follow when newer than any taken
+        before (and than the file's version, if a trusted key signed it). ``CheckpointError`` for a file whose
+        trusted signature does not match it."""
+        trust = checkpoint_trust(weights, self._updates.keys)
         running = (weights, NumpyPolicy(weights))
-        if self._updates is None:
-            self._updates = PolicyUpdates(pushed_policy, running)
-        else:
-            self._updates.replace(running)
+        self._updates.replace(running, trust.order)
         self._weights, self._policy = running
         if weights.trained:
-            self.get_logger().info(f"policy loaded from {weights.source}")
+            self.get_logger().info(f"policy loaded from {weights.source} ({trust.description})")
         else:
             self.get_logger().warn(
                 f"running an UNTRAINED policy ({weights.source}); every effort is marked {UNTRAINED_LABEL!r}"
@@ -259,6 +316,7 @@ class MorphPolicyNode(Node):
                     return SetParametersResult(successful=False, reason="checkpoint must be a string path")
                 try:
                     self._candidate = choose_policy(param.value, self._allow_untrained, self._seed)
+                    checkpoint_trust(self._candidate, self._updates.keys)
                 except CheckpointError as err:
                     return SetParametersResult(successful=False, reason=f"refused checkpoint {err}")
             elif param.name == "input_timeout":
@@ -289,9 +347,9 @@ class MorphPolicyNode(Node):
         labels, sizes = [d.label for d in msg.layout.dim], [d.size for d in msg.layout.dim]
         offer = self._updates.offer(labels, sizes, msg.data)
         if offer.outcome == "ignored":
-            self.counts.ignored(WEIGHTS, "not_newer")
+            self.counts.ignored(WEIGHTS, offer.code)
         if offer.outcome == "rejected":
-            self.counts.rejected(WEIGHTS, "weights", offer.reason)
+            self.counts.rejected(WEIGHTS, offer.code, offer.reason)
             # Counted with the other rejections; logged on its own (weights come about once a second, so a
             # second's throttle shows each bad one a trainer sends, yet a flood cannot fill the log).
             self.rejected += 1
@@ -299,8 +357,13 @@ class MorphPolicyNode(Node):
                 f"rejected policy_weights ({self._updates.rejected_total} so far), current policy kept: {offer.reason}",
                 throttle_duration_sec=_WEIGHTS_LOG_THROTTLE,
             )
+        elif offer.outcome == "pending" and not offer.signer:
+            self.get_logger().warn(f"UNSIGNED weights version {offer.version} received (accept_unsigned_weights): "
+                                   "adopted at the next state")  # fmt: skip
         elif offer.outcome == "pending":
-            self.get_logger().info(f"weights version {offer.version} received: adopted at the next state")
+            self.get_logger().info(
+                f"weights version {offer.version} signed by {offer.signer} received: adopted at the next state"
+            )
 
     def _on_episode_start(self, msg: Int64MultiArray) -> None:
         self.counts.received(EPISODES)

@@ -7,10 +7,13 @@ ros2 launch trainer live_training.launch.py pairs:=4 out:=runs/live [updates:=0]
 The same processes as ``python -m trainer.live_bringup`` (which needs no ``launch``): each pair's sim runs
 in lockstep at real_time_factor (1: real time; 0: as fast as it goes) with its chain length redrawn from
 min_joints..max_joints at each reset; its policy samples (``deterministic:=false``) and takes the weights
-the trainer pushes on ``policy_weights``.
+the trainer pushes on ``policy_weights``. A key pair is made for each launch (in a private temporary
+directory): the trainer signs with it, and the policy nodes trust its public half and no other key.
 """
 
 import os
+import tempfile
+from pathlib import Path
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, SetEnvironmentVariable
@@ -18,6 +21,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 import morph_policy_node
+from morph_core.protocol.trust import public_key_path, write_key_pair
 
 # The nodes' Fast DDS profile (quick discovery, UDP only: docs/design.md), unless the user set their own.
 PROFILE = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
@@ -27,13 +31,18 @@ def _nodes(context):
     value = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
     pairs = int(value("pairs"))
     namespaces = [f"/swimmer{i}" for i in range(pairs)]
+    key = Path(tempfile.mkdtemp(prefix="morph-live-keys-")) / "trainer_key"  # mode 0700, this launch's alone
+    write_key_pair(key, comment="morph-live-run")
     cmd = ["morph-train", "--live", "--namespaces", *namespaces, "--out", value("out"),
-           "--episode-steps", value("episode_steps"), "--max-updates", value("updates")]  # fmt: skip
+           "--episode-steps", value("episode_steps"), "--max-updates", value("updates"),
+           "--signing-key", str(key)]  # fmt: skip
     if value("resume").lower() == "true":
         cmd.append("--resume")
     cmd += value("train_args").split()
     actions = [ExecuteProcess(cmd=cmd, output="screen", name="morph_live_trainer")]
-    policy = {"deterministic": False, "checkpoint": "", "allow_untrained": True}  # the trainer's weights follow
+    # The trainer's weights follow, signed by this launch's key.
+    policy = {"deterministic": False, "checkpoint": "", "allow_untrained": True,
+              "trusted_keys": [str(public_key_path(key))]}  # fmt: skip
     for i, ns in enumerate(namespaces):
         actions.append(Node(package="swimmer_sim_node", executable="swimmer_sim_node", name="swimmer_sim",
                             namespace=ns, output="screen", respawn=True, respawn_delay=1.0,

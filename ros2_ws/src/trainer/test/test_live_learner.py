@@ -14,8 +14,11 @@ from morph_core.algo.train import TrainConfig
 from morph_core.env.sim import SwimmerSim
 from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
+from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
 from morph_core.protocol.transitions import TransitionAssembler
+from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
 from trainer.live_learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
 SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
@@ -118,6 +121,42 @@ def test_weights_rebuild_the_policy_and_resume_continues(tmp_path, episodes):
     assert steps == [80, 160] and again.version == 2
     fresh = LiveLearner(SMALL, tmp_path / "other")
     assert fresh.run_id != run_id
+
+
+def test_signed_weights_and_checkpoints_stay_in_order_across_resume_and_a_new_run(tmp_path, episodes):
+    signer = write_key_pair(tmp_path / "key")
+    node = PolicyUpdates(lambda w: w.version, None, TrustedKeys([load_public_key(tmp_path / "key.pub")]))
+
+    def offer(learner):
+        dims, data = learner.weights_message()
+        return node.offer([d[0] for d in dims], [d[1] for d in dims], data)
+
+    def train(learner, version):
+        learner.add_episode(episodes[0], [version] * 40)
+        learner.add_episode(episodes[1], [version] * 40)
+        learner.update()
+
+    first = LiveLearner(SMALL, tmp_path / "run", signer=signer)
+    assert offer(first).outcome == "pending"
+    train(first, 0)
+    assert (offer(first).outcome, node.current()) == ("pending", 1)
+    # the checkpoint of version 1 carries the message's signature, over the same bytes
+    checkpoint = load_checkpoint(tmp_path / "run" / "checkpoints" / "policy_00000080.safetensors")
+    trust = checkpoint_trust(checkpoint, node.keys)
+    assert (trust.signer, trust.order) == (signer.fingerprint, (first.epoch, 1))
+    old_message = first.weights_message()
+    first.close()
+    resumed = LiveLearner(SMALL, tmp_path / "run", resume=True, signer=signer)
+    assert resumed.epoch == first.epoch and offer(resumed).code == "not_newer"
+    train(resumed, 1)
+    assert offer(resumed).outcome == "pending" and node.current() == 2
+    replay = node.offer([d[0] for d in old_message[0]], [d[1] for d in old_message[0]], old_message[1])
+    assert replay.code == "replayed"
+    fresh = LiveLearner(SMALL, tmp_path / "fresh", signer=signer)  # a trainer started afresh: after the old run
+    assert fresh.epoch > resumed.epoch and offer(fresh).outcome == "pending" and node.current() == 0
+    assert offer(resumed).code == "replayed"
+    unsigned = LiveLearner(SMALL, tmp_path / "unsigned")
+    assert offer(unsigned).code == "unsigned"
 
 
 def test_options_refuse_nonsense(tmp_path):

@@ -17,6 +17,10 @@ last 1, for tools that record it), and re-published every ``weights_period``
 seconds: policy nodes read it best effort, so a node that starts or restarts
 late gets the latest within a period.
 
+With a signing key (``--signing-key``, ``protocol.trust``) every weights
+message and checkpoint is signed; policy nodes take only weights a key they
+trust signed (``morph_policy_node``'s ``trusted_keys``).
+
 With ``stream_chunks`` (``--stream-chunks``) the node instead reads each
 pair's ``stream_chunks`` (``msgs.stream_chunk``): the same messages as its
 policy node received and sent them, a few dozen steps per chunk, decoded
@@ -82,6 +86,7 @@ from morph_core.protocol.transitions import (
     TransitionAssembler,
     TransitionConfig,
 )
+from morph_core.protocol.trust import Signer
 from trainer.bag_io import (
     DecodeError,
     effort_record,
@@ -185,10 +190,19 @@ def _losses(pair: _Pair) -> str:
 
 
 class LiveTrainer(Node):
-    def __init__(self, cfg: TrainConfig, options: LiveOptions):
+    def __init__(self, cfg: TrainConfig, options: LiveOptions, signer: Signer | None = None):
         super().__init__("morph_live_trainer")
         self.options = options
-        self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness)
+        self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness,
+                                   signer=signer)  # fmt: skip
+        if signer is None:
+            self.get_logger().warn(
+                "no --signing-key: the weights go out UNSIGNED, and policy nodes take them only with "
+                "accept_unsigned_weights:=true (tests). Make a key pair with morph-keys new KEY, pass --signing-key "
+                "KEY here and trusted_keys:=[KEY.pub] to the policy nodes"
+            )
+        else:
+            self.get_logger().info(f"signing the weights with {signer.fingerprint} ({signer.source})")
         self.pairs: dict[str, _Pair] = {}
         self._weights_pubs = []
         self._sim_params: dict[str, object] = {}
@@ -411,8 +425,9 @@ class LiveTrainer(Node):
         self.learner.close()
 
 
-def run_live(cfg: TrainConfig, options: LiveOptions, args=None) -> int:
-    """Run the live trainer until done (``max_updates`` / ``total_timesteps``) or SIGINT/SIGTERM."""
+def run_live(cfg: TrainConfig, options: LiveOptions, args=None, signer: Signer | None = None) -> int:
+    """Run the live trainer until done (``max_updates`` / ``total_timesteps``) or SIGINT/SIGTERM; ``signer``
+    signs the weights (``options.signing_key`` loaded)."""
     # Before any thread starts (DDS, torch): they inherit it.
     os.setpriority(os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), options.nice))
     rclpy.init(args=args)
@@ -422,7 +437,7 @@ def run_live(cfg: TrainConfig, options: LiveOptions, args=None) -> int:
     # used less CPU still in a one-off trial, but stopped dispatching in 2 of 2 runs of tests/test_live.py.)
     executor = SingleThreadedExecutor()
     try:
-        node = LiveTrainer(cfg, options)
+        node = LiveTrainer(cfg, options, signer)
         executor.add_node(node)
         while rclpy.ok() and not node.done:
             executor.spin_once(timeout_sec=0.1)

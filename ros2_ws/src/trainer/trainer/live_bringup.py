@@ -7,8 +7,11 @@ machines without ``launch``. The trainer starts first (``morph-train --live``,
 its subscriptions made in advance), then each pair in ``/swimmer<i>``: the
 sim (lockstep, paced at ``--real-time-factor``, real time by default; chain
 length redrawn from 2..10 at each reset, seed i) and, once the trainer listens to the pair, the sampling policy
-(``deterministic:=false``, seed i). The trainer pushes its weights to every
-policy node and sets each sim's episode length. The bring-up ends when the
+(``deterministic:=false``, seed i). The bring-up makes a key pair for the run
+(``protocol.trust``, in a private temporary directory removed at the end): the
+trainer signs its weights with the private key, and every policy node trusts
+the public key and no other. The trainer pushes its weights to every policy
+node and sets each sim's episode length. The bring-up ends when the
 trainer does (``--updates``, or the config's total_timesteps) and stops the
 pairs; the run directory is ``--out``. Options after ``--`` go to
 ``morph-train`` (e.g. ``-- --num-steps 256 --seed 3``).
@@ -17,12 +20,16 @@ pairs; the run directory is ``--out``. Options after ``--`` go to
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from morph_core.protocol.trust import public_key_path, write_key_pair
 from trainer.bag_messages import DATA_TOPIC_TYPES
 from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
 
@@ -33,9 +40,14 @@ TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
 
 
 def pair_params(
-    index: int, min_joints: int, max_joints: int, checkpoint: str | None, real_time_factor: float = 1.0
+    index: int,
+    min_joints: int,
+    max_joints: int,
+    checkpoint: str | None,
+    real_time_factor: float = 1.0,
+    trusted_key: str | Path | None = None,
 ) -> tuple[dict, dict]:
-    """(sim, policy) parameters of pair ``index``."""
+    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``."""
     sim = {
         "lockstep": "true",
         "real_time_factor": real_time_factor,
@@ -45,6 +57,8 @@ def pair_params(
         "seed": index,
     }
     policy = {"deterministic": "false", "seed": index}
+    if trusted_key is not None:
+        policy["trusted_keys"] = json.dumps([str(trusted_key)])  # a YAML list of one path
     if checkpoint is not None:
         policy["checkpoint"] = checkpoint if checkpoint else "''"
         if not checkpoint:  # the node runs an untrained policy only when asked; the trainer's weights follow
@@ -52,8 +66,17 @@ def pair_params(
     return sim, policy
 
 
-def trainer_command(namespaces: list[str], args, extra: list[str]) -> list[str]:
+def run_key_pair(directory: str | Path) -> Path:
+    """A new signing key for this run in ``directory``; returns the private key's path (the public one: .pub)."""
+    key = Path(directory) / "trainer_key"
+    write_key_pair(key, comment="morph-live-run")
+    return key
+
+
+def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
     cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(args.out)]
+    if signing_key is not None:
+        cmd += ["--signing-key", str(signing_key)]
     cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.updates)]
     if args.resume:
         cmd.append("--resume")
@@ -69,14 +92,17 @@ def run(args, extra: list[str]) -> int:
     import rclpy
 
     namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
+    keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
+    key = run_key_pair(keys)
     rclpy.init()
     node = rclpy.create_node("live_bringup")
-    trainer = subprocess.Popen(trainer_command(namespaces, args, extra))
+    trainer = subprocess.Popen(trainer_command(namespaces, args, extra, key))
     procs: list[subprocess.Popen] = []
     specs: list[tuple[str, str, dict]] = []
     try:
         for i, ns in enumerate(namespaces):
-            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor)
+            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
+                                      public_key_path(key))  # fmt: skip
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
             inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
@@ -102,6 +128,7 @@ def run(args, extra: list[str]) -> int:
         _stop(procs)
         node.destroy_node()
         rclpy.try_shutdown()
+        shutil.rmtree(keys, ignore_errors=True)
     return 0 if trainer.returncode in (0, None) else 1
 
 

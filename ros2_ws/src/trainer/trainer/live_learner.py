@@ -30,9 +30,15 @@ The run directory is the simulator trainer's: config.json, progress.csv
 ``checkpoint_interval`` steps, state.safetensors (policy, Adam, generator,
 counters, the run's id). ``resume`` continues from the last state; the pool
 collected since the last update is lost with the process (a few seconds of
-data). The run id goes with every weights message (``metadata["run"]``), so
-policy nodes take a fresh run's version 0 but ignore an old message of this
-run.
+data). The run id goes with every weights message (``metadata["run"]``), and
+so does the run's epoch, the time it began (kept across ``resume``): policy
+nodes order weights by (epoch, version), so they take a fresh run's version 0
+but refuse an old message of this run or of an earlier one.
+
+With a ``signer`` (``protocol.trust``; ``morph-train --live --signing-key``)
+every weights message is signed, and so is every weights-only checkpoint: its
+.json carries the same header and signature as the message of its version
+(``policy.weights.SignedWeights``), over the same bytes.
 
 A diverged update (parameters NaN or inf) is refused: the learner keeps the
 parameters, optimizer and rule state it had before it, counts it
@@ -53,7 +59,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors.torch import save as safetensors_bytes
 
 from morph_core.algo.checkpoint import (
     previous_state_path,
@@ -69,6 +74,7 @@ from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns
 from morph_core.algo.update import Learner, compile_ahead, update, with_proximal
 from morph_core.msgs.policy_weights import pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.weights import SignedWeights, write_checkpoint
 from morph_core.protocol.transition_batch import TransitionBatch
 from morph_core.protocol.transitions import Transition
 from morph_core.util.atomic import atomic_writer
@@ -108,6 +114,9 @@ class LiveOptions:
     stream_chunks: bool = False
     """read each pair's messages from its policy node's ``stream_chunks`` (a few dozen steps per message)
     instead of its four data topics (four messages per step): far fewer wake-ups (docs/benchmarks.md)"""
+    signing_key: Path | None = None
+    """the private key that signs every weights message and checkpoint (``morph-keys new``); without one the
+    weights go out unsigned, and policy nodes take them only with ``accept_unsigned_weights`` (tests)"""
 
     def __post_init__(self):
         if not self.namespaces:
@@ -138,7 +147,10 @@ class NonFiniteUpdate(RuntimeError):
 class LiveLearner:
     """Pool of episodes, PPO updates, checkpoints and the current weights version (see module docstring)."""
 
-    def __init__(self, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, max_staleness: int = 2):
+    def __init__(
+        self, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, max_staleness: int = 2, signer=None
+    ):
+        """``signer``: a ``protocol.trust.Signer`` for the weights and checkpoints (None: unsigned)."""
         if cfg.anneal_lr:
             raise ValueError("anneal_lr needs a known run length; live training has none")
         if max_staleness < 0:
@@ -155,6 +167,10 @@ class LiveLearner:
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "version": 0, "env_steps": 0}
         self.run_id = uuid.uuid4().hex
+        self.epoch = time.time_ns()
+        """when the run began: orders this run's weights after every earlier run's (``msgs.policy_weights``)"""
+        self.signer = signer
+        self._message: tuple[int, list, bytes] | None = None  # (version, dims, data) of the latest weights
         if resumed:
             state = resume_training_state(self.state_path)  # a damaged newest state: the previous one
             tensors, meta = state.tensors, state.meta
@@ -164,6 +180,7 @@ class LiveLearner:
             self.gen.set_state(tensors["rng.torch"])
             self.counters = meta["counters"]
             self.run_id = meta["env"]["run"]
+            self.epoch = int(meta["env"].get("epoch", 0))  # a state written before epochs: before every run
         else:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             with atomic_writer(self.run_dir / "config.json") as f:
@@ -299,8 +316,7 @@ class LiveLearner:
         step, last = c["global_step"], c["last_ckpt"]
         if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval:
             c["last_ckpt"] = step
-            self.policy.save(self.run_dir / "checkpoints" / f"policy_{step:08d}.safetensors",
-                             metadata={"global_step": step, "version": c["version"]})  # fmt: skip
+            self._save_checkpoint(self.run_dir / "checkpoints" / f"policy_{step:08d}.safetensors")
         self._save_state()  # every update: a resumed trainer continues from the version the nodes run
         return row
 
@@ -330,15 +346,26 @@ class LiveLearner:
         self.gen.set_state(gen)
 
     def _save_state(self) -> None:
-        save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, {"run": self.run_id}, {},
+        env = {"run": self.run_id, "epoch": self.epoch}
+        save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, env, {},
                             dict(self.counters), self.learner.state_tensors())  # fmt: skip
 
     def weights_message(self) -> tuple[list[tuple[str, int, int]], bytes]:
-        """The current policy as the weights topic carries it (``msgs.policy_weights``)."""
-        tensors = {k: v.detach().contiguous() for k, v in self.policy.state_dict().items()}
-        meta = {"run": self.run_id, "global_step": self.counters["global_step"]}
-        return pack_policy_weights(self.version, dataclasses.asdict(self.policy.config), safetensors_bytes(tensors),
-                                   meta)  # fmt: skip
+        """The current policy as the weights topic carries it (``msgs.policy_weights``), signed with the
+        learner's signer; made once per version (a checkpoint of the version carries the same signature)."""
+        if self._message is None or self._message[0] != self.version:
+            meta = {"run": self.run_id, "global_step": self.counters["global_step"]}
+            dims, data = pack_policy_weights(self.version, dataclasses.asdict(self.policy.config),
+                                             self.policy.to_bytes(), meta, self.epoch, self.signer)  # fmt: skip
+            self._message = (self.version, dims, data)
+        return self._message[1], self._message[2]
+
+    def _save_checkpoint(self, path: Path) -> None:
+        """The current weights as a weights-only checkpoint: the message's bytes and, if signed, its signature."""
+        dims, data = self.weights_message()
+        signed = SignedWeights(dims[1][0], dims[2][0]) if len(dims) == 3 else None
+        meta = {"global_step": self.counters["global_step"], "version": self.version}
+        write_checkpoint(path, data, dataclasses.asdict(self.policy.config), meta, signed)
 
     def close(self) -> None:
         self.log.close()

@@ -36,6 +36,7 @@ from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
@@ -99,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
     live.add_argument("--nice", type=int, default=LiveOptions.nice,
                       help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
+    live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
+                      help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
+                      "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
     live.add_argument("--stream-chunks", type=parse_bool, nargs="?", const=True, default=LiveOptions.stream_chunks,
                       metavar="BOOL", help="take each pair's messages from its policy node's stream_chunks instead "
                       f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
@@ -199,10 +203,11 @@ def _train_live(args, parser) -> int:
             cfg = replace_nested(live_train_config(), overrides)
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
-                              args.stream_chunks)  # fmt: skip
-    except (TypeError, ValueError) as err:
+                              args.stream_chunks, args.signing_key)  # fmt: skip
+        signer = None if args.signing_key is None else load_signing_key(args.signing_key)
+    except (TypeError, ValueError) as err:  # KeyFileError is a ValueError
         parser.error(str(err))
-    return run_live(cfg, options)
+    return run_live(cfg, options, signer=signer)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -222,8 +227,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"morph-train: error: {err}", file=sys.stderr)
             return 1
         return 0
-    if args.namespaces:
-        parser.error("--namespaces: only with --live")
+    if args.namespaces or args.signing_key:
+        parser.error("--namespaces, --signing-key: only with --live")
     given = [opt for opt, v in (("--init", args.init), ("--iterations", args.iterations),
                                 ("--new-data", args.new_data), ("--namespace", args.namespace)) if v]  # fmt: skip
     if given:
