@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import shutil
 import signal
@@ -30,6 +31,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from morph_core.protocol.trust import public_key_path
+from trainer.live_bringup import run_key_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -111,17 +115,26 @@ def _joined(log: Path, k: int) -> bool:
     return log.exists() and log.read_text(errors="replace").count("is running") >= k
 
 
+def work_key(work: Path) -> Path:
+    """The signing key of the benchmark's trainers (``work/trainer_key``), made on first use."""
+    key = work / "trainer_key"
+    return key if key.exists() else run_key_pair(work)
+
+
 def start_pairs(
     namespaces: list[str], work: Path, counter: ClockCounter, procs: list, real_time_factor: float = 0.0
 ) -> None:
     """A lockstep sim and a sampling policy node in each namespace (appended to ``procs``, so the caller
-    stops them whatever happens), then waits until every loop runs."""
+    stops them whatever happens), then waits until every loop runs. The nodes trust ``work``'s signing key
+    (made here once), as the bring-up's nodes trust the run's."""
+    key = work_key(work)
     for i, ns in enumerate(namespaces):
         sim = {"lockstep": "true", "real_time_factor": real_time_factor, "effort_timeout": 2.0, "min_joints": 2,
                "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
         name = ns.strip("/")
         procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim_{name}.log"))
-        policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true"}
+        policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true",
+                  "trusted_keys": json.dumps([str(public_key_path(key))])}  # fmt: skip
         procs.append(_node("morph_policy_node.policy_node", ns, policy, work / f"policy_{name}.log"))
     # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
     deadline = time.monotonic() + 180
@@ -148,7 +161,7 @@ def bench(
         run = work / f"run{k}"
         # The update compiled as by default: the compiling ends before the measured window.
         cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
-               "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
+               "--tensorboard", "false", "--progress-bar", "false", "--signing-key", str(work_key(work))]  # fmt: skip
         cmd += trainer_args
         if ingest_only:
             cmd += ["--num-envs", "1", "--num-steps", "100000000"]

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -110,6 +111,13 @@ class NodeProcess:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
+    def rss_kb(self) -> int:
+        """The process's resident memory now [kB]."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+        raise AssertionError("no VmRSS")
+
     def stop(self) -> int | None:
         """SIGTERM (the nodes treat it as a normal end), then SIGKILL if it lingers. Returns the exit code."""
         if self.proc.poll() is None:
@@ -143,6 +151,32 @@ def probe(namespace):
     p.close()
 
 
+class Diagnostics:
+    """The latest input counts a node reported on /diagnostics."""
+
+    def __init__(self, probe, node_name: str):
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.name = f"{node_name}: inputs"
+        self.latest: dict | None = None
+        self.messages: list[str] = []
+        probe.node.create_subscription(DiagnosticArray, "/diagnostics", self._on, 10)
+
+    def _on(self, msg) -> None:
+        from morph_core.protocol.input_counts import from_key_values
+
+        for status in msg.status:
+            if status.name == self.name:
+                self.latest = from_key_values((kv.key, kv.value) for kv in status.values)
+                self.messages.append(status.message)
+
+
+@pytest.fixture
+def diagnostics(probe):
+    """diagnostics(node_name) -> the input counts that node reports on /diagnostics, as they come."""
+    return lambda node_name: Diagnostics(probe, node_name)
+
+
 @pytest.fixture
 def launch(namespace, tmp_path):
     """launch(executable, **params) -> NodeProcess in the test's namespace; all are stopped afterwards."""
@@ -169,6 +203,36 @@ def untrained_checkpoint(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("policy") / "untrained.safetensors"
     GraphActorCritic().save(path, metadata={"note": "untrained, for tests"})
     return path
+
+
+@dataclass(frozen=True)
+class TrainerKey:
+    """A signing key pair as ``morph-keys new`` writes it: the trainer signs with ``signer`` / ``path``, policy
+    nodes trust ``public`` (``trusted_keys``)."""
+
+    signer: object
+    path: Path
+    public: Path
+
+    @property
+    def trusted(self) -> str:
+        """The ``trusted_keys`` parameter's text: a YAML list of the public key file."""
+        return json.dumps([str(self.public)])
+
+    def sign(self, dims: list[tuple[str, int, int]], data: bytes) -> list[tuple[str, int, int]]:
+        """A weights message's layout dims with this key's signature over its header and data, as they are
+        (a trusted trainer that sends damaged weights signs them too)."""
+        from morph_core.protocol.trust import sha256_hex
+
+        return [*dims[:2], (self.signer.sign(dims[1][0], sha256_hex(bytes(data))).label, 0, 0)]
+
+
+@pytest.fixture(scope="session")
+def trainer_key(tmp_path_factory) -> TrainerKey:
+    from morph_core.protocol.trust import public_key_path, write_key_pair
+
+    path = tmp_path_factory.mktemp("keys") / "trainer_key"
+    return TrainerKey(write_key_pair(path), path, public_key_path(path))
 
 
 # -- checkpoints that must be refused ----------------------------------------------------------------

@@ -136,11 +136,11 @@ def test_sim_survives_huge_parameter_requests(probe, launch, namespace):
 
 
 # -- policy node -------------------------------------------------------------------------------------------
-def _policy_answering(probe, launch, untrained_checkpoint):
+def _policy_answering(probe, launch, untrained_checkpoint, **params):
     efforts, stamps = _collect(probe, Float64MultiArray, "effort_commands")
     chunks, _ = _collect(probe, UInt8MultiArray, CHUNK_TOPIC)  # the node streams too while flooded
     state_pub = probe.node.create_publisher(JointState, "joint_states", 10)
-    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), input_timeout=30.0)
+    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), input_timeout=30.0, **params)
     probe.spin_until(
         lambda: state_pub.get_subscription_count() > 0 and probe.node.count_publishers("effort_commands") > 0,
         STARTUP,
@@ -231,10 +231,12 @@ def test_policy_survives_huge_parameter_requests(probe, launch, namespace, untra
 
 
 @pytest.mark.timeout(180)
-def test_policy_survives_huge_weights(probe, launch, untrained_checkpoint):
+def test_policy_survives_huge_weights(probe, launch, untrained_checkpoint, trainer_key):
     from std_msgs.msg import MultiArrayDimension
 
-    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint)
+    # A node that trusts a trainer reads the weights topic (one that trusts none does not even subscribe).
+    proc, state_pub, efforts, stamps, chunks = _policy_answering(probe, launch, untrained_checkpoint,
+                                                                 trusted_keys=trainer_key.trusted)  # fmt: skip
     weights_pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
     probe.spin_until(lambda: weights_pub.get_subscription_count() > 0, STARTUP, "the policy_weights subscription")
     huge = UInt8MultiArray(data=bytes(8 * HUGE))  # fragmented on the wire; not a policy

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import safetensors.numpy
-from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -31,7 +30,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_version
 from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, parse_answer_tag, to_ns
-from morph_core.protocol.input_counts import from_key_values
 
 FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "600"))
 """malformed messages per node"""
@@ -43,47 +41,24 @@ RSS_GROWTH_LIMIT_KB = 20_000
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def rss_kb(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise AssertionError("no VmRSS")
-
-
 def _fuzz_measured(probe, proc, fuzz) -> tuple[int, int, float]:
     """A warm-up (every kind once or more, allocator pools grown), then ``FUZZ_COUNT`` malformed messages
     with good ones between: (RSS before, RSS after [kB], seconds of the measured part)."""
     fuzz(max(50, FUZZ_COUNT // 10))
     probe.spin_for(1.0)
-    rss_before = rss_kb(proc.proc.pid)
+    rss_before = proc.rss_kb()
     t0 = time.monotonic()
     fuzz(FUZZ_COUNT)
     elapsed = time.monotonic() - t0
     probe.spin_for(1.0)
-    return rss_before, rss_kb(proc.proc.pid), elapsed
+    return rss_before, proc.rss_kb(), elapsed
 
 
 def _doubles(values) -> array.array:
     return array.array("d", np.asarray(values, dtype=np.float64).tobytes())
 
 
-class Diagnostics:
-    """The latest input counts a node reported on /diagnostics."""
-
-    def __init__(self, probe, node_name: str):
-        self.name = f"{node_name}: inputs"
-        self.latest: dict | None = None
-        self.messages: list[str] = []
-        probe.node.create_subscription(DiagnosticArray, "/diagnostics", self._on, 10)
-
-    def _on(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            if status.name == self.name:
-                self.latest = from_key_values((kv.key, kv.value) for kv in status.values)
-                self.messages.append(status.message)
-
-
-def _wait_counts(probe, diag: Diagnostics, expected_received: dict[str, int], may_drop: dict | None = None) -> dict:
+def _wait_counts(probe, diag, expected_received: dict[str, int], may_drop: dict | None = None) -> dict:
     """The counts once they show every message sent, less at most ``may_drop[input]`` (messages a best-effort
     transport may lose: a large one is dropped whole when a fragment is lost, and it can take the rest of its
     burst with it; they never reach the node)."""
@@ -128,7 +103,7 @@ def _odom(sec: int, nanosec: int, quat=(0.0, 0.0, 0.0, 1.0), lin=(0.0, 0.0)) -> 
     return msg
 
 
-def _weights(version: int, checkpoint: Path, damage: str = "") -> UInt8MultiArray:
+def _weights(version: int, checkpoint: Path, key, damage: str = "") -> UInt8MultiArray:
     config = json.loads(checkpoint.with_suffix(".json").read_text())["policy"]
     tensors = safetensors.numpy.load(checkpoint.read_bytes())
     tensors["log_std"] = np.array(-0.1 * version, dtype=np.float32)  # each version visibly its own
@@ -151,6 +126,7 @@ def _weights(version: int, checkpoint: Path, damage: str = "") -> UInt8MultiArra
     if damage == "json":
         dims[1] = ('{"format": "morph_policy_weights/1", "version":', 0, 0)
     dims[0] = (dims[0][0], len(data), len(data))
+    dims = key.sign(dims, data)  # the trusted trainer's key, over the damage too: the checks behind it are fuzzed
     msg = UInt8MultiArray(data=bytes(data))
     msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
     return msg
@@ -195,7 +171,7 @@ def _bad_episode_starts() -> list[tuple[str, Int64MultiArray]]:
 
 
 @pytest.mark.timeout(1800)
-def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_checkpoint):
+def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_checkpoint, trainer_key, diagnostics):
     rng = random.Random(14)
     answers: dict[int, int] = {}  # answered stamp -> times
     infos: list[tuple[int, int | None]] = []  # (stamp, weights version) of each policy_info
@@ -210,13 +186,14 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
 
     probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
     probe.node.create_subscription(JointTrajectory, "policy_info", on_info, DEEP)
-    diag = Diagnostics(probe, f"{namespace}/morph_policy")
+    diag = diagnostics(f"{namespace}/morph_policy")
     pubs = {
         topic: probe.node.create_publisher(kind, topic, 10)
         for topic, kind in (("joint_states", JointState), ("odom", Odometry), ("episode_start", Int64MultiArray),
                             ("policy_weights", UInt8MultiArray))
     }  # fmt: skip
-    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), deterministic=False, input_timeout=60.0)
+    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), deterministic=False, input_timeout=60.0,
+                  trusted_keys=trainer_key.trusted)  # fmt: skip
     probe.spin_until(
         lambda: all(p.get_subscription_count() > 0 for p in pubs.values()) and diag.latest is not None,
         STARTUP, "the policy node's subscriptions and diagnostics",
@@ -289,7 +266,7 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
                     kind, msg = rng.choice(_bad_episode_starts())
                 else:
                     kind = rng.choice(["truncated", "nan", "shape", "label", "json"])
-                    msg = _weights(10**6 + malformed, untrained_checkpoint, damage=kind)
+                    msg = _weights(10**6 + malformed, untrained_checkpoint, trainer_key, damage=kind)
                 send(topic, msg, kind)
                 malformed += 1
                 if topic == "policy_weights":
@@ -298,7 +275,7 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
                 at_risk["policy_weights"] += topic == "policy_weights"  # a malformed one just before it
                 at_risk["policy_weights"] += burst_has_big[0]  # itself, behind a fragmented message
                 version += 1
-                send("policy_weights", _weights(version, untrained_checkpoint))
+                send("policy_weights", _weights(version, untrained_checkpoint, trainer_key))
                 weights_sent.append((version, len(good_stamps), burst_has_big[0]))
             good_round()
             burst_has_big[0] = False
@@ -360,12 +337,12 @@ def _efforts(values, label: str | None = None) -> Float64MultiArray:
 
 
 @pytest.mark.timeout(1800)
-def test_sim_node_under_fuzzed_input(probe, launch, namespace):
+def test_sim_node_under_fuzzed_input(probe, launch, namespace, diagnostics):
     """Lockstep: the sim steps exactly once per good answer, with that answer's efforts, never on a bad one."""
     rng = random.Random(41)
     states: list[JointState] = []
     probe.node.create_subscription(JointState, "joint_states", states.append, DEEP)
-    diag = Diagnostics(probe, f"{namespace}/swimmer_sim")
+    diag = diagnostics(f"{namespace}/swimmer_sim")
     pub = probe.node.create_publisher(Float64MultiArray, "effort_commands", 10)
     proc = launch("swimmer_sim_node", num_joints=3, lockstep=True, real_time_factor=0.0, effort_timeout=600.0)
     probe.spin_until(lambda: states and pub.get_subscription_count() > 0 and diag.latest, STARTUP, "the sim")

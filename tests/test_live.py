@@ -76,10 +76,10 @@ def reads(listen: str) -> list[str]:
     return ["--stream-chunks", "true" if listen == "stream_chunks" else "false"]
 
 
-def Trainer(namespaces: list[str], out: Path, log_path: Path, *extra: str, prefix: list[str] = ()) -> Proc:  # noqa: N802
-    """``morph-train --live`` as a process."""
+def Trainer(namespaces: list[str], out: Path, log_path: Path, key, *extra: str, prefix: list[str] = ()) -> Proc:  # noqa: N802
+    """``morph-train --live`` as a process, signing with ``key`` (conftest's ``TrainerKey``)."""
     cmd = [*prefix, sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces,
-           "--out", str(out), *SMALL, *extra]  # fmt: skip
+           "--out", str(out), "--signing-key", str(key.path), *SMALL, *extra]  # fmt: skip
     return Proc(cmd, log_path)
 
 
@@ -90,14 +90,15 @@ def node(module: str, ns: str, params: dict, log_path: Path, prefix: list[str] =
     return Proc(args, log_path)
 
 
-def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, which=("sim", "policy"), prefix=()) -> dict:
+def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, key, which=("sim", "policy"), prefix=()) -> dict:
+    """A lockstep sim and a sampling policy node in ``ns``; the node trusts ``key`` (conftest's ``TrainerKey``)."""
     procs = {}
     if "sim" in which:
         procs["sim"] = node("swimmer_sim_node.sim_node", ns, dict(lockstep=True, real_time_factor=0.0,
                                    effort_timeout=1.0, min_joints=2, max_joints=10, seed=seed),
                                    tmp_path / f"sim{ns.replace('/', '_')}_{seed}.log", prefix)  # fmt: skip
     if "policy" in which:
-        params = dict(deterministic=False, seed=seed, checkpoint=str(checkpoint))
+        params = dict(deterministic=False, seed=seed, checkpoint=str(checkpoint), trusted_keys=key.trusted)
         procs["policy"] = node(
             "morph_policy_node.policy_node", ns, params, tmp_path / f"policy{ns.replace('/', '_')}.log", prefix
         )
@@ -181,11 +182,17 @@ def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path
     assert len(rows) == 2 and all(int(r["batch_size"]) >= 128 for r in rows), log[-3000:]
     assert max(int(r["pairs"]) for r in rows) == 2
     assert all(f"pair /swimmer{i} is running" in log for i in range(2))
+    # The run's own key: the trainer signed with it, each node trusted it and took the signed versions.
+    fingerprint = log.split("signing the weights with ")[1].split()[0]
+    assert log.count(f"trusting weights signed by {fingerprint}") == 2
+    assert log.count(f"signed by {fingerprint} received") >= 2 and "UNSIGNED" not in log
 
 
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
-def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path, untrained_checkpoint, listen):
+def test_trainer_on_another_host_over_a_veth_link(
+    two_hosts, namespace, tmp_path, untrained_checkpoint, trainer_key, listen
+):
     """A pair on one host, the trainer on the other: the veth link is the only path between them. The trainer
     can only update on samples that crossed it: on the pair's topics, or only in its policy node's chunks."""
     import time
@@ -193,8 +200,9 @@ def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path
     pair_host, trainer_host = two_hosts
     p0 = f"{namespace}/p0"
     out = tmp_path / "run"
-    procs = [Trainer([p0], out, tmp_path / "trainer.log", "--max-updates", "2", *reads(listen), prefix=trainer_host)]
-    pair = start_pair(p0, 0, untrained_checkpoint, tmp_path, prefix=pair_host)
+    procs = [Trainer([p0], out, tmp_path / "trainer.log", trainer_key, "--max-updates", "2", *reads(listen),
+                     prefix=trainer_host)]  # fmt: skip
+    pair = start_pair(p0, 0, untrained_checkpoint, tmp_path, trainer_key, prefix=pair_host)
     procs += pair.values()
     try:
         deadline = time.monotonic() + STARTUP
@@ -214,13 +222,13 @@ def test_trainer_on_another_host_over_a_veth_link(two_hosts, namespace, tmp_path
 
 
 @pytest.mark.timeout(300)
-def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path, untrained_checkpoint):
+def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path, untrained_checkpoint, trainer_key):
     """stream_chunks: what the policy node received and sent, in its order, within one datagram per chunk; the
     trainer's decoders and assembler make whole transitions of it."""
     p0 = f"{namespace}/p0"
     chunks = probe.collect(UInt8MultiArray, f"{p0}/{CHUNK_TOPIC}", CHUNK_QOS)
     infos = probe.collect(JointTrajectory, f"{p0}/policy_info")
-    pair = start_pair(p0, 0, untrained_checkpoint, tmp_path)
+    pair = start_pair(p0, 0, untrained_checkpoint, tmp_path, trainer_key)
     try:
         probe.spin_until(lambda: len(chunks) >= 20, STARTUP, "20 stream chunks")
         probe.spin_for(0.5)  # the topic's own messages of the last chunk
@@ -257,15 +265,15 @@ def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
 def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
-    probe, namespace, tmp_path, untrained_checkpoint, listen
+    probe, namespace, tmp_path, untrained_checkpoint, trainer_key, listen
 ):
     p0, p1 = f"{namespace}/p0", f"{namespace}/p1"
     out = tmp_path / "run"
     weights = WeightsWatch(probe, p0)
     starts = []
     probe.node.create_subscription(Int64MultiArray, f"{p0}/episode_start", starts.append, EPISODE_QOS)
-    trainer = Trainer([p0, p1], out, tmp_path / "trainer.log", *reads(listen))
-    pairs = [start_pair(p0, 0, untrained_checkpoint, tmp_path), start_pair(p1, 1, untrained_checkpoint, tmp_path)]
+    trainer = Trainer([p0, p1], out, tmp_path / "trainer.log", trainer_key, *reads(listen))
+    pairs = [start_pair(p, i, untrained_checkpoint, tmp_path, trainer_key) for i, p in enumerate((p0, p1))]
     procs = [trainer, *pairs[0].values(), *pairs[1].values()]
 
     def waiting(what: str):  # a timeout says what was awaited and shows the (current) trainer's log then
@@ -297,7 +305,7 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
         assert int(progress(out)[-1]["pairs"]) == 1, waiting("the last update on p0 alone")()
         # It comes back: taken back (episode length set, reset), training on both again.
         pairs[1]["sim"].stop()
-        back = start_pair(p1, 1, untrained_checkpoint, tmp_path, which=("sim",))
+        back = start_pair(p1, 1, untrained_checkpoint, tmp_path, trainer_key, which=("sim",))
         procs.append(back["sim"])
         taken_back = waiting("p1 taken back")
         probe.spin_until(lambda: trainer.log().count(f"pair {p1} is running") > running, STARTUP, taken_back)
@@ -311,7 +319,7 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
         probe.spin_for(1.0)  # what the killed trainer sent is in
         assert all(p.alive() for pair in pairs for p in pair.values() if p is not pairs[1]["sim"])
         n = len(weights.got)
-        trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", "--resume", *reads(listen))
+        trainer = Trainer([p0, p1], out, tmp_path / "trainer2.log", trainer_key, "--resume", *reads(listen))
         procs.append(trainer)
         probe.spin_until(lambda: len(weights.got) > n, STARTUP, waiting("the resumed trainer's weights"))
         # It resumes at the saved version, of the same run. (The probe may first hear a later one: on a
@@ -334,8 +342,9 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
 
 
 # -- the policy node's side: weights adopted, late joiners, bad weights ---------------------------------------------
-def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int = 0, damage: str = ""):
-    """A weights message for a fresh policy whose log-std is ``log_std`` (visible in every policy_info)."""
+def weights_msg(version: int, log_std: float, key, seed: int = 0, damage: str = ""):
+    """A weights message for a fresh policy whose log-std is ``log_std`` (visible in every policy_info), signed
+    with ``key`` (conftest's ``TrainerKey``) as it is, damage included."""
     import torch
     from safetensors.torch import save as torch_save
     from std_msgs.msg import MultiArrayDimension
@@ -348,7 +357,7 @@ def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int =
     with torch.no_grad():
         policy.log_std.fill_(log_std)
     tensors = {k: v.detach().clone().contiguous() for k, v in policy.state_dict().items()}
-    dims, data = pack_policy_weights(version, dataclasses.asdict(policy.config), torch_save(tensors), {"run": run})
+    dims, data = pack_policy_weights(version, dataclasses.asdict(policy.config), torch_save(tensors), {"run": "test"})
     if damage == "nan":
         first = next(iter(tensors))
         tensors[first].view(-1)[0] = float("nan")
@@ -361,6 +370,7 @@ def weights_msg(version: int, log_std: float, run: str = "test-run", seed: int =
         dims[0] = ("safetensors", len(data), len(data))
     elif damage == "json":
         dims[1] = ("{not json", 0, 0)
+    dims = key.sign(dims, data) if damage != "json" else dims
     msg = UInt8MultiArray()
     msg.layout.dim = [MultiArrayDimension(label=label, size=size, stride=stride) for label, size, stride in dims]
     msg.data = data
@@ -408,7 +418,7 @@ class Pusher:
 
 @pytest.mark.timeout(300)
 def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_out(
-    probe, namespace, tmp_path, untrained_checkpoint
+    probe, namespace, tmp_path, untrained_checkpoint, trainer_key
 ):
     spaces = [f"{namespace}/p{i}" for i in range(3)]
     pusher = Pusher(probe, spaces)
@@ -416,20 +426,20 @@ def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_ou
     procs = []
     try:
         for i, ns in enumerate(spaces[:2]):
-            procs.append(start_pair(ns, i, untrained_checkpoint, tmp_path))
+            procs.append(start_pair(ns, i, untrained_checkpoint, tmp_path, trainer_key))
         probe.spin_until(lambda: all(w.got for w in infos[:2]), STARTUP, "both policies answering")
         assert all(w.got[-1][0] is None for w in infos[:2])  # a checkpoint file: no weights version
         # pushed: both adopt version 1 between two answers; policy_info says so
         for ns in spaces:
-            pusher.push(ns, weights_msg(1, -1.25))
+            pusher.push(ns, weights_msg(1, -1.25, trainer_key))
         probe.spin_until(lambda: all(w.shows(1, -1.25) for w in infos[:2]), 30, "version 1 in both policy_info")
         # a late policy node (the third pair) gets the latest weights
-        procs.append(start_pair(spaces[2], 2, untrained_checkpoint, tmp_path))
+        procs.append(start_pair(spaces[2], 2, untrained_checkpoint, tmp_path, trainer_key))
         probe.spin_until(lambda: infos[2].shows(1, -1.25), STARTUP, "the late node running version 1")
         # malformed weights: each rejected with its reason, version 1 kept
         policy0 = procs[0]["policy"]
         for damage, reason in (("nan", "NaN or inf"), ("shape", "has shape"), ("json", "not JSON")):
-            bad = weights_msg(5, -0.5, damage=damage)
+            bad = weights_msg(5, -0.5, trainer_key, damage=damage)
             for _ in range(40):  # best effort: sent until the node has said why it refused it
                 pusher.push(spaces[0], bad, keep=False)
                 probe.spin_for(0.5)
@@ -440,9 +450,9 @@ def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_ou
         probe.spin_until(lambda: len(infos[0].got) > n + 20, 30, "more answers")
         assert all(w == (1, -1.25) for w in infos[0].got[n:]), infos[0].got[n:][:5]
         assert "current policy kept" in policy0.log()
-        # an old version of the same run is ignored; the next good one is taken
-        pusher.push(spaces[0], weights_msg(0, -2.0), keep=False)
-        pusher.push(spaces[0], weights_msg(2, -0.75))
+        # an old version of the same run is refused as a replay; the next good one is taken
+        pusher.push(spaces[0], weights_msg(0, -2.0, trainer_key), keep=False)
+        pusher.push(spaces[0], weights_msg(2, -0.75, trainer_key))
         probe.spin_until(lambda: infos[0].shows(2, -0.75), 30, "version 2 after the bad ones")
         assert not any(w == (0, -2.0) for w in infos[0].got)
         assert infos[1].shows(1, -1.25)  # pushed to p0 only
