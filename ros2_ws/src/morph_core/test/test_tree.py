@@ -6,12 +6,14 @@ and turned into both a URDF and an MJCF here, so one expected parent array check
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
 import os
 import random
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 
 import mujoco
 import numpy as np
@@ -77,8 +79,8 @@ def to_mjcf(root) -> str:
         body.append(f'{pad}<body name="{name}" pos="0.1 0 0"><geom size="0.05"/>')
         if depth == 0:
             body.append(f'{pad}  <freejoint name="{name}_free"/>')  # unactuated: merged
-        for joint in joint_names(node):
-            body.append(f'{pad}  <joint name="{joint}" type="hinge" axis="0 0 1"/>')
+        for joint, axis in zip(joint_names(node), ("0 0 1", "0 1 0"), strict=False):  # two: a universal joint
+            body.append(f'{pad}  <joint name="{joint}" type="hinge" axis="{axis}"/>')
             motors.append(f'<motor name="{joint}_motor" joint="{joint}"/>')
         if kind == "passive":
             body.append(f'{pad}  <joint name="{name}_passive" type="hinge"/>')
@@ -482,3 +484,146 @@ def test_from_parents_refusals(case):
 def test_chain_refusals(n):
     with pytest.raises(TreeError, match=r"a chain has 1\.\.64 joints"):
         KinematicTree.chain(n)
+
+
+# -- random trees and fuzzing --------------------------------------------------------------------------
+def random_spec(rng: random.Random, num_links: int):
+    """A random tree of links hanging off "root" by random kinds, deep or bushy by chance."""
+    nodes = [link("root", None)]
+    for k in range(1, num_links):
+        kind = rng.choices(["hinge", "hinge2", "fixed", "passive"], weights=[5, 1, 2, 2])[0]
+        node = link(f"n{k}", kind)
+        parent = nodes[-1] if rng.random() < 0.5 else rng.choice(nodes)
+        parent[2].append(node)
+        nodes.append(node)
+    return nodes[0]
+
+
+def test_random_trees_read_the_same_from_urdf_mjcf_and_the_reference():
+    rng = random.Random(7)
+    refused = 0
+    for trial in range(60):
+        spec = random_spec(rng, rng.choice([1, 2, 100]) if trial % 10 == 0 else rng.randrange(1, 80))
+        names, parents = expected_parents(spec)
+        readings = []
+        for read, text in ((KinematicTree.from_urdf, to_urdf(spec, seed=trial)), (from_mjcf, to_mjcf(spec))):
+            try:
+                readings.append(read(text))
+            except TreeError as err:
+                readings.append(str(err))
+        if 1 <= len(names) <= MAX_JOINTS:
+            assert readings[0] == readings[1]
+            assert readings[0].names == tuple(names) and readings[0].parents.tolist() == parents
+        else:  # no joint, or too many: both refuse for the same reason
+            refused += 1
+            assert readings[0] == readings[1] and isinstance(readings[0], str)
+    assert 0 < refused < 30  # both branches ran
+
+
+HINGES = ("revolute", "continuous")
+
+
+def assert_tree_read_right(tree: KinematicTree, text: str | bytes) -> None:
+    """The tree's invariants, and each joint's parent found bottom-up in the text: a second walk, the other way."""
+    assert 1 <= tree.num_joints <= MAX_JOINTS and len(tree.parents) == tree.num_joints
+    assert all(-1 <= p < j for j, p in enumerate(tree.parents.tolist()))
+    assert len(set(tree.names)) == tree.num_joints and not tree.parents.flags.writeable
+    assert KinematicTree.from_parents(tree.parents, tree.names, tree.root_link) == tree
+    robot = ET.fromstring(text)
+    joints = {j.get("name"): j for j in robot.findall("joint")}
+    above_link = {j.find("child").get("link"): j for j in joints.values()}
+    assert set(tree.names) == {name for name, j in joints.items() if j.get("type") in HINGES}
+    for k, name in enumerate(tree.names):
+        parent, link_name = -1, joints[name].find("parent").get("link")
+        while link_name in above_link:
+            up = above_link[link_name]
+            if up.get("type") in HINGES:
+                parent = tree.names.index(up.get("name"))
+                break
+            link_name = up.find("parent").get("link")
+        assert tree.parents[k] == parent, (name, tree)
+
+
+def deep_or_wide_urdf(rng: random.Random) -> str:
+    """Thousands of fixed links in a line or off one link, with a few hinges among them (no recursion here)."""
+    n = rng.randrange(500, 3000)
+    deep = rng.random() < 0.5
+    joints = [
+        joint(f"j{k}", "revolute" if rng.random() < 0.01 else "fixed", f"l{k - 1}" if deep else "l0", f"l{k}")
+        for k in range(1, n)
+    ]
+    return urdf(links(*(f"l{k}" for k in range(n))), *joints)
+
+
+JOINT_TYPES = ("revolute", "continuous", "fixed", "prismatic", "planar", "floating", "ball", "", "Revolute")
+TAGS = ("link", "joint", "parent", "child", "mimic", "robot", "origin", "axis")
+
+
+def mutate(robot: ET.Element, rng: random.Random) -> None:
+    """One random edit of the element tree: delete, duplicate, rename, retype, add, swap or move."""
+    elements = list(robot.iter())
+    parent_of = {child: parent for parent in elements for child in parent}
+    values = [v for el in elements for v in el.attrib.values()] + ["", " ", "x", "\u00e9", "a" * 300, "0", "-1"]
+    el = rng.choice(elements)
+    op = rng.randrange(7)
+    if op == 0 and el in parent_of:
+        parent_of[el].remove(el)
+    elif op == 1 and el in parent_of:
+        parent_of[el].insert(rng.randrange(len(parent_of[el]) + 1), copy.deepcopy(el))
+    elif op == 2 and el.attrib:
+        el.set(rng.choice(sorted(el.attrib)), rng.choice(values))
+    elif op == 3:
+        rng.choice(robot.findall("joint") or [el]).set("type", rng.choice(JOINT_TYPES))
+    elif op == 4:
+        el.set(rng.choice(["name", "type", "link", "joint", "zz"]), rng.choice(values))
+    elif op == 5:
+        el.append(ET.Element(rng.choice(TAGS), {rng.choice(["name", "link", "type"]): rng.choice(values)}))
+    elif op == 6 and (joints := robot.findall("joint")):
+        j = rng.choice(joints)
+        ends = j.find("parent"), j.find("child")
+        if None not in ends:
+            a, b = ends[0].get("link"), ends[1].get("link")
+            ends[0].set("link", b or ""), ends[1].set("link", a or "")
+
+
+def corrupt(data: bytes, rng: random.Random) -> bytes:
+    """One random edit of the bytes: truncate, overwrite, insert, or replace everything."""
+    op = rng.randrange(4)
+    at = rng.randrange(len(data) + 1)
+    noise = rng.randbytes(rng.randrange(1, 16))
+    if op == 0:
+        return data[:at]
+    if op == 1:
+        return data[:at] + noise + data[at + len(noise) :]
+    if op == 2:
+        return data[:at] + noise + data[at:]
+    return rng.randbytes(rng.randrange(64))
+
+
+def test_fuzzed_urdfs_give_a_valid_tree_or_a_tree_error():
+    rng = random.Random(20261204)
+    swimmers = [swimmer_urdf(n) for n in (1, 2, 5, 64)]
+    outcomes = {"tree": 0, "refused": 0}
+    for trial in range(3000):
+        pick = rng.random()
+        if pick < 0.03:
+            base = deep_or_wide_urdf(rng)
+        elif pick < 0.4:
+            base = rng.choice(swimmers)
+        else:  # up to ~110 links: some have more than 64 hinges
+            base = to_urdf(random_spec(rng, rng.randrange(1, 110)), reverse_joints=rng.random() < 0.5, seed=trial)
+        robot = ET.fromstring(base)
+        for _ in range(rng.randrange(4)):
+            mutate(robot, rng)
+        text: str | bytes = ET.tostring(robot, encoding="unicode")
+        if rng.random() < 0.25:
+            text = corrupt(text.encode(), rng)
+        try:
+            tree = KinematicTree.from_urdf(text)
+        except TreeError as err:
+            assert str(err) and "\n" not in str(err)
+            outcomes["refused"] += 1
+            continue
+        assert_tree_read_right(tree, text)
+        outcomes["tree"] += 1
+    assert min(outcomes.values()) > 300, outcomes  # both outcomes well exercised
