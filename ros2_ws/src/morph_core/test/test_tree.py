@@ -77,8 +77,8 @@ def to_mjcf(root) -> str:
         name, kind, children = node
         pad = "  " * depth
         body.append(f'{pad}<body name="{name}" pos="0.1 0 0"><geom size="0.05"/>')
-        if depth == 0:
-            body.append(f'{pad}  <freejoint name="{name}_free"/>')  # unactuated: merged
+        if kind is None:  # the root floats, as the swimmer's torso does: an unactuated joint, merged
+            body.append(f'{pad}  <freejoint name="{name}_free"/>')
         for joint, axis in zip(joint_names(node), ("0 0 1", "0 1 0"), strict=False):  # two: a universal joint
             body.append(f'{pad}  <joint name="{joint}" type="hinge" axis="{axis}"/>')
             motors.append(f'<motor name="{joint}_motor" joint="{joint}"/>')
@@ -125,10 +125,11 @@ def expected_parents(root) -> tuple[list[str], list[int]]:
     return names, parents
 
 
-def arm(prefix, length, first_kind="hinge"):
+def arm(prefix, length):
+    """``length`` links in a line, each on a hinge."""
     node = None
     for k in reversed(range(length)):
-        node = link(f"{prefix}{k}", first_kind if k == 0 else "hinge", *([node] if node else []))
+        node = link(f"{prefix}{k}", "hinge", *([node] if node else []))
     return node
 
 
@@ -198,9 +199,15 @@ def test_branched_urdf_and_mjcf_give_the_expected_tree(shape):
     assert reference == parents  # the hand-written answer and the recursive reference agree
     from_urdf = KinematicTree.from_urdf(to_urdf(spec, seed=1))
     assert from_urdf == KinematicTree.from_parents(parents, names, root_link="torso")
-    assert from_mjcf(to_mjcf(spec)) == from_urdf
+    from_mujoco = from_mjcf(to_mjcf(spec))
+    assert from_mujoco == from_urdf and from_mujoco.topology_hash == from_urdf.topology_hash
     assert from_urdf.parent_links.tolist() == [p + 1 for p in parents]
     assert not from_urdf.is_chain
+
+
+def test_the_shapes_hash_apart():
+    trees = [KinematicTree.from_urdf(to_urdf(spec)) for spec, _ in SHAPES.values()]
+    assert len({tree.topology_hash for tree in trees + [KinematicTree.chain(5)]}) == len(SHAPES) + 1
 
 
 def test_document_order_orders_siblings():
@@ -240,8 +247,7 @@ def test_topology_hash_differs_between_shapes_and_ignores_names():
     renamed = KinematicTree.chain(7, names=[f"other{k}" for k in range(7)], root_link=None)
     assert renamed.topology_hash == KinematicTree.chain(7).topology_hash
     assert renamed != KinematicTree.chain(7)
-    h = renamed.topology_hash
-    assert len(h) == 16 and int(h, 16) >= 0
+    assert len(renamed.topology_hash) == 16 and set(renamed.topology_hash) <= set("0123456789abcdef")
 
 
 def test_topology_hash_is_stable_across_processes():

@@ -120,7 +120,9 @@ class KinematicTree:
 
     # -- constructors ------------------------------------------------------------------
     @classmethod
-    def from_parents(cls, parents: Sequence[int] | np.ndarray, names: Sequence[str], root_link: str | None = None):
+    def from_parents(
+        cls, parents: Sequence[int] | np.ndarray, names: Sequence[str], root_link: str | None = None
+    ) -> KinematicTree:
         """A tree from its parent array (parents[j] < j, or -1 off the root) and its joint names."""
         return cls(names, parents, root_link)
 
