@@ -145,7 +145,7 @@ def test_only_weights_the_trusted_key_signed_and_newer_are_adopted(
     diag = diagnostics(f"{namespace}/morph_policy")
     pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
     policy = _start(launch, untrained_checkpoint, deterministic=False, trusted_keys=trainer_key.trusted)
-    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos, STARTUP, "the node")
+    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos and diag.latest, STARTUP, "the node")
     good = _message(*weights(untrained_checkpoint, 3, trainer_key.signer))
     _push_until(probe, pub, good, lambda: answers.running(3), "version 3 adopted")
     other = write_key_pair(tmp_path / "other")
@@ -158,7 +158,10 @@ def test_only_weights_the_trusted_key_signed_and_newer_are_adopted(
                   "more than 512", "not base64"):  # fmt: skip
         assert words in log, words
     assert not any(version != 3 for version, _ in answers.infos[-20:])
-    assert diag.latest["policy_weights"].ignored["not_newer"] > 0  # version 3 again: not a refusal
+    # version 3 again (the trainer re-publishes every second): ignored, not a refusal
+    rejected = diag.latest["policy_weights"].rejected_total
+    _push_until(probe, pub, good, lambda: diag.latest["policy_weights"].ignored["not_newer"] > 0, "v3 ignored")
+    assert diag.latest["policy_weights"].rejected_total == rejected
     _push_until(probe, pub, _message(*weights(untrained_checkpoint, 4, trainer_key.signer)),
                 lambda: answers.running(4), "version 4 adopted")  # fmt: skip
     assert "Traceback" not in policy.log()
@@ -191,7 +194,7 @@ def test_ten_thousand_bad_weights_in_a_row_leave_the_node_running_and_its_memory
     diag = diagnostics(f"{namespace}/morph_policy")
     pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
     policy = _start(launch, untrained_checkpoint, deterministic=False, trusted_keys=trainer_key.trusted)
-    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos, STARTUP, "the node")
+    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos and diag.latest, STARTUP, "the node")
     _push_until(probe, pub, _message(*weights(untrained_checkpoint, 3, trainer_key.signer)),
                 lambda: answers.running(3), "version 3 adopted")  # fmt: skip
     bad = bad_messages(untrained_checkpoint, trainer_key, write_key_pair(tmp_path / "other"))
@@ -201,12 +204,14 @@ def test_ten_thousand_bad_weights_in_a_row_leave_the_node_running_and_its_memory
     def send(count: int) -> None:
         for i in range(count):
             pub.publish(huge if i % 50 == 49 else small[i % len(small)])  # a 1 MB signature every 50th
-            if i % 20 == 0:
+            if i % 5 == 4:  # paced so that the node, reading keep-last-1, takes a good share of them
+                time.sleep(0.002)
                 probe.executor.spin_once(timeout_sec=0)
 
     send(500)  # warm-up: allocator pools grown, every kind seen
     probe.spin_for(1.0)
     rss_before, received_before = policy.rss_kb(), diag.latest["policy_weights"].received
+    rejected_before = diag.latest["policy_weights"].rejected_total
     t0 = time.monotonic()
     send(10_000)
     elapsed = time.monotonic() - t0
@@ -214,8 +219,8 @@ def test_ten_thousand_bad_weights_in_a_row_leave_the_node_running_and_its_memory
     rss_after, counts = policy.rss_kb(), diag.latest["policy_weights"]
     assert policy.alive() and "Traceback" not in policy.log()
     received = counts.received - received_before
-    # Best effort, keep last 1: a reader keeps up with some of them; each one it took was refused.
-    assert received >= 500, received
+    # Best effort, keep last 1: the reader takes what it keeps up with; each one it took was refused.
+    assert received >= 2_000 and counts.rejected_total - rejected_before == received, (received, counts)
     assert set(counts.rejected) <= {"untrusted_key", "bad_signature", "replayed", "unsigned", "signature_malformed"}
     n = len(answers.infos)
     probe.spin_until(lambda: len(answers.infos) > n + 20, 30, "answers after the flood")

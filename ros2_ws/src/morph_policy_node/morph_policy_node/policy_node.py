@@ -89,6 +89,7 @@ from typing import NoReturn
 import numpy as np
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -267,7 +268,10 @@ class MorphPolicyNode(Node):
     # -- policy and parameters ---------------------------------------------------
     def _trusted_keys(self):
         """The keys of ``trusted_keys``; a file that holds no usable public key is logged, counted and skipped."""
-        paths = self.get_parameter(KEYS).value or []
+        try:
+            paths = self.get_parameter(KEYS).value or []
+        except ParameterUninitializedException:  # declared by type with no default: none given
+            paths = []
         keys, errors = load_trusted_keys(list(paths))
         for key in keys.keys.values():
             self.counts.received(KEYS)
