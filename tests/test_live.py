@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import os
 import signal
 import subprocess
 import sys
@@ -124,40 +123,6 @@ class WeightsWatch:
 def progress(out: Path) -> list[dict]:
     path = out / "progress.csv"
     return list(csv.DictReader(open(path))) if path.exists() else []
-
-
-@pytest.fixture
-def two_hosts():
-    """Two fresh network namespaces joined by a veth pair (10.77.0.1 and 10.77.0.2): two hosts on one link, apart
-    from the tests' own namespace (which they leave untouched). Yields the command prefixes that run a process on
-    each. Needs ``unshare -n``, ``nsenter`` and ``ip`` (iproute2), which work without root inside
-    ``scripts/in_netns.sh``'s user namespace."""
-    import shutil
-    import time
-
-    if not all(shutil.which(t) for t in ("unshare", "nsenter", "ip")):
-        pytest.skip("needs unshare, nsenter and ip (util-linux, iproute2)")
-    holders = [subprocess.Popen(["unshare", "-n", "sleep", "3600"]) for _ in range(2)]
-    hosts = [["nsenter", "-t", str(h.pid), "-n", "--preserve-credentials"] for h in holders]
-
-    def sh(cmd: str, prefix) -> None:
-        subprocess.run([*prefix, "sh", "-c", cmd], check=True, capture_output=True)
-
-    try:
-        deadline = time.monotonic() + 10
-        here = os.readlink("/proc/self/ns/net")
-        while any(os.readlink(f"/proc/{h.pid}/ns/net") == here for h in holders):  # until both have their own
-            assert time.monotonic() < deadline, "unshare -n did not make a network namespace"
-            time.sleep(0.02)
-        sh(f"ip link add vA type veth peer name vB netns {holders[1].pid}", hosts[0])
-        for prefix, dev, addr in ((hosts[0], "vA", "10.77.0.1"), (hosts[1], "vB", "10.77.0.2")):
-            sh(f"ip link set lo up && ip addr add {addr}/24 dev {dev} && ip link set {dev} multicast on && "
-               f"ip link set {dev} up && ip route add 224.0.0.0/4 dev {dev}", prefix)  # fmt: skip
-        yield hosts
-    finally:
-        for h in holders:
-            h.kill()
-            h.wait()
 
 
 @pytest.mark.timeout(300)

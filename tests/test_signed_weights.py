@@ -229,3 +229,57 @@ def test_ten_thousand_bad_weights_in_a_row_leave_the_node_running_and_its_memory
     assert warned <= elapsed / 1.0 + 10, f"{warned} warnings in {elapsed:.0f} s: not throttled"
     print(f"\n10,000 bad weights in {elapsed:.1f} s, {received} taken by the node; RSS {rss_before} -> {rss_after} kB")
     assert rss_after - rss_before < RSS_GROWTH_LIMIT_KB, f"RSS grew by {rss_after - rss_before} kB"
+
+
+LISTENER = """
+import sys, time, rclpy
+from sensor_msgs.msg import JointState
+from rclpy.qos import qos_profile_sensor_data
+rclpy.init()
+node = rclpy.create_node("listener")
+counts = {ns: 0 for ns in sys.argv[1:]}
+for ns in counts:
+    node.create_subscription(JointState, ns + "/joint_states", lambda m, ns=ns: counts.__setitem__(ns, counts[ns] + 1),
+                             qos_profile_sensor_data)
+end = time.monotonic() + 8.0
+while time.monotonic() < end:
+    rclpy.spin_once(node, timeout_sec=0.1)
+print(" ".join(f"{ns}={n}" for ns, n in counts.items()), flush=True)
+"""
+
+
+@pytest.mark.timeout(180)
+def test_the_loopback_only_profile_keeps_a_robot_off_the_network(two_hosts, namespace, tmp_path):
+    """Two hosts on one link. On the robot's host a sim with the shipped loopback-only profile and one with the
+    usual profile; a listener on the robot's host hears both, one on the other host hears only the usual one."""
+    import os
+    import subprocess
+    import sys
+
+    import morph_policy_node
+
+    robot, other = two_hosts
+    closed, open_ = f"{namespace}/closed", f"{namespace}/open"
+    procs = []
+    try:
+        for ns, profile in ((closed, morph_policy_node.FASTDDS_PROFILE_LOOPBACK_ONLY),
+                            (open_, morph_policy_node.FASTDDS_PROFILE)):  # fmt: skip
+            env = {**os.environ, "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}
+            cmd = [*robot, sys.executable, "-m", "swimmer_sim_node.sim_node", "--ros-args", "-r", f"__ns:={ns}",
+                   "-p", "num_joints:=3"]  # fmt: skip
+            log = open(tmp_path / f"sim{len(procs)}.log", "wb")  # noqa: SIM115 - closed with the process below
+            procs.append((subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
+        heard = {}
+        for host, prefix in (("robot", robot), ("other", other)):
+            out = subprocess.run([*prefix, sys.executable, "-c", LISTENER, closed, open_], capture_output=True,
+                                 text=True, timeout=60)  # fmt: skip
+            assert out.returncode == 0, out.stderr[-2000:]
+            heard[host] = dict(kv.split("=") for kv in out.stdout.split())
+    finally:
+        for proc, log in procs:
+            proc.terminate()
+            proc.wait(timeout=20)
+            log.close()
+    assert int(heard["robot"][closed]) > 50 and int(heard["robot"][open_]) > 50, heard
+    assert int(heard["other"][open_]) > 50, heard  # the link carries DDS
+    assert int(heard["other"][closed]) == 0, heard  # but not the robot's

@@ -16,7 +16,15 @@ setup(
     ],
     # The shipped policy lives beside the node module, so the default checkpoint
     # resolves the same way in a source checkout, a venv and a colcon install.
-    package_data={package_name: ["models/*.safetensors", "models/*.json", "models/README.md", "fastdds_profile.xml"]},
+    package_data={
+        package_name: [
+            "models/*.safetensors",
+            "models/*.json",
+            "models/README.md",
+            "fastdds_profile.xml",
+            "fastdds_profile_loopback_only.xml",
+        ]
+    },
     include_package_data=True,
     install_requires=["morph_core"],
     zip_safe=False,  # the shipped model is read from beside the module

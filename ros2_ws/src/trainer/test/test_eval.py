@@ -15,7 +15,11 @@ from morph_core.algo.train import TrainConfig, train
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import load_checkpoint
+from morph_core.protocol.policy_updates import checkpoint_trust
+from morph_core.protocol.trust import TrustedKeys, load_public_key
 from trainer.eval_cli import EvalConfig, evaluate_run
+from trainer.keys_cli import main as keys_main
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
@@ -56,9 +60,15 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     assert "| compensated | never | never |" in summary and "| fixed | never | never |" in summary
     assert "clip fraction per dimension, fixed (1 runs): 2:" in summary
 
+    # Checkpoints signed with morph-keys stay signed when shipped (their bytes are copied as they are).
+    assert keys_main(["new", str(tmp_path / "key")]) == 0
+    for checkpoint in sorted(p for run in runs for p in (run / "checkpoints").glob("*.safetensors")):
+        assert keys_main(["sign", str(checkpoint), "--key", str(tmp_path / "key")]) == 0
     # Ship the best evaluated checkpoint: it loads, and says where it came from and how it scored.
     dest = tmp_path / "models" / "swimmer_gnn.safetensors"
     subprocess.run([sys.executable, "-m", "trainer.ship", "--run", *map(str, runs), "--dest", str(dest)], check=True)
+    trust = checkpoint_trust(load_checkpoint(dest), TrustedKeys([load_public_key(tmp_path / "key.pub")]))
+    assert trust.order is not None and "(trusted)" in trust.description
     meta = json.loads(dest.with_suffix(".json").read_text())["metadata"]
     best = max(
         (np.mean([float(r["return"]) for r in rows_of(run) if r["global_step"] == step]), run.name, int(step))

@@ -12,7 +12,9 @@ derives from where its source happens to sit.
 the highest mean deterministic return over the training chain lengths; the
 unseen lengths are reported, not used to choose. (At the paper's constant
 learning rate of 0.01 the last checkpoint is not always the best one.) The JSON beside the weights
-records the source run, its training command and the evaluation table.
+records the source run, its training command and the evaluation table. The
+weights are copied byte for byte, and a trainer's signature goes with them
+(``policy.weights.SignedWeights``), so a shipped policy still says who signed it.
 
 A policy already at ``--dest`` is a candidate too: its recorded evaluation is
 scored over the same lengths, and a run's checkpoint replaces it only if it
@@ -24,14 +26,14 @@ and the shipped policy need not come from a run whose checkpoints are kept.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
 from morph_core.algo.train import TrainConfig
-from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.weights import CheckpointError, load_checkpoint
+from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
 from trainer.runs import eval_means, load_run
 
 
@@ -108,9 +110,11 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"the best evaluated checkpoint is {run.name} at step {step} (score {score:.1f}), but "
                      f"{checkpoint} is missing; train the run again (`{training_command(cfg, run.name)}`, "
                      "deterministic) and pass its new directory")  # fmt: skip
-    policy = GraphActorCritic.load(checkpoint)
-    policy.save(
+    source = load_checkpoint(checkpoint)  # checked; its bytes are copied as they are, so a signature still holds
+    write_checkpoint(
         args.dest,
+        checkpoint.read_bytes(),
+        dataclasses.asdict(source.config),
         metadata={
             "source_run": run.name,
             "global_step": step,
@@ -121,6 +125,7 @@ def main(argv: list[str] | None = None) -> None:
             "eval_mean_return": {str(n): round(r, 2) for n, r in table.items()},
             "chosen_by": f"mean return over chain lengths {cfg['min_joints']}..{cfg['max_joints']} ({score:.1f})",
         },
+        signed=source.signed,
     )
     print(f"shipped {run.name} step {step} (score {score:.1f}) to {args.dest}")
 
