@@ -218,7 +218,9 @@ def test_tree_graph_equals_the_torch_and_numpy_policies_on_trees(tree_exported):
             bound = max(1e-5, 2 * float(scaled_difference(want, truth[0].numpy()).max()))
             assert action.shape == (n,) and value.shape == (1,)
             assert scaled_difference(action, want).max() <= bound, f"{shape} of {n} joints"
-            assert scaled_difference(value, v.numpy()).max() <= max(1e-5, 2 * scaled_difference(v, truth[1]).max())
+            assert scaled_difference(value, v.numpy()).max() <= max(
+                1e-5, 2 * scaled_difference(v.numpy(), truth[1].numpy()).max()
+            )
             numpy_mean = numpy_policy.mean(pos, vel, glob, parents)
             assert scaled_difference(numpy_mean, want).max() <= bound, f"NumPy: {shape} of {n} joints"
             scale = max(scale, float(np.abs(action).max()))
