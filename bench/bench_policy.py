@@ -9,13 +9,19 @@ in eager mode, with the loss compiled and autograd's backward, with loss and
 gradient one compiled graph of the flat parameters called through
 ``torch.compile`` and called directly (as training runs it,
 ``update.minibatch_gradient`` and ``algo.compiled``), and PyG's NNConv. Then
-the heads' activation alone.
+the heads' activation alone. Then kinematic trees against chains of the same
+joint counts (random parents), and chains on the trees' general path (gather
+and scatter-add with every sender named) against their own shifted adds:
+
+    python bench/bench_policy.py --trees    # that table alone
 """
 
 from __future__ import annotations
 
 import copy
+import sys
 import time
+from dataclasses import replace
 
 import gymnasium
 import torch
@@ -27,6 +33,7 @@ from morph_core.algo.trust_region import get_rule
 from morph_core.algo.update import minibatch_gradient
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
+from morph_core.policy.numpy_actor import NumpyPolicy
 
 
 def per_call_ms(fn, calls: int) -> float:
@@ -97,5 +104,59 @@ def main() -> None:
     print(f"\ntanh on 1536x64: torch.tanh {t_tanh:.0f} us, 2*sigmoid(2x)-1 {t_sig:.0f} us ({t_tanh / t_sig:.1f}x)")
 
 
+def general_path(batch: ChainBatch) -> ChainBatch:
+    """A batch of chains whose every slot names its sender (link k), as a tree's does: the network gathers and
+    scatter-adds instead of shifting."""
+    out = replace(batch)
+    object.__setattr__(out, "packed", replace(batch.packed, sender=torch.arange(batch.packed.edge_attr.shape[0])))
+    return out
+
+
+def trees_vs_chains() -> None:
+    torch.set_num_threads(1)
+    env = gymnasium.make("MorphSwimmer-v0", num_joints=(2, 10))
+    chains = ChainBatch.from_observations([env.reset(seed=s)[0] for s in range(256)])
+    gen = torch.Generator().manual_seed(0)
+    parents = torch.stack([torch.tensor([-1, *(int(torch.randint(-1, j, (1,), generator=gen)) for j in range(1, 10))])
+                           for _ in range(256)])[:, : chains.max_joints]  # fmt: skip
+    trees = ChainBatch.from_padded(chains.joint_pos, chains.joint_vel, chains.global_feats, chains.num_joints,
+                                   parents=parents)  # fmt: skip
+    assert trees.parents is not None
+    actions = torch.randn(256, chains.max_joints)
+    rule = get_rule("compensated")
+    policy = GraphActorCritic(PolicyConfig())
+    net = copy.deepcopy(policy)  # its parameters become views into the flat vector
+    flat = FlatParameters(net)
+    gradient = minibatch_gradient(net, flat, rule, compile=True)
+    eager = minibatch_gradient(net, flat, rule, compile=False)
+    share = torch.tensor(1.0)
+
+    def args(batch):
+        return (batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
+                rule.clip_range(0.2, batch.num_joints.to(torch.float32)), None, 0.5, 0.0)  # fmt: skip
+
+    numpy_policy = NumpyPolicy(policy)
+    six = [0, 1, 2, 3, 4, 5]
+    pos, vel, glob, n = (x[six].numpy() for x in (chains.joint_pos, chains.joint_vel, chains.global_feats,
+                                                   chains.num_joints))  # fmt: skip
+    tree_parents = trees.parents[six].numpy()
+    noise = torch.randn(6, chains.max_joints).numpy()
+    print(f"\n| 256 states, 2..10 joints ({int(chains.num_joints.sum())} joints), ms | chains | chains, general path "
+          "| trees (random parents) |\n|---|---:|---:|---:|")  # fmt: skip
+    for name, make in (
+        ("update step, loss and gradient one compiled graph", lambda b: lambda: gradient(flat.theta.detach(), share,
+                                                                                           *args(b))),
+        ("update step, eager", lambda b: lambda: eager(flat.theta.detach(), share, *args(b))),
+        ("forward, eager, no grad", lambda b: torch.no_grad()(lambda: policy(b))),
+        ("batch building (from_padded)", lambda b: lambda: b.select(torch.arange(256))),
+    ):  # fmt: skip
+        row = [per_call_ms(make(b), 200) for b in (chains, general_path(chains), trees)]
+        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in row) + " |")
+    row = [per_call_ms(lambda p=p: numpy_policy.act(pos, vel, glob, n, noise, p), 2000) for p in (None, tree_parents)]
+    print(f"| NumPy act, 6 states (rollout step) | {row[0]:.3f} | | {row[1]:.3f} |")
+
+
 if __name__ == "__main__":
-    main()
+    if "--trees" not in sys.argv[1:]:
+        main()
+    trees_vs_chains()

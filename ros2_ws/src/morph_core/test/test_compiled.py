@@ -97,6 +97,29 @@ def test_compiled_gradient_of_the_per_joint_rules_equals_autograd(rule):
     assert not paths.fns[True].fell_back
 
 
+def _tree_minibatch(rng, size, max_joints):
+    """``_minibatch``'s samples as random kinematic trees (parents drawn per joint from -1..j-1)."""
+    batch, *rest = _minibatch(rng, size, max_joints, weighted=False)
+    parents = np.array([[rng.integers(-1, j) if j else -1 for j in range(batch.max_joints)] for _ in range(size)])
+    tree = ChainBatch.from_padded(batch.joint_pos, batch.joint_vel, batch.global_feats, batch.num_joints,
+                                  parents=parents)  # fmt: skip
+    assert tree.packed.sender is not None
+    return tree, *rest
+
+
+def test_compiled_gradient_on_trees_equals_autograd():
+    # Trees go through the compiled update too: their batches (with the index plan's sender) get a graph of
+    # their own, which two tree minibatches of other sizes share, and the chains keep theirs.
+    torch.manual_seed(0)
+    paths = _Paths("compensated")
+    rng = np.random.default_rng(4)
+    for size, max_joints in ((64, 10), (48, 7)):
+        _assert_same(*paths((*_tree_minibatch(rng, size, max_joints), 0.5, 0.01), {}))
+    _assert_same(*paths((*_minibatch(rng, 40, 9, weighted=False), 0.5, 0.01), {}))
+    assert len(paths.fns[True].graphs) == 2
+    assert not paths.fns[True].fell_back
+
+
 def test_a_share_scales_the_gradient_and_the_losses():
     # A process's part of a split minibatch (algo.data_parallel) scales its loss by its share.
     torch.manual_seed(0)

@@ -1,4 +1,5 @@
-"""morph-export: the ONNX graph computes the torch policy (1..64 joints, ONNX Runtime), bad input is refused."""
+"""morph-export: the ONNX graph computes the torch policy (1..64 joints, ONNX Runtime; chains and, with --tree,
+kinematic trees), bad input is refused."""
 
 import copy
 import json
@@ -15,15 +16,19 @@ import torch
 
 from morph_core.msgs.joint_state import chain_batch
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.onnx_export import (
     FORMAT,
+    TREE_FORMAT,
     ExportError,
     SingleChainPolicy,
+    SingleTreePolicy,
     check_against_policy,
     export_checkpoint,
     export_model,
+    random_parents,
     scaled_difference,
 )
 from morph_core.policy.weights import CheckpointError
@@ -175,6 +180,94 @@ def test_cli_exports_the_actor_alone_by_default(tmp_path):
     (action,) = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob})
     np.testing.assert_allclose(action, NumpyPolicy(GraphActorCritic.load(ckpt)).mean(pos, vel, glob), atol=1e-5)
     assert [p.name for p in out.parent.iterdir()] == ["actor.onnx"]  # atomic: no temp file left
+
+
+@pytest.fixture(scope="module", params=list(POLICIES))
+def tree_exported(request, tmp_path_factory):
+    """(torch policy, its exported tree graph with the value output)."""
+    tmp = tmp_path_factory.mktemp(f"tree-{request.param}")
+    policy = POLICIES[request.param]()
+    ckpt = SHIPPED if request.param == "shipped" else _save(policy, tmp / "policy.safetensors")
+    return policy, export_checkpoint(ckpt, tmp / "tree.onnx", with_value=True, tree=True)
+
+
+def test_tree_graph_equals_the_torch_and_numpy_policies_on_trees(tree_exported):
+    # Random trees, stars (every joint on the torso: up to 64 messages summed there) and forks, 1..64 joints:
+    # 1e-5 within the motors' range and relative beyond, or twice float32's own error where that is larger
+    # (torch in float32 vs the same modules in float64), as for chains.
+    policy, result = tree_exported
+    assert result.tree and result.max_error <= 1e-4
+    session = _session(result.path)
+    assert [i.name for i in session.get_inputs()] == ["joint_pos", "joint_vel", "global", "parents"]
+    assert [o.name for o in session.get_outputs()] == ["action", "value"]
+    exact = copy.deepcopy(SingleTreePolicy(policy, with_value=True)).double()
+    numpy_policy = NumpyPolicy(policy)
+    rng = np.random.default_rng(12)
+    scale = 0.0
+    for n in (1, 2, 3, 6, 11, 25, 40, 64):
+        for shape in ("random", "random", "star", "fork"):
+            pos, vel, glob = _chain(rng, n)
+            parents = random_parents(rng, n, shape) if shape != "fork" else np.minimum(np.arange(n) - 1, 1)
+            action, value = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob, "parents": parents})
+            with torch.no_grad():
+                mean, _, v = policy(
+                    ChainBatch.from_padded(pos[None], vel[None], glob[None], [n], parents=parents[None])
+                )
+                want = mean[0].numpy()
+                truth = exact(*(torch.from_numpy(x).double() for x in (pos, vel, glob)), torch.from_numpy(parents))
+            bound = max(1e-5, 2 * float(scaled_difference(want, truth[0].numpy()).max()))
+            assert action.shape == (n,) and value.shape == (1,)
+            assert scaled_difference(action, want).max() <= bound, f"{shape} of {n} joints"
+            assert scaled_difference(value, v.numpy()).max() <= max(
+                1e-5, 2 * scaled_difference(v.numpy(), truth[1].numpy()).max()
+            )
+            numpy_mean = numpy_policy.mean(pos, vel, glob, parents)
+            assert scaled_difference(numpy_mean, want).max() <= bound, f"NumPy: {shape} of {n} joints"
+            scale = max(scale, float(np.abs(action).max()))
+    assert scale > 0.5, "outputs too small for an absolute tolerance to mean anything"
+
+
+def test_tree_graph_on_chains_equals_the_torch_chain_path(tree_exported):
+    # Given a chain's parents, the tree graph (gather and scatter-add) computes what torch's chain path
+    # (shifted adds, the default export's form) does.
+    policy, result = tree_exported
+    session = _session(result.path)
+    rng = np.random.default_rng(13)
+    for n in (1, 4, 30, 64):
+        pos, vel, glob = _chain(rng, n)
+        action, _ = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob, "parents": np.arange(n) - 1})
+        with torch.no_grad():
+            want = policy(chain_batch(pos, vel, glob))[0][0].numpy()
+        assert scaled_difference(action, want).max() <= 1e-5, f"{n} joints"
+
+
+def test_tree_graph_carries_its_format_and_the_check_detects_other_weights(tree_exported):
+    policy, result = tree_exported
+    model = onnx.load(str(result.path))
+    onnx.checker.check_model(model, full_check=True)
+    props = {p.key: p.value for p in model.metadata_props}
+    assert props["format"] == TREE_FORMAT != FORMAT
+    for i in range(4):  # one symbolic length, shared by all joint inputs
+        dims = [d.dim_param or d.dim_value for d in model.graph.input[i].type.tensor_type.shape.dim]
+        assert dims == ([4] if i == 2 else ["num_joints"])
+    assert model.graph.input[3].type.tensor_type.elem_type == onnx.TensorProto.INT64
+    other = trained_shaped(PolicyConfig(), seed=2)
+    assert check_against_policy(result.path.read_bytes(), other, tree=True) > 1e-2
+
+
+def test_cli_exports_the_tree_graph(tmp_path):
+    ckpt = _save(trained_shaped(PolicyConfig(), seed=5), tmp_path / "p.safetensors")
+    out = tmp_path / "tree.onnx"
+    run = subprocess.run([*CLI, "--onnx", str(ckpt), str(out), "--tree"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "parents [N]" in run.stdout and "star and chain trees" in run.stdout
+    session = _session(out)
+    assert [i.name for i in session.get_inputs()] == ["joint_pos", "joint_vel", "global", "parents"]
+    pos, vel, glob = _chain(np.random.default_rng(0), 9)
+    parents = np.array([-1, 0, 0, -1, 3, 3, 5, 1, 2])
+    (action,) = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob, "parents": parents})
+    want = NumpyPolicy(GraphActorCritic.load(ckpt)).mean(pos, vel, glob, parents)
+    np.testing.assert_allclose(action, want, atol=1e-5)
 
 
 def _bad_checkpoints(tmp: Path) -> dict[str, Path]:

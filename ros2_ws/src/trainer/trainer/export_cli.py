@@ -1,13 +1,16 @@
 """``morph-export``: a policy checkpoint's deterministic actor as an ONNX graph, for C++ controllers.
 
-    morph-export --onnx CHECKPOINT.safetensors OUT.onnx [--with-value]
+    morph-export --onnx CHECKPOINT.safetensors OUT.onnx [--with-value] [--tree]
 
 The graph takes one chain of any length N (joint_pos [N], joint_vel [N],
 global [4], float32) and returns the mean action [N] (and, with
-``--with-value``, the critic's value [1]); see ``morph_core.policy.onnx_export``
-and docs/onnx.md. It is checked against the torch policy with ONNX Runtime at
-1..64 joints before it is written (atomically); an unusable checkpoint or a
-graph that differs is refused with exit code 1 and nothing is written.
+``--with-value``, the critic's value [1]); with ``--tree`` it takes one
+kinematic tree instead, a fourth input parents [N] int64 (joint j's parent
+joint, -1 for the torso). See ``morph_core.policy.onnx_export`` and
+docs/onnx.md. It is checked against the torch policy with ONNX Runtime at
+1..64 joints (trees: random, star and chain at each) before it is written
+(atomically); an unusable checkpoint or a graph that differs is refused with
+exit code 1 and nothing is written.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--onnx", nargs=2, metavar=("CHECKPOINT", "OUT"), required=True,
                         help="export CHECKPOINT (.safetensors, its .json beside it) to OUT (.onnx)")  # fmt: skip
     parser.add_argument("--with-value", action="store_true", help="add the critic's value as a second output")
+    parser.add_argument("--tree", action="store_true",
+                        help="for kinematic trees: a fourth input, parents [N] int64 (-1: the torso)")  # fmt: skip
     return parser
 
 
@@ -35,15 +40,17 @@ def main(argv: list[str] | None = None) -> int:
     checkpoint, out = args.onnx
     torch.set_num_threads(1)  # a network this small gains nothing from threads; the machine is shared
     try:
-        result = export_checkpoint(checkpoint, out, with_value=args.with_value)
+        result = export_checkpoint(checkpoint, out, with_value=args.with_value, tree=args.tree)
     except (CheckpointError, ExportError) as err:
         print(f"morph-export: error: {err}", file=sys.stderr)
         return 1
     outputs = "action, value" if result.with_value else "action"
     lengths = ", ".join(map(str, result.lengths_checked))
-    print(f"wrote {result.path}: inputs joint_pos [N], joint_vel [N], global [4] -> {outputs}; "
+    inputs = "joint_pos [N], joint_vel [N], global [4]" + (", parents [N]" if result.tree else "")
+    checked = f"{lengths} joints" + (" (random, star and chain trees)" if result.tree else "")
+    print(f"wrote {result.path}: inputs {inputs} -> {outputs}; "
           f"{result.num_nodes} nodes; equal to the torch policy within {result.max_error:.2g} "
-          f"(<= {TOLERANCE:g}) at {lengths} joints")  # fmt: skip
+          f"(<= {TOLERANCE:g}) at {checked}")  # fmt: skip
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Graph actor-critic for chains of any length (the paper's architecture).
+"""Graph actor-critic for chains of any length and kinematic trees (the paper's architecture).
 
 Feature extractor (the paper's, 4,376 parameters, with ``bidirectional=False``): two NNConv layers
 (24 and 16 channels) over the joint graph, whose link nodes start from a
@@ -86,10 +86,10 @@ class GraphFeatureExtractor(nn.Module):
     def forward(self, batch: ChainBatch) -> torch.Tensor:
         """[V, embed_channels]: one row per joint of the batch, in the padded batch's row-major order."""
         chains = batch.packed
-        e, m = chains.edge_attr, chains.slot_mask
+        e, m, s = chains.edge_attr, chains.slot_mask, chains.sender
         x = e.new_ones(chains.num_links, 1)  # links carry no state of their own
-        x = torch.relu(self.conv1(x, e, m))
-        x = torch.relu(self.conv2(x, e, m))
+        x = torch.relu(self.conv1(x, e, m, s))
+        x = torch.relu(self.conv2(x, e, m, s))
         joint_embed = x[chains.joint_link]  # joint j reads the link behind it (link j+1 of its chain)
         return joint_embed + self.global_mlp(batch.global_feats)[chains.joint_chain]
 

@@ -1,15 +1,18 @@
-"""The joint graph of a swimmer chain, batched over chains of different lengths.
+"""The joint graph of a robot, batched over chains (swimmers) and kinematic trees of different sizes.
 
 Links are nodes (link 0 is the torso), joints are edges: joint j connects
-link j (parent) and link j+1 (child) and carries the joint state
-(angle, angular velocity) as its edge attribute. A batch of chains is held
-padded to its longest chain, ``J`` joints, with a validity mask; nothing
+link parents[j] + 1 (parent) and link j+1 (child) and carries the joint state
+(angle, angular velocity) as its edge attribute; a chain's parents are
+[-1, 0, ..., N-2], so its joint j connects links j and j+1 (``index_plan``
+has the model of a tree). A batch is held padded to its largest sample,
+``J`` joints, with a validity mask and, for trees, the parents; nothing
 per-graph is built in Python.
 
 The network itself runs on ``ChainBatch.packed``: the chains laid end to end
 as one long chain, cut between consecutive chains (PyG's disjoint union of
 graphs, in chain order). Padding costs nothing there, which on the 2..10-joint
-training mix is about 40% of the padded work.
+training mix is about 40% of the padded work. Trees are laid out the same way;
+only the link sending across each joint differs (``index_plan.IndexPlan``).
 """
 
 from __future__ import annotations
@@ -20,18 +23,23 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from morph_core.policy.index_plan import IndexPlan, chain_parents, check_parents, is_chain
+
 NUM_GLOBAL_FEATURES = 4  # yaw, yaw rate, vx, vy of the torso frame
 NUM_EDGE_FEATURES = 2  # joint angle, joint angular velocity
 
 
 @dataclass(frozen=True)
 class ChainBatch:
-    """B chains padded to J joints.
+    """B chains or trees padded to J joints.
 
-    joint_pos, joint_vel: [B, J] float32, zero beyond each chain's end.
+    joint_pos, joint_vel: [B, J] float32, zero beyond each sample's last joint.
     global_feats: [B, 4] float32.
     num_joints: [B] int64.
     mask: [B, J] bool, True where the joint exists.
+    parents: [B, J] int64 parent joint of each joint (-1: the torso; -1 at padding), checked
+        (``index_plan.check_parents``); None when every sample is a chain, however it was given, so that
+        a batch of chains is one thing (and the network takes its chain path).
     """
 
     joint_pos: torch.Tensor
@@ -39,12 +47,14 @@ class ChainBatch:
     global_feats: torch.Tensor
     num_joints: torch.Tensor
     mask: torch.Tensor
+    parents: torch.Tensor | None = None
     packed: PackedChains = field(init=False, repr=False, compare=False)
     """the batch as one cut chain, which the network runs on (no gradients flow through it)"""
 
     def __post_init__(self):
         # Built here, outside any compiled region: its sizes depend on the data.
-        object.__setattr__(self, "packed", PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask))
+        packed = PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask, self.parents)
+        object.__setattr__(self, "packed", packed)
 
     @property
     def batch_size(self) -> int:
@@ -55,8 +65,9 @@ class ChainBatch:
         return self.joint_pos.shape[1]
 
     @classmethod
-    def from_padded(cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True) -> ChainBatch:
-        """Build from padded arrays or tensors; ``trim`` drops padding beyond the longest chain."""
+    def from_padded(cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True, parents=None) -> ChainBatch:
+        """Build from padded arrays or tensors; ``trim`` drops padding beyond the longest chain. ``parents``
+        [B, J] integers (padding ignored) makes the samples trees; None: chains. ValueError if invalid."""
         pos = torch.as_tensor(joint_pos, dtype=torch.float32)
         vel = torch.as_tensor(joint_vel, dtype=torch.float32)
         glob = torch.as_tensor(global_feats, dtype=torch.float32)
@@ -75,28 +86,35 @@ class ChainBatch:
             j = int(counts.max())
             pos, vel = pos[:, :j], vel[:, :j]
         mask = _joint_mask(counts, pos.shape[1])
+        tree = _tree_parents(parents, mask, width=joint_pos.shape[1])
         # Zero the padding so nothing beyond a chain's end can leak into sums.
         pos, vel = (torch.from_numpy(x.detach().numpy() * mask) for x in (pos, vel))
-        return cls(pos, vel, glob, n, torch.from_numpy(mask))
+        return cls(pos, vel, glob, n, torch.from_numpy(mask), tree)
 
     @classmethod
-    def from_zero_padded(cls, joint_pos, joint_vel, global_feats, num_joints) -> ChainBatch:
+    def from_zero_padded(cls, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> ChainBatch:
         """Build from NumPy arrays as ``from_padded`` leaves them (float32 and int64, trimmed to the longest
         chain, zero beyond each chain's end), without its checks and copies: for batches whose padding this
-        code wrote itself (a rollout's minibatches, gathered before every update step)."""
+        code wrote itself (a rollout's minibatches, gathered before every update step). ``parents`` [B, J]
+        (trees) is still checked: its cost is the trees' alone."""
         mask = _joint_mask(num_joints, joint_pos.shape[1])
-        return cls(*(torch.from_numpy(x) for x in (joint_pos, joint_vel, global_feats, num_joints, mask)))
+        tree = _tree_parents(parents, mask, width=joint_pos.shape[1])
+        return cls(*(torch.from_numpy(x) for x in (joint_pos, joint_vel, global_feats, num_joints, mask)), tree)
 
     @classmethod
     def from_observations(cls, observations: Sequence[dict]) -> ChainBatch:
-        """Batch graph-mode observations of ``MorphSwimmer-v0`` (dicts with joint_pos, joint_vel, global)."""
-        return cls.from_padded(*pad_observations(observations))
+        """Batch graph-mode observations of ``MorphSwimmer-v0`` (dicts with joint_pos, joint_vel, global, and
+        for a tree "parents"; without it a chain)."""
+        *arrays, parents = pad_observations(observations, with_parents=True)
+        return cls.from_padded(*arrays, parents=parents)
 
     def select(self, index: torch.Tensor) -> ChainBatch:
         """The sub-batch at ``index`` (e.g. a minibatch), trimmed to its own longest chain."""
+        parents = None if self.parents is None else self.parents[index]
         return ChainBatch.from_padded(
-            self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index]
-        )
+            self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index],
+            parents=parents,
+        )  # fmt: skip
 
 
 def _joint_mask(num_joints: np.ndarray, width: int) -> np.ndarray:
@@ -104,12 +122,23 @@ def _joint_mask(num_joints: np.ndarray, width: int) -> np.ndarray:
     return np.arange(width) < num_joints[:, None]
 
 
-def pad_observations(
-    observations: Sequence[dict], width: int | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Graph-mode observations as float32 arrays zero-padded to ``width`` joints (default: the longest).
+def _tree_parents(parents, mask: np.ndarray, width: int) -> torch.Tensor | None:
+    """``parents`` [B, width] checked and cut to ``mask``'s width, or None for chains (given or not)."""
+    if parents is None:
+        return None
+    p = parents.detach().numpy() if isinstance(parents, torch.Tensor) else np.asarray(parents)
+    if p.shape != (mask.shape[0], width):
+        raise ValueError(f"parents must be [B, J] like joint_pos, {[mask.shape[0], width]}, got {list(p.shape)}")
+    p = check_parents(p[:, : mask.shape[1]], mask)
+    return None if is_chain(p, mask) else torch.from_numpy(p)
 
-    Returns joint_pos [B, width], joint_vel [B, width], global_feats [B, 4], num_joints [B].
+
+def pad_observations(observations: Sequence[dict], width: int | None = None, with_parents: bool = False):
+    """Graph-mode observations as float32 arrays zero-padded to ``width`` joints (default: the largest).
+
+    Returns joint_pos [B, width], joint_vel [B, width], global_feats [B, 4], num_joints [B], and with
+    ``with_parents`` parents [B, width] int64 (an observation's "parents", a chain's without; -1 at
+    padding) or None when no observation carries "parents".
     """
     n = np.array([len(o["joint_pos"]) for o in observations], dtype=np.int64)
     width = width if width is not None else int(n.max()) if len(n) else 0
@@ -117,23 +146,36 @@ def pad_observations(
     for i, o in enumerate(observations):
         pos[i, : n[i]], vel[i, : n[i]] = o["joint_pos"], o["joint_vel"]
     glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
-    return pos, vel, glob, n
+    if not with_parents:
+        return pos, vel, glob, n
+    if not any("parents" in o for o in observations):
+        return pos, vel, glob, n, None
+    parents = np.full((len(n), width), -1, np.int64)
+    for i, o in enumerate(observations):
+        p = np.asarray(o.get("parents", chain_parents(n[i])))
+        if p.shape != (n[i],):
+            raise ValueError(f"observation {i}: parents must be [{n[i]}] like its joint_pos, got {list(p.shape)}")
+        parents[i, : n[i]] = p
+    return pos, vel, glob, n, parents
 
 
 @dataclass(frozen=True)
 class PackedChains:
-    """B chains back to back: L = V + B links in one sequence, V = total joint count.
+    """B chains or trees back to back: L = V + B links in one sequence, V = total joint count.
 
     Slot k sits between links k and k+1. It holds a joint when both links belong
-    to one chain, and a cut (no joint: zero state, no message) where one chain
-    ends and the next begins. Joint j of chain b is slot j + b + (joints of the
-    chains before b), its parent link that slot's index, its child link the next.
+    to one sample, and a cut (no joint: zero state, no message) where one sample
+    ends and the next begins. Joint j of sample b is slot j + b + (joints of the
+    samples before b), its child link the next link; its parent link is that
+    slot's index in a chain, ``sender[slot]`` in a tree (``index_plan``).
 
     edge_attr: [L-1, 2] joint states per slot, zero at cuts.
     slot_mask: [L-1] bool, True where the slot holds a joint.
     joint_link: [V] the link behind each joint (its child), in the padded batch's row-major order.
-    joint_chain: [V] chain (batch row) of each joint.
+    joint_chain: [V] sample (batch row) of each joint.
     joint_padded: [V] each joint's flat index in the padded [B * J] layout.
+    sender: [L-1] int64 the parent link of each slot's joint (a cut's own index), or None when every
+        sample is a chain (then the sender of slot k is link k, and the network takes shifted adds).
     """
 
     edge_attr: torch.Tensor
@@ -141,17 +183,19 @@ class PackedChains:
     joint_link: torch.Tensor
     joint_chain: torch.Tensor
     joint_padded: torch.Tensor
+    sender: torch.Tensor | None = None
 
     @classmethod
-    def from_mask(cls, joint_pos: torch.Tensor, joint_vel: torch.Tensor, mask: torch.Tensor) -> PackedChains:
+    def from_mask(
+        cls, joint_pos: torch.Tensor, joint_vel: torch.Tensor, mask: torch.Tensor, parents: torch.Tensor | None = None
+    ) -> PackedChains:
+        """The packed batch of samples ``mask`` [B, J] with ``parents`` [B, J] (checked; None: chains)."""
         # In NumPy: a dozen index operations on a few thousand numbers, each ~10x cheaper than torch's
         # (built once per minibatch step, outside the compiled region); the same values.
-        b, j = mask.shape
-        joint_padded = np.flatnonzero(mask.numpy())
-        joint_chain = joint_padded // j if j else joint_padded
-        joint_slot = np.arange(joint_padded.size) + joint_chain  # each earlier chain adds one cut
-        num_links = joint_padded.size + b
-        num_slots = max(num_links - 1, 0)
+        b, _ = mask.shape
+        plan = IndexPlan.of(mask.numpy(), None if parents is None else parents.numpy())
+        joint_padded, joint_slot = plan.joint_padded, plan.joint_slot
+        num_slots = max(joint_padded.size + b - 1, 0)
         pos, vel = joint_pos.detach().numpy(), joint_vel.detach().numpy()
         edge_attr = np.zeros((num_slots, NUM_EDGE_FEATURES), pos.dtype)
         edge_attr[joint_slot, 0] = pos.reshape(-1)[joint_padded]
@@ -159,7 +203,8 @@ class PackedChains:
         slot_mask = np.zeros(num_slots, dtype=bool)
         slot_mask[joint_slot] = True
         t = torch.from_numpy
-        return cls(t(edge_attr), t(slot_mask), t(joint_slot + 1), t(joint_chain), t(joint_padded))
+        sender = None if plan.slot_sender is None else t(plan.slot_sender)
+        return cls(t(edge_attr), t(slot_mask), t(joint_slot + 1), t(plan.joint_sample), t(joint_padded), sender)
 
     @property
     def num_links(self) -> int:

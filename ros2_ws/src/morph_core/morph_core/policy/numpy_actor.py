@@ -5,7 +5,10 @@ time; for a network this small torch spends most of such a forward pass on
 per-operation overhead (about 0.45 ms against 0.1 ms here). This is the
 same computation as the torch policy (``chain_conv``'s form on the chains
 laid end to end, ``chains.PackedChains``) on NumPy copies of its weights,
-tested equal to it to 1e-5. Gradients and updates stay in torch.
+tested equal to it to 1e-5. Kinematic trees (``parents``, see ``index_plan``)
+take the same index plan as torch: the parent link's features gathered by
+``sender``, the tail-to-torso messages scatter-added to it. Gradients and
+updates stay in torch.
 
 No torch here: the weights come from a torch policy handed in by the
 trainer (its state dict, copied) or from ``weights.load_checkpoint`` (a
@@ -21,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from morph_core.policy.gaussian import log_density_from_norm
+from morph_core.policy.index_plan import IndexPlan, check_parents, is_chain
 from morph_core.policy.weights import PolicyWeights
 
 
@@ -72,17 +76,19 @@ class _Layout(NamedTuple):
     """[B] each chain's first joint"""
     count: np.ndarray
     """[B, 1] float32 joints per chain"""
+    sender: np.ndarray | None
+    """[L - 1] the parent link of each slot's joint (trees, ``index_plan.IndexPlan.slot_sender``); None: chains"""
 
     @classmethod
-    def of(cls, num_joints: np.ndarray, width: int) -> _Layout:
+    def of(cls, num_joints: np.ndarray, width: int, parents: np.ndarray | None = None) -> _Layout:
         mask = np.arange(width) < num_joints[:, None]
-        joint_padded = np.flatnonzero(mask)
-        chain = joint_padded // width
-        slot = np.arange(joint_padded.size) + chain  # the chains back to back, one cut between neighbours
-        coef = np.zeros((joint_padded.size + num_joints.shape[0] - 1, 3), dtype=np.float32)
+        plan = IndexPlan.of(mask, parents)  # the chains back to back, one cut between neighbours
+        slot = plan.joint_slot
+        coef = np.zeros((plan.joint_padded.size + num_joints.shape[0] - 1, 3), dtype=np.float32)
         coef[slot, 2] = 1.0
         first = np.cumsum(num_joints) - num_joints  # joints of a chain are contiguous
-        return cls(mask, joint_padded, chain, slot, slot + 1, coef, first, num_joints[:, None].astype(np.float32))
+        count = num_joints[:, None].astype(np.float32)
+        return cls(mask, plan.joint_padded, plan.joint_sample, slot, slot + 1, coef, first, count, plan.slot_sender)
 
 
 class NumpyPolicy:
@@ -109,38 +115,54 @@ class NumpyPolicy:
         self.log_std = float(state["log_std"])
         self._layouts: dict[tuple[int, str, bytes], _Layout] = {}
 
-    def mean(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> np.ndarray:
-        """[N] mean action of one chain of N joints (torso to tail)."""
+    def mean(
+        self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray, parents: np.ndarray | None = None
+    ) -> np.ndarray:
+        """[N] mean action of one chain of N joints (torso to tail), or of a tree with ``parents`` [N]
+        (joint j's parent joint, -1 for the torso; ValueError if not in -1..j-1)."""
         n = joint_pos.shape[0]
         coef = np.ones((n, 3), dtype=np.float32)
         coef[:, 0], coef[:, 1] = joint_pos, joint_vel
-        z = self._links(coef)[1:] + self._global(global_feats[None])
+        sender = None
+        if parents is not None:
+            p = check_parents(parents, np.ones(n, dtype=bool))
+            sender = None if is_chain(p, np.ones(n, dtype=bool)) else p + 1  # one tree: no cuts, slot j = joint j
+        z = self._links(coef, sender)[1:] + self._global(global_feats[None])
         return _tanh_mlp(z, self.actor)[:, 0]
 
     def sample(
-        self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray, rng: np.random.Generator
+        self,
+        joint_pos: np.ndarray,
+        joint_vel: np.ndarray,
+        global_feats: np.ndarray,
+        rng: np.random.Generator,
+        parents: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One chain's Gaussian sample: (action [N], mean [N]) as float64, a = mean + sigma * z, z ~ N(0, I)."""
-        mean = self.mean(joint_pos, joint_vel, global_feats).astype(np.float64)
+        """One chain's (or tree's) Gaussian sample: (action [N], mean [N]) as float64, a = mean + sigma * z,
+        z ~ N(0, I)."""
+        mean = self.mean(joint_pos, joint_vel, global_feats, parents).astype(np.float64)
         return mean + math.exp(self.log_std) * rng.standard_normal(mean.shape[0]), mean
 
-    def forward(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[np.ndarray, np.ndarray]:
-        """Padded batch [B, J] (zero padding beyond each chain) -> mean [B, J] (zero at padding), value [B]."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+    def forward(self, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> tuple[np.ndarray, np.ndarray]:
+        """Padded batch [B, J] (zero padding beyond each chain; trees with ``parents`` [B, J]) -> mean [B, J]
+        (zero at padding), value [B]."""
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
         return self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z)
 
-    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints) -> np.ndarray:
+    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> np.ndarray:
         """``forward``'s mean [B, J] alone, without the critic: what a deterministic evaluation acts on."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
         return self._padded_mean(chains, z, joint_pos.shape)
 
-    def _joint_embeddings(self, joint_pos, joint_vel, global_feats, num_joints) -> tuple[_Layout, np.ndarray]:
+    def _joint_embeddings(
+        self, joint_pos, joint_vel, global_feats, num_joints, parents=None
+    ) -> tuple[_Layout, np.ndarray]:
         """The chains' layout and the [V, C] embedding of every joint (its link's plus its chain's global one)."""
-        chains = self._layout(num_joints, joint_pos.shape[1])
+        chains = self._layout(num_joints, joint_pos.shape[1], parents)
         coef = chains.coef.copy()
         coef[chains.slot, 0] = joint_pos.reshape(-1)[chains.joint_padded]
         coef[chains.slot, 1] = joint_vel.reshape(-1)[chains.joint_padded]
-        return chains, self._links(coef)[chains.link] + self._global(global_feats)[chains.chain]
+        return chains, self._links(coef, chains.sender)[chains.link] + self._global(global_feats)[chains.chain]
 
     def _padded_mean(self, chains: _Layout, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         mean = np.zeros(shape[0] * shape[1], dtype=np.float32)
@@ -151,43 +173,62 @@ class NumpyPolicy:
         """[B] the critic on each chain's mean joint embedding."""
         return _tanh_mlp(np.add.reduceat(z, chains.first, axis=0) / chains.count, self.critic)[:, 0]
 
-    def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray):
+    def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray, parents=None):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints)
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
         mean, value, mask = self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z), chains.mask
         action = (mean + math.exp(self.log_std) * noise) * mask
         log_prob = log_density_from_norm(np.square(noise * mask).sum(1), num_joints, self.log_std)
         return action.astype(np.float32), log_prob.astype(np.float32), value, mean
 
-    def _layout(self, num_joints: np.ndarray, width: int) -> _Layout:
-        """The index arrays of chains of ``num_joints`` padded to ``width``, kept per chain mix: a rollout's
-        mix changes only when a swimmer resets, and computing them took ~8 of a step's ~65 µs."""
+    def _layout(self, num_joints: np.ndarray, width: int, parents: np.ndarray | None = None) -> _Layout:
+        """The index arrays of chains of ``num_joints`` padded to ``width`` (trees: with ``parents``, checked),
+        kept per chain mix: a rollout's mix changes only when a swimmer resets, and computing them took ~8 of
+        a step's ~65 µs."""
         key = (width, num_joints.dtype.str, num_joints.tobytes())
+        if parents is not None:
+            mask = np.arange(width) < num_joints[:, None]
+            parents = check_parents(parents, mask)
+            if is_chain(parents, mask):
+                parents = None
+            else:
+                key += (parents.tobytes(),)
         layout = self._layouts.get(key)
         if layout is None:
             if len(self._layouts) >= 256:
                 self._layouts.clear()
-            layout = self._layouts[key] = _Layout.of(num_joints, width)
+            layout = self._layouts[key] = _Layout.of(num_joints, width, parents)
         return layout
 
-    def _links(self, coef: np.ndarray) -> np.ndarray:
-        """[L, C] link embeddings after the two NNConv layers; ``coef`` is [e_0, e_1, 1] per slot, zero at cuts."""
+    def _links(self, coef: np.ndarray, sender: np.ndarray | None = None) -> np.ndarray:
+        """[L, C] link embeddings after the two NNConv layers; ``coef`` is [e_0, e_1, 1] per slot, zero at cuts;
+        ``sender`` [L - 1] the parent link of each slot (trees), None for chains (slot k's link k)."""
         (fwd, bwd, root, bias), *later = self.layers
         # The first layer's input is 1 on every link, so its products are its weights themselves (exactly:
-        # 1 * w), and its messages are the coefficients times the edge blocks.
+        # 1 * w), and its messages are the coefficients times the edge blocks (whatever the parent).
         out = np.repeat(root + bias, coef.shape[0] + 1, axis=0)
         out[1:] += coef @ fwd
         if bwd is not None:
-            out[:-1] += coef @ bwd
+            _to_parents(out, sender, coef @ bwd)
         x = np.maximum(out, 0.0)
         for fwd, bwd, root, bias in later:
             out = x @ root + bias
-            out[1:] += (coef[:, :, None] * x[:-1, None, :]).reshape(coef.shape[0], -1) @ fwd
+            parent = x[:-1] if sender is None else x[sender]
+            out[1:] += (coef[:, :, None] * parent[:, None, :]).reshape(coef.shape[0], -1) @ fwd
             if bwd is not None:
-                out[:-1] += (coef[:, :, None] * x[1:, None, :]).reshape(coef.shape[0], -1) @ bwd
+                _to_parents(out, sender, (coef[:, :, None] * x[1:, None, :]).reshape(coef.shape[0], -1) @ bwd)
             x = np.maximum(out, 0.0)
         return x
 
     def _global(self, global_feats: np.ndarray) -> np.ndarray:
         (w1, b1), (w2, b2) = self.global_mlp
         return np.maximum(np.maximum(global_feats.astype(np.float32) @ w1 + b1, 0.0) @ w2 + b2, 0.0)
+
+
+def _to_parents(out: np.ndarray, sender: np.ndarray | None, messages: np.ndarray) -> None:
+    """Add each slot's tail-to-torso message to its parent link: link k in a chain (``sender`` None), else
+    ``sender[k]``, where several children's messages meet (scatter-add)."""
+    if sender is None:
+        out[:-1] += messages
+    else:
+        np.add.at(out, sender, messages)

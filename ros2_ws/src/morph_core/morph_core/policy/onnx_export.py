@@ -6,6 +6,13 @@ One chain per call, of any length N (a dynamic axis, ``num_joints``):
     outputs  action [N]: the policy's mean action (unclipped; the policy node clips to [-1, 1])
              value [1]: the critic's estimate, only when exported ``with_value``
 
+With ``tree=True`` the graph takes a kinematic tree (``index_plan``) instead, one more input:
+
+    parents  [N] int64: joint j's parent joint (< j), or -1 when it hangs off the torso
+
+and computes its index plan in the graph (each joint's sender, its parent link, is ``parents + 1``:
+one tree has no cuts). The graph does not check ``parents``; a caller must (``index_plan.check_parents``).
+
 The graph is torch's own exporter (``torch.onnx.export``, torch.export based) run on
 ``SingleChainPolicy``: the policy's modules applied to one chain laid out as arrays, the form
 ``numpy_actor`` computes, instead of the batched ``PackedChains`` whose index building
@@ -33,11 +40,14 @@ import torch
 from torch import nn
 
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
 
 INPUT_NAMES = ("joint_pos", "joint_vel", "global")
+TREE_INPUT_NAMES = (*INPUT_NAMES, "parents")
+"""the tree graph's inputs (``export_model(tree=True)``): the chain's, then parents [N] int64"""
 ACTION_OUTPUT = "action"
 VALUE_OUTPUT = "value"
 NUM_JOINTS_AXIS = "num_joints"
@@ -45,6 +55,8 @@ OPSET = 18
 """ONNX opset of the graph: the oldest torch's exporter writes; ONNX Runtime reads it from 1.14 on"""
 FORMAT = "morph_policy_onnx/1"
 """``metadata_props['format']`` of an exported graph: what a controller checks before trusting the names above"""
+TREE_FORMAT = "morph_policy_onnx_tree/1"
+"""``metadata_props['format']`` of a tree graph (inputs ``TREE_INPUT_NAMES``)"""
 CHECK_LENGTHS = (1, 2, 3, 7, 10, 20, 64)
 """chain lengths every export is checked at (1 and 64 are the simulator's extremes)"""
 TOLERANCE = 1e-4
@@ -75,17 +87,29 @@ class SingleChainPolicy(nn.Module):
         self.with_value = with_value
 
     def forward(self, joint_pos: torch.Tensor, joint_vel: torch.Tensor, global_feats: torch.Tensor):
+        return self._outputs(joint_pos, joint_vel, global_feats, None)
+
+    def _outputs(self, joint_pos, joint_vel, global_feats, sender: torch.Tensor | None):
         features = self.policy.features
         edge_attr = torch.stack([joint_pos, joint_vel], dim=1)  # slot j holds joint j
         slot_mask = torch.ones_like(joint_pos, dtype=torch.bool)
         x = joint_pos.new_ones(joint_pos.shape[0] + 1, 1)  # links carry no state of their own
-        x = torch.relu(features.conv1(x, edge_attr, slot_mask))
-        x = torch.relu(features.conv2(x, edge_attr, slot_mask))
+        x = torch.relu(features.conv1(x, edge_attr, slot_mask, sender))
+        x = torch.relu(features.conv2(x, edge_attr, slot_mask, sender))
         z = x[1:] + features.global_mlp(global_feats.unsqueeze(0))  # joint j reads link j + 1
         action = self.policy.actor_head(z).squeeze(1)
         if not self.with_value:
             return action
         return action, self.policy.critic_head(z.mean(dim=0, keepdim=True)).reshape(1)
+
+
+class SingleTreePolicy(SingleChainPolicy):
+    """``policy``'s mean action (and value) of one kinematic tree: (joint_pos [N], joint_vel [N], global [4],
+    parents [N] int64) -> outputs. The index plan of one tree (``index_plan``): slot j holds joint j, whose
+    child is link j + 1 and whose parent link (its sender) is link parents[j] + 1."""
+
+    def forward(self, joint_pos, joint_vel, global_feats, parents):
+        return self._outputs(joint_pos, joint_vel, global_feats, parents + 1)
 
 
 @dataclass(frozen=True)
@@ -94,6 +118,8 @@ class ExportResult:
 
     path: Path
     with_value: bool
+    tree: bool
+    """the graph takes ``parents`` (``TREE_INPUT_NAMES``)"""
     lengths_checked: tuple[int, ...]
     max_error: float
     """largest difference ONNX Runtime - torch over the checked lengths (``check_against_policy``)"""
@@ -134,22 +160,28 @@ def _quiet_exporter():
         logger.setLevel(level)
 
 
-def export_model(policy: GraphActorCritic, with_value: bool = False, metadata: dict[str, str] | None = None):
-    """The ONNX ``ModelProto`` of ``policy``'s single-chain actor (and critic), with ``metadata`` in its props."""
+def export_model(
+    policy: GraphActorCritic, with_value: bool = False, metadata: dict[str, str] | None = None, tree: bool = False
+):
+    """The ONNX ``ModelProto`` of ``policy``'s single-chain actor (and critic), with ``metadata`` in its props;
+    with ``tree``, of one kinematic tree (inputs ``TREE_INPUT_NAMES``)."""
     onnx = _require("onnx")
     _require("onnxscript")  # torch's exporter imports it itself; fail here with the install hint
-    module = SingleChainPolicy(policy, with_value).eval()
+    module = (SingleTreePolicy if tree else SingleChainPolicy)(policy, with_value).eval()
     example = (torch.zeros(3), torch.zeros(3), torch.zeros(NUM_GLOBAL_FEATURES))
     n = torch.export.Dim(NUM_JOINTS_AXIS, min=1)
+    dynamic: tuple = ({0: n}, {0: n}, None)
+    if tree:
+        example, dynamic = (*example, torch.tensor([-1, 0, 0])), (*dynamic, {0: n})
     outputs = [ACTION_OUTPUT, VALUE_OUTPUT] if with_value else [ACTION_OUTPUT]
     try:
         with _quiet_exporter(), torch.no_grad():
             program = torch.onnx.export(
                 module,
                 example,
-                input_names=list(INPUT_NAMES),
+                input_names=list(TREE_INPUT_NAMES if tree else INPUT_NAMES),
                 output_names=outputs,
-                dynamic_shapes=({0: n}, {0: n}, None),
+                dynamic_shapes=dynamic,
                 opset_version=OPSET,
                 dynamo=True,
                 external_data=False,
@@ -158,11 +190,15 @@ def export_model(policy: GraphActorCritic, with_value: bool = False, metadata: d
     except Exception as err:  # the exporter raises many types; one message naming the step
         raise ExportError(f"torch's ONNX exporter failed: {type(err).__name__}: {err}") from err
     model = program.model_proto
-    model.doc_string = (
-        "Graph policy, deterministic actor of one chain: joint_pos [N], joint_vel [N] (torso to tail), "
-        "global [4] (yaw, yaw rate, vx, vy) -> action [N] (mean, unclipped)" + (", value [1]" if with_value else "")
+    if tree:
+        inputs = "one kinematic tree: joint_pos [N], joint_vel [N] (topological order), global [4] (yaw, yaw rate, "
+        inputs += "vx, vy), parents [N] int64 (parent joint, -1: the torso)"
+    else:
+        inputs = "one chain: joint_pos [N], joint_vel [N] (torso to tail), global [4] (yaw, yaw rate, vx, vy)"
+    model.doc_string = f"Graph policy, deterministic actor of {inputs} -> action [N] (mean, unclipped)" + (
+        ", value [1]" if with_value else ""
     )
-    onnx.helper.set_model_props(model, {"format": FORMAT, **(metadata or {})})
+    onnx.helper.set_model_props(model, {"format": TREE_FORMAT if tree else FORMAT, **(metadata or {})})
     onnx.checker.check_model(model, full_check=True)
     return model
 
@@ -177,10 +213,28 @@ def scaled_difference(got: np.ndarray, want: np.ndarray) -> np.ndarray:
     return np.abs(got - want) / np.maximum(np.abs(want), 1.0)
 
 
+TREE_SHAPES = ("random", "star", "chain")
+"""the trees a tree graph is checked on at each length: parents drawn from -1..j-1, all on the torso, a chain"""
+
+
+def random_parents(rng: np.random.Generator, n: int, shape: str) -> np.ndarray:
+    """[N] int64 parents of a tree of ``shape`` (one of ``TREE_SHAPES``)."""
+    if shape == "star":
+        return np.full(n, -1, np.int64)
+    if shape == "chain":
+        return np.arange(n, dtype=np.int64) - 1
+    return np.array([rng.integers(-1, j) for j in range(n)], np.int64)
+
+
 def check_against_policy(
-    model_bytes: bytes, policy: GraphActorCritic, lengths: Sequence[int] = CHECK_LENGTHS, seed: int = 0
+    model_bytes: bytes,
+    policy: GraphActorCritic,
+    lengths: Sequence[int] = CHECK_LENGTHS,
+    seed: int = 0,
+    tree: bool = False,
 ) -> float:
-    """Largest ``scaled_difference`` ONNX Runtime - torch over random states of each chain length in ``lengths``."""
+    """Largest ``scaled_difference`` ONNX Runtime - torch over random states of each chain length in ``lengths``;
+    with ``tree``, of trees of each of ``TREE_SHAPES`` at each length, torch given the same parents."""
     ort = _require("onnxruntime")
     from morph_core.msgs.joint_state import chain_batch  # the policy node's one-chain batch
 
@@ -190,14 +244,21 @@ def check_against_policy(
     names = [o.name for o in session.get_outputs()]
     rng = np.random.default_rng(seed)
     worst = 0.0
-    for n in lengths:
+    cases = [(n, shape) for n in lengths for shape in (TREE_SHAPES if tree else (None,))]
+    for n, shape in cases:
         # States of a swimming chain's scale: angles within the joint range, fast joints, a turned torso.
         pos = rng.uniform(-1.7, 1.7, n).astype(np.float32)
         vel = rng.normal(0.0, 3.0, n).astype(np.float32)
         glob = np.array([rng.uniform(-6, 6), *rng.normal(0.0, 1.0, 3)], dtype=np.float32)
-        got = dict(zip(names, session.run(None, dict(zip(INPUT_NAMES, (pos, vel, glob), strict=True))), strict=True))
+        inputs = (pos, vel, glob) if shape is None else (pos, vel, glob, random_parents(rng, n, shape))
+        names_in = TREE_INPUT_NAMES if tree else INPUT_NAMES
+        got = dict(zip(names, session.run(None, dict(zip(names_in, inputs, strict=True))), strict=True))
         with torch.no_grad():
-            mean, _, value = policy(chain_batch(pos, vel, glob))
+            if shape is None:
+                batch = chain_batch(pos, vel, glob)
+            else:
+                batch = ChainBatch.from_padded(pos[None], vel[None], glob[None], [n], parents=inputs[3][None])
+            mean, _, value = policy(batch)
         want = {ACTION_OUTPUT: mean[0].numpy(), VALUE_OUTPUT: value.numpy()}
         for name, out in got.items():
             if out.shape != want[name].shape:
@@ -214,9 +275,11 @@ def export_checkpoint(
     with_value: bool = False,
     lengths: Sequence[int] = CHECK_LENGTHS,
     tolerance: float = TOLERANCE,
+    tree: bool = False,
 ) -> ExportResult:
     """Export ``checkpoint`` to ``out`` (.onnx), written atomically only once ONNX Runtime reproduced the
-    policy to ``tolerance`` at every length in ``lengths``.
+    policy to ``tolerance`` at every length in ``lengths`` (with ``tree``: the tree graph, checked on trees
+    of every shape in ``TREE_SHAPES`` at those lengths).
 
     Raises ``CheckpointError`` (a ``ValueError``) for an unusable checkpoint and ``ExportError`` otherwise.
     """
@@ -231,12 +294,13 @@ def export_checkpoint(
         "policy_config": json.dumps(asdict(weights.config)),
         "checkpoint_metadata": json.dumps(weights.metadata),
         "log_std": repr(float(weights.arrays["log_std"])),
-        "joint_order": "torso to tail (JointState message order)",
-    }
-    model = export_model(policy, with_value, metadata)
+        "joint_order": "topological, parents before children (parents input)" if tree
+        else "torso to tail (JointState message order)",
+    }  # fmt: skip
+    model = export_model(policy, with_value, metadata, tree)
     data = model.SerializeToString()
-    error = check_against_policy(data, policy, lengths)
+    error = check_against_policy(data, policy, lengths, tree=tree)
     if not error <= tolerance:
         raise ExportError(f"the exported graph differs from the policy by {error:.3g} (> {tolerance:g}); not written")
     atomic_write_bytes(out, data)
-    return ExportResult(out, with_value, tuple(lengths), error, len(model.graph.node))
+    return ExportResult(out, with_value, tree, tuple(lengths), error, len(model.graph.node))
