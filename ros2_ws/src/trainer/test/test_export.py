@@ -31,8 +31,9 @@ from morph_core.policy.onnx_export import (
     random_parents,
     scaled_difference,
 )
-from morph_core.policy.weights import CheckpointError
+from morph_core.policy.weights import CheckpointError, load_checkpoint
 from trainer import export_cli
+from trainer.keys_cli import main as keys_main
 
 SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
 CLI = [sys.executable, "-m", "trainer.export_cli"]
@@ -180,6 +181,19 @@ def test_cli_exports_the_actor_alone_by_default(tmp_path):
     (action,) = session.run(None, {"joint_pos": pos, "joint_vel": vel, "global": glob})
     np.testing.assert_allclose(action, NumpyPolicy(GraphActorCritic.load(ckpt)).mean(pos, vel, glob), atol=1e-5)
     assert [p.name for p in out.parent.iterdir()] == ["actor.onnx"]  # atomic: no temp file left
+
+
+def test_a_signed_checkpoint_s_signature_goes_into_the_graph_s_metadata(tmp_path):
+    ckpt = _save(trained_shaped(PolicyConfig(), seed=6), tmp_path / "p.safetensors")
+    props = lambda: {p.key: p.value for p in onnx.load(str(tmp_path / "a.onnx")).metadata_props}  # noqa: E731
+    export_checkpoint(ckpt, tmp_path / "a.onnx", lengths=(3,))
+    assert "signed_weights" not in props()
+    assert keys_main(["new", str(tmp_path / "key")]) == 0
+    assert keys_main(["sign", str(ckpt), "--key", str(tmp_path / "key")]) == 0
+    export_checkpoint(ckpt, tmp_path / "a.onnx", lengths=(3,))
+    signed = load_checkpoint(ckpt).signed
+    assert json.loads(props()["signed_weights"]) == {"header": signed.header, "signature": signed.signature}
+    assert props()["checkpoint_sha256"] == load_checkpoint(ckpt).data_sha256
 
 
 @pytest.fixture(scope="module", params=list(POLICIES))

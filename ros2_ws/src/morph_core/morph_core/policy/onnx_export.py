@@ -297,6 +297,11 @@ def export_checkpoint(
         "joint_order": "topological, parents before children (parents input)" if tree
         else "torso to tail (JointState message order)",
     }  # fmt: skip
+    if weights.signed is not None:  # provenance: who signed the weights this graph was made from (docs/robustness.md)
+        metadata["checkpoint_sha256"] = weights.data_sha256
+        metadata["signed_weights"] = json.dumps(
+            {"header": weights.signed.header, "signature": weights.signed.signature}
+        )
     model = export_model(policy, with_value, metadata, tree)
     data = model.SerializeToString()
     error = check_against_policy(data, policy, lengths, tree=tree)
