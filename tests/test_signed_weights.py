@@ -110,6 +110,19 @@ def _push_until(probe, pub, msg, done, what: str, timeout: float = 30.0) -> None
         probe.spin_for(0.2)
 
 
+def _running_version_3(probe, launch, namespace, checkpoint, key, diagnostics):
+    """A sim and a sampling policy node trusting ``key``, which took signed version 3: (answers, diagnostics,
+    a weights publisher, the policy process, version 3's message)."""
+    answers = Answers(probe, namespace)
+    diag = diagnostics(f"{namespace}/morph_policy")
+    pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
+    policy = _start(launch, checkpoint, deterministic=False, trusted_keys=key.trusted)
+    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos and diag.latest, STARTUP, "the node")
+    good = _message(*weights(checkpoint, 3, key.signer))
+    _push_until(probe, pub, good, lambda: answers.running(3), "version 3 adopted")
+    return answers, diag, pub, policy, good
+
+
 @pytest.mark.timeout(180)
 @pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason="no shipped model")
 def test_a_default_policy_node_takes_no_pushed_weights(probe, launch, namespace, trainer_key):
@@ -141,13 +154,9 @@ def test_a_default_policy_node_takes_no_pushed_weights(probe, launch, namespace,
 def test_only_weights_the_trusted_key_signed_and_newer_are_adopted(
     probe, launch, namespace, untrained_checkpoint, trainer_key, diagnostics, tmp_path
 ):
-    answers = Answers(probe, namespace)
-    diag = diagnostics(f"{namespace}/morph_policy")
-    pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
-    policy = _start(launch, untrained_checkpoint, deterministic=False, trusted_keys=trainer_key.trusted)
-    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos and diag.latest, STARTUP, "the node")
-    good = _message(*weights(untrained_checkpoint, 3, trainer_key.signer))
-    _push_until(probe, pub, good, lambda: answers.running(3), "version 3 adopted")
+    answers, diag, pub, policy, good = _running_version_3(
+        probe, launch, namespace, untrained_checkpoint, trainer_key, diagnostics
+    )
     other = write_key_pair(tmp_path / "other")
     for kind, (reason, msg) in bad_messages(untrained_checkpoint, trainer_key, other).items():
         before = diag.latest["policy_weights"].rejected[reason] if diag.latest else 0
@@ -190,13 +199,9 @@ def test_bad_trusted_key_files_are_refused_and_the_node_runs_on(
 def test_ten_thousand_bad_weights_in_a_row_leave_the_node_running_and_its_memory_flat(
     probe, launch, namespace, untrained_checkpoint, trainer_key, diagnostics, tmp_path
 ):
-    answers = Answers(probe, namespace)
-    diag = diagnostics(f"{namespace}/morph_policy")
-    pub = probe.node.create_publisher(UInt8MultiArray, "policy_weights", 10)
-    policy = _start(launch, untrained_checkpoint, deterministic=False, trusted_keys=trainer_key.trusted)
-    probe.spin_until(lambda: pub.get_subscription_count() > 0 and answers.infos and diag.latest, STARTUP, "the node")
-    _push_until(probe, pub, _message(*weights(untrained_checkpoint, 3, trainer_key.signer)),
-                lambda: answers.running(3), "version 3 adopted")  # fmt: skip
+    answers, diag, pub, policy, _ = _running_version_3(
+        probe, launch, namespace, untrained_checkpoint, trainer_key, diagnostics
+    )
     bad = bad_messages(untrained_checkpoint, trainer_key, write_key_pair(tmp_path / "other"))
     small = [msg for kind, (_, msg) in bad.items() if kind != "signature 1 MB"]
     huge = bad["signature 1 MB"][1]
