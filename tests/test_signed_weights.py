@@ -21,7 +21,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_version
 from morph_core.policy.weights import load_checkpoint
-from morph_core.protocol.trust import sha256_hex, write_key_pair
+from morph_core.protocol.trust import write_key_pair
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
 STARTUP = 60.0
@@ -47,11 +47,6 @@ def weights(checkpoint, version: int, signer=None, bias: float | None = None, ep
     data = safetensors.numpy.save(arrays)
     config = dataclasses.asdict(loaded.config)
     return pack_policy_weights(version, config, data, {"run": "test"}, epoch, signer)
-
-
-def resigned(dims, data, key):
-    """The dims with ``key``'s signature over header and data as they are."""
-    return [*dims[:2], (key.sign(dims[1][0], sha256_hex(bytes(data))).label, 0, 0)]
 
 
 def bad_messages(checkpoint, trainer, other) -> dict[str, tuple[str, UInt8MultiArray]]:

@@ -117,7 +117,7 @@ from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.pairing import StatePairing
-from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
+from morph_core.protocol.policy_updates import CheckpointTrust, PolicyUpdates, checkpoint_trust
 from morph_core.protocol.trust import load_trusted_keys
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
 from morph_ros_util import node_runner
@@ -229,9 +229,9 @@ class MorphPolicyNode(Node):
         self._allow_untrained = p("allow_untrained").value
         self._seed = p("seed").value
         self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS, KEYS])  # on /diagnostics every second
-        self._candidate: PolicyWeights | None = None
+        self._candidate: tuple[PolicyWeights, CheckpointTrust] | None = None  # checked, set after validation
         self._updates = PolicyUpdates(pushed_policy, None, self._trusted_keys(), p("accept_unsigned_weights").value)
-        self._use(choose_policy(p("checkpoint").value, self._allow_untrained, self._seed))  # CheckpointError: main()
+        self._use(*self._checked(p("checkpoint").value))  # CheckpointError: main()
         self._deterministic = p("deterministic").value
         self._input_timeout = p("input_timeout").value
         self._rng = np.random.default_rng(self._seed)
@@ -298,11 +298,15 @@ class MorphPolicyNode(Node):
                 f"{WEIGHTS_TOPIC}. For tests only; use {KEYS} on a robot"
             )
 
-    def _use(self, weights: PolicyWeights) -> None:
+    def _checked(self, checkpoint: str) -> tuple[PolicyWeights, CheckpointTrust]:
+        """The policy ``checkpoint`` names and what its signature says; ``CheckpointError`` for a file that cannot
+        be used, or whose trusted signature does not match it."""
+        weights = choose_policy(checkpoint, self._allow_untrained, self._seed)
+        return weights, checkpoint_trust(weights, self._updates.keys)
+
+    def _use(self, weights: PolicyWeights, trust: CheckpointTrust) -> None:
         """Run a checkpoint (or an untrained policy) from now on; pushed weights follow when newer than any taken
-        before (and than the file's version, if a trusted key signed it). ``CheckpointError`` for a file whose
-        trusted signature does not match it."""
-        trust = checkpoint_trust(weights, self._updates.keys)
+        before (and than the file's version, if a trusted key signed it)."""
         running = (weights, NumpyPolicy(weights))
         self._updates.replace(running, trust.order)
         self._weights, self._policy = running
@@ -319,8 +323,7 @@ class MorphPolicyNode(Node):
                 if param.type_ != Parameter.Type.STRING:
                     return SetParametersResult(successful=False, reason="checkpoint must be a string path")
                 try:
-                    self._candidate = choose_policy(param.value, self._allow_untrained, self._seed)
-                    checkpoint_trust(self._candidate, self._updates.keys)
+                    self._candidate = self._checked(param.value)
                 except CheckpointError as err:
                     return SetParametersResult(successful=False, reason=f"refused checkpoint {err}")
             elif param.name == "input_timeout":
@@ -333,7 +336,7 @@ class MorphPolicyNode(Node):
     def _apply_parameters(self, params: list[Parameter]) -> None:
         for param in params:
             if param.name == "checkpoint" and self._candidate is not None:
-                self._use(self._candidate)
+                self._use(*self._candidate)
                 self._candidate = None
             elif param.name == "deterministic":
                 self._deterministic = param.value

@@ -13,7 +13,6 @@ directory): the trainer signs with it, and the policy nodes trust its public hal
 
 import os
 import tempfile
-from pathlib import Path
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, SetEnvironmentVariable
@@ -21,7 +20,8 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 import morph_policy_node
-from morph_core.protocol.trust import public_key_path, write_key_pair
+from morph_core.protocol.trust import public_key_path
+from trainer.live_bringup import run_key_pair
 
 # The nodes' Fast DDS profile (quick discovery, UDP only: docs/design.md), unless the user set their own.
 PROFILE = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
@@ -31,8 +31,7 @@ def _nodes(context):
     value = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
     pairs = int(value("pairs"))
     namespaces = [f"/swimmer{i}" for i in range(pairs)]
-    key = Path(tempfile.mkdtemp(prefix="morph-live-keys-")) / "trainer_key"  # mode 0700, this launch's alone
-    write_key_pair(key, comment="morph-live-run")
+    key = run_key_pair(tempfile.mkdtemp(prefix="morph-live-keys-"))  # mode 0700, this launch's alone
     cmd = ["morph-train", "--live", "--namespaces", *namespaces, "--out", value("out"),
            "--episode-steps", value("episode_steps"), "--max-updates", value("updates"),
            "--signing-key", str(key)]  # fmt: skip

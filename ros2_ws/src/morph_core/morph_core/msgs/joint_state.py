@@ -37,7 +37,7 @@ QUATERNION_NORM_TOLERANCE = 1e-3
 non-unit one gives a wrong yaw (``yaw_from_quaternion`` assumes a unit quaternion), so it is refused"""
 
 
-def _name_error(names: Sequence[str]) -> str | None:
+def joint_name_error(names: Sequence[str]) -> str | None:
     """Why the names are not a chain's joint names (each 1..MAX_NAME_CHARS printable ASCII), or None."""
     for i, name in enumerate(names):
         if not 0 < len(name) <= MAX_NAME_CHARS:
@@ -63,7 +63,7 @@ def validate_joint_state(
         raise JointStateError(f"{n} joints, more than the maximum of {max_joints}")
     if len(positions) != n or len(velocities) != n:
         raise JointStateError(f"length mismatch: {n} names, {len(positions)} positions, {len(velocities)} velocities")
-    bad_name = _name_error(names)
+    bad_name = joint_name_error(names)
     if bad_name is not None:
         raise JointStateError(bad_name)
     if len(set(names)) != n:

@@ -34,7 +34,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
-from morph_core.msgs.joint_state import _name_error
+from morph_core.msgs.joint_state import joint_name_error
+from morph_core.policy.index_plan import chain_parents
 
 if TYPE_CHECKING:
     import mujoco
@@ -95,7 +96,7 @@ class KinematicTree:
 
     @property
     def is_chain(self) -> bool:
-        return bool(np.array_equal(self.parents, np.arange(-1, self.num_joints - 1)))
+        return bool(np.array_equal(self.parents, chain_parents(self.num_joints)))
 
     @property
     def topology_hash(self) -> str:
@@ -131,7 +132,7 @@ class KinematicTree:
         """The chain of ``n`` joints (joint j's parent is j - 1); names default to the swimmer's."""
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 1 <= n <= MAX_JOINTS:
             raise TreeError(f"a chain has 1..{MAX_JOINTS} joints, got {_quote(n)}")
-        return cls(swimmer_joint_names(int(n)) if names is None else names, np.arange(-1, int(n) - 1), root_link)
+        return cls(swimmer_joint_names(int(n)) if names is None else names, chain_parents(int(n)), root_link)
 
     @classmethod
     def from_mujoco(cls, model: mujoco.MjModel) -> KinematicTree:
@@ -274,7 +275,7 @@ def _validated(names: object, parents: object, root_link: object) -> tuple[tuple
     if late.size:
         j = int(late[0])
         raise TreeError(f"joint {j}'s parent {array[j]} comes after it: joints must be in topological order")
-    bad_name = _name_error(names)
+    bad_name = joint_name_error(names)
     if bad_name is not None:
         raise TreeError(bad_name)
     _refuse_duplicates("joint", names)

@@ -28,7 +28,6 @@ import base64
 import binascii
 import hashlib
 import json
-import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -265,8 +264,6 @@ def write_key_pair(private_path: str | Path, comment: str = "morph-policy-signin
         serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()
     )
     public = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
-    private_path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(private_path, private, file_mode=0o600)
+    atomic_write_bytes(private_path, private, file_mode=0o600)  # set on the file, whatever the umask
     atomic_write_bytes(public_path, public + f" {comment} {signer.fingerprint}\n".encode())
-    os.chmod(private_path, 0o600)  # whatever the umask
     return signer
