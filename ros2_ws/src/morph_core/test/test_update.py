@@ -2,6 +2,7 @@
 values for each rule, and the decoupled objective for off-policy data."""
 
 import copy
+import dataclasses
 import math
 
 import pytest
@@ -10,6 +11,7 @@ import torch
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update, with_proximal
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 
 EPS = 0.1
 
@@ -194,6 +196,39 @@ def test_bad_batches_are_refused_with_the_field_named():
         RolloutBatch(**{**good, "num_joints": torch.tensor([0, 3])})
     with pytest.raises(ValueError, match="unknown trust-region rule"):
         _config("adaptive")
+
+
+def test_tree_minibatches_carry_their_parents_and_chain_parents_keep_the_chain_path():
+    policy = _policy()
+    chains = _batch(policy, [3, 1, 5, 2], [1.0] * 4, [0.0] * 4)
+    given = torch.full((4, 5), -1, dtype=torch.int64)
+    given[0, :3], given[2], given[3, :2] = (
+        torch.tensor([-1, 0, 1]),
+        torch.tensor([-1, 0, 1, 2, 3]),
+        torch.tensor([-1, 0]),
+    )
+    assert dataclasses.replace(chains, parents=given).parents is None  # chains, however given: one thing
+    trees = given.clone()
+    trees[0, :3], trees[2] = torch.tensor([-1, 0, 0]), torch.tensor([-1, -1, 1, 1, 0])  # a Y, a branched star
+    batch = dataclasses.replace(chains, parents=trees)
+    got, actions = batch.minibatch(torch.tensor([2, 0, 1]))
+    rows = [2, 0, 1]
+    want = ChainBatch.from_padded(
+        batch.joint_pos[rows], batch.joint_vel[rows], batch.global_feats[rows], batch.num_joints[rows],
+        parents=trees[rows],
+    )  # fmt: skip
+    torch.testing.assert_close(got.parents, want.parents)
+    torch.testing.assert_close(policy.log_prob(got, actions), policy.log_prob(want, actions))
+    # a tree's log-probs are not its chain's: the parents reach the network
+    assert not torch.allclose(
+        policy.log_prob(got, actions), policy.log_prob(chains.minibatch(torch.tensor([2, 0, 1]))[0], actions)
+    )
+    bad = trees.clone()
+    bad[2, 3] = 3  # its own parent
+    with pytest.raises(ValueError, match=r"parents\[2, 3\] = 3"):
+        dataclasses.replace(chains, parents=bad)
+    with pytest.raises(ValueError, match=r"parents must be \[4, 5\] int64"):
+        dataclasses.replace(chains, parents=trees[:, :4])
 
 
 def test_minibatch_cuts_never_leave_one_sample_alone():

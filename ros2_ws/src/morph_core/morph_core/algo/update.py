@@ -36,6 +36,7 @@ from morph_core.algo.ppo import PerDimensionStats, normalized_minibatch_advantag
 from morph_core.algo.trust_region import LossContext, TrustRegionRule, get_rule, kl_per_joint
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.index_plan import check_parents, is_chain
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,10 @@ class RolloutBatch:
     proximal_log_prob: torch.Tensor | None = None
     """[N] log-probability under the proximal policy (``proximal_log_probs``), for off-policy data;
     None for on-policy data, where it equals ``log_prob``"""
+    parents: torch.Tensor | None = None
+    """[N, J] int64 parent joint of each joint (-1: the torso, and at padding; ``policy.index_plan``); None
+    when every sample is a chain, however given (checked at construction; chains-only parents become None, so
+    that the update takes its chain path)"""
 
     def __post_init__(self):
         n, j = self.joint_pos.shape if self.joint_pos.ndim == 2 else (None, None)
@@ -84,6 +89,13 @@ class RolloutBatch:
                 raise ValueError(f"RolloutBatch.{name} must be {list(shape)} for N={n}, J={j}, got {list(got)}")
         if self.num_joints.dtype != torch.int64:
             raise ValueError(f"RolloutBatch.num_joints must be int64, got {self.num_joints.dtype}")
+        if self.parents is not None:
+            if tuple(self.parents.shape) != (n, j) or self.parents.dtype != torch.int64:
+                raise ValueError(f"RolloutBatch.parents must be [{n}, {j}] int64, got {list(self.parents.shape)} "
+                                 f"{self.parents.dtype}")  # fmt: skip
+            mask = (torch.arange(j) < self.num_joints.unsqueeze(1)).numpy()
+            parents = check_parents(self.parents.numpy(), mask)
+            object.__setattr__(self, "parents", None if is_chain(parents, mask) else torch.from_numpy(parents))
         if n and (int(self.num_joints.min()) < 1 or int(self.num_joints.max()) > j):
             raise ValueError(f"RolloutBatch.num_joints must be in 1..{j}")
         for name in [*shapes][1:]:
@@ -110,7 +122,8 @@ class RolloutBatch:
         pos, vel, actions = (x.numpy()[rows, :width] for x in (self.joint_pos, self.joint_vel, self.actions))
         # The padding is zero (checked at construction), so from_padded's checks and zeroing of the padding
         # would change nothing (~15 us of a step's gather).
-        chains = ChainBatch.from_zero_padded(pos, vel, self.global_feats.numpy()[rows], num_joints)
+        parents = None if self.parents is None else self.parents.numpy()[rows, :width]
+        chains = ChainBatch.from_zero_padded(pos, vel, self.global_feats.numpy()[rows], num_joints, parents)
         return chains, torch.from_numpy(actions)
 
 
