@@ -15,6 +15,10 @@ per iteration, and the share of the raw physics rate: MuJoCo alone
 (mj_step with frame_skip 4, averaged over the chain lengths 2..10 the way
 the envs draw them), a ratio that does not depend on the machine.
 
+``--bodies SPEC`` adds a last setting: the data-parallel one training on the bodies SPEC
+(``env.bodies``' grammar, e.g. ``2-10,random:3-10``: chains plus random trees), the cost of a
+tree mix measured in the same run as the chains.
+
 ``--reference DIR``: a checkout of the paper's code (github.com/jr-robotics/MorphologicalPPO), run by
 ``--reference-python`` (a Python with its requirements) at its paper configuration (``agent=sb3_flex_varppo``:
 compensated clipping, 6 envs, 1024 steps, minibatch 256, 10 epochs) for the same number of iterations, in a
@@ -73,8 +77,9 @@ def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
     return (s1 - s0) / (t1 - t0)
 
 
-def run(iterations: int, torch_threads: int, env_threads: int, processes: int) -> dict[str, float]:
+def run(iterations: int, torch_threads: int, env_threads: int, processes: int, bodies: str = "") -> dict[str, float]:
     cfg = TrainConfig(
+        bodies=bodies,
         total_timesteps=(1 + iterations) * BATCH,
         torch_threads=torch_threads,
         env_threads=env_threads,
@@ -105,6 +110,8 @@ def main() -> None:
                         help="the Python that runs it (with its requirements installed)")  # fmt: skip
     parser.add_argument("--settings", type=int, nargs="+", default=None, metavar="K",
                         help="run only these settings (1-based, in the table's order)")  # fmt: skip
+    parser.add_argument("--bodies", default=None, metavar="SPEC",
+                        help="also train on these bodies (e.g. 2-10,random:3-10), data-parallel, last")  # fmt: skip
     args = parser.parse_args()
     if args.reference is not None:
         if not (args.reference / "train.py").is_file():
@@ -127,9 +134,11 @@ def main() -> None:
         ("2 cores (2 env threads, 2 torch threads)", 2, 2, 1),
         ("2 cores, 2 processes (data-parallel)", 1, 1, 2),
     ]
-    chosen = args.settings or range(1, len(settings) + 1)
-    for label, tt, et, processes in (settings[k - 1] for k in chosen):
-        r = run(iterations, tt, et, processes)
+    chosen = [settings[k - 1] + ("",) for k in args.settings or range(1, len(settings) + 1)]
+    if args.bodies:
+        chosen.append((f"2 cores, 2 processes, bodies {args.bodies}", 1, 1, 2, args.bodies))
+    for label, tt, et, processes, bodies in chosen:
+        r = run(iterations, tt, et, processes, bodies)
         ratio = f"{r['sps'] / reference:.1f}x" if reference else "not run"
         print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | "
               f"{r['sps'] / raw_mix:.2f} | {ratio} |")  # fmt: skip

@@ -203,3 +203,54 @@ def test_from_step_adds_lengths_to_the_late_checkpoints_only(tmp_path):
     # Past the last checkpoint: the last one is still evaluated.
     rows = evaluate_run(run, EvalConfig(lengths=[5], episodes=1, from_step=10_000), log=lambda _: None)
     assert sorted({int(r["global_step"]) for r in rows if int(r["num_joints"]) == 5}) == [640]
+
+
+def test_evaluation_runs_a_tree_as_the_policy_computes_it_on_that_tree():
+    # A tree's returns are those of the NumPy policy stepped on that tree's own env, with its parents.
+    from morph_core.env.bodies import parse_bodies
+
+    torch_policy = GraphActorCritic()
+    actor = NumpyPolicy(torch_policy)
+    star = parse_bodies("star:3x1").members()[0]
+    returns = evaluate_policy(actor, [star, 3], episodes=2, max_steps=40)
+    for k in range(2):
+        env = MorphSwimmerEnv(num_joints=3)
+        obs, _ = env.reset(seed=10_000 + k, options={"tree": star})
+        np.testing.assert_array_equal(obs["parents"], [-1, -1, -1])
+        total = 0.0
+        for _ in range(40):
+            mean = actor.mean(obs["joint_pos"], obs["joint_vel"], obs["global"], parents=obs["parents"])
+            obs, r, _, _, _ = env.step(np.clip(mean, -1.0, 1.0))
+            total += r
+        assert returns[star][k] == pytest.approx(total, rel=1e-4, abs=1e-5)
+    # the same joint count as a chain is another body, with other returns
+    assert not np.allclose(returns[star], returns[3])
+
+
+def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_before_trees(tmp_path, capsys):
+    run = train(TrainConfig(total_timesteps=256, seed=1, **SMALL), tmp_path / "run")
+    cfg = EvalConfig(lengths=[2], bodies="star:2x1,y:1x1", episodes=1)
+    rows = evaluate_run(run, cfg, log=lambda _: None)
+    assert {(r["global_step"], r["body"], r["num_joints"]) for r in rows} == {
+        (s, b, n) for s in (128, 256) for b, n in (("chain-2", 2), ("star-2x1", 2), ("y-1x1", 3))
+    }
+    # An eval.csv of before trees (no body column) reads as chains: nothing is evaluated again.
+    with (run / "eval.csv").open() as f:
+        old = [r for r in csv.DictReader(f) if r["body"].startswith("chain-")]
+    with (run / "eval.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["global_step", "num_joints", "episode", "return"])
+        w.writeheader()
+        w.writerows({k: r[k] for k in w.fieldnames} for r in old)
+    rows = evaluate_run(run, EvalConfig(lengths=[2], episodes=1), log=lambda _: None)
+    assert sorted((int(r["global_step"]), r["body"]) for r in rows) == [(128, "chain-2"), (256, "chain-2")]
+    with pytest.raises(ValueError, match="random family"):
+        evaluate_run(run, EvalConfig(lengths=[], bodies="random:3-5"), log=lambda _: None)
+    # One policy file (a shipped model): a table of the same returns, nothing written.
+    from trainer.eval_cli import main
+
+    ckpt = run / "checkpoints" / "policy_00000256.safetensors"
+    main(["--checkpoint", str(ckpt), "--lengths", "--bodies", "y:1x1", "--episodes", "1"])
+    table = capsys.readouterr().out
+    want = next(float(r["return"]) for r in evaluate_run(run, cfg, log=lambda _: None)
+                if r["body"] == "y-1x1" and int(r["global_step"]) == 256)  # fmt: skip
+    assert f"| y-1x1 | 3 | {want:.1f} ± 0.0 |" in table and "chain-" not in table

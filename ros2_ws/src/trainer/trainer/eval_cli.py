@@ -2,8 +2,10 @@
 
 For each run directory, each checkpoint in ``checkpoints/`` is evaluated
 deterministically (the policy's mean action), ``--episodes`` episodes per
-chain length (default 2..10 plus the unseen 15 and 20), into the run's
-``eval.csv``. Checkpoints already in ``eval.csv`` are skipped, so an
+chain length (default 2..10 plus the unseen 15 and 20) and per tree of
+``--bodies`` (``env.bodies``' grammar, named trees: ``--bodies y:2x2,star:3x2``),
+into the run's ``eval.csv`` (a row per episode, keyed by the body's label:
+``chain-N`` or the tree's, beside its joint count). Checkpoints already in ``eval.csv`` are skipped, so an
 interrupted evaluation resumes. ``--stride k`` evaluates every k-th
 checkpoint (the last one always); ``--from-step S`` only those from step S
 on (zero-shot on long chains late in training: ``--lengths 30 40
@@ -11,6 +13,10 @@ on (zero-shot on long chains late in training: ``--lengths 30 40
 stride). ``--processes 2`` evaluates two
 checkpoints at a time, one per core (each checkpoint's results are the same
 as alone). Figures comparing the clip modes go to ``--plots DIR``.
+
+``--checkpoint FILE`` instead of ``--run`` evaluates one policy file (a shipped
+model, say) on the same bodies and prints a table of its returns (mean ± std
+over the episodes, per body), writing nothing.
 """
 
 from __future__ import annotations
@@ -27,13 +33,14 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from morph_core.algo.evaluate import evaluate_policy
+from morph_core.algo.evaluate import Body, evaluate_policy
+from morph_core.env.bodies import body_label, parse_bodies
 from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
-EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return"]
+EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body"]
 
 
 @dataclass
@@ -42,6 +49,9 @@ class EvalConfig:
 
     lengths: list[int] = field(default_factory=lambda: [*range(2, 11), 15, 20])
     """chain lengths to evaluate"""
+    bodies: str = ""
+    """trees (and chains) to evaluate beside ``lengths``: an ``env.bodies`` spec of named families (every
+    member is evaluated; random families are refused: an evaluation needs the same bodies every time)"""
     episodes: int = 10
     """deterministic episodes per chain length"""
     stride: int = 1
@@ -70,38 +80,66 @@ def read_eval(run_dir: Path) -> list[dict]:
     if not path.exists():
         return []
     with path.open() as f:
-        return [r for r in csv.DictReader(f) if None not in r.values()]
+        rows = [r for r in csv.DictReader(f) if None not in r.values()]
+    for r in rows:  # files written before trees hold chains only
+        r.setdefault("body", f"chain-{r['num_joints']}")
+    return rows
+
+
+def eval_bodies(cfg: EvalConfig) -> list[Body]:
+    """The bodies ``cfg`` evaluates: its chain lengths, then every member of its ``bodies`` families."""
+    bodies: list[Body] = list(cfg.lengths)
+    if cfg.bodies:
+        members = parse_bodies(cfg.bodies).members()
+        if members is None:
+            raise ValueError(f"bodies {cfg.bodies!r} holds a random family: name the trees to evaluate")
+        bodies += [m.num_joints if m.is_chain else m for m in members]
+    return list(dict.fromkeys(bodies))
+
+
+def label(body: Body) -> str:
+    """The eval.csv key of a body: ``chain-N`` for a chain length, the tree's label otherwise."""
+    return f"chain-{body}" if isinstance(body, int) else body_label(body)
+
+
+def num_joints(body: Body) -> int:
+    return body if isinstance(body, int) else body.num_joints
 
 
 def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     rows = read_eval(run_dir)
-    done = {(int(r["global_step"]), int(r["num_joints"])) for r in rows}
+    done = {(int(r["global_step"]), r["body"]) for r in rows}
+    bodies = eval_bodies(cfg)
     ckpts = checkpoints(run_dir)
     if not ckpts:
         raise FileNotFoundError(f"no checkpoints in {run_dir / 'checkpoints'}")
     chosen = [(step, path) for step, path in ckpts[:: cfg.stride] if step >= cfg.from_step]
     if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
-    jobs = [(step, path, todo) for step, path in chosen if (todo := [n for n in cfg.lengths if (step, n) not in done])]
+    jobs = [
+        (step, path, todo) for step, path in chosen if (todo := [b for b in bodies if (step, label(b)) not in done])
+    ]
     for step, results in _evaluated(jobs, cfg):
-        for n, returns in results.items():  # once per length, even one given twice (evaluate_policy)
+        for body, returns in results.items():  # once per body, even one given twice (evaluate_policy)
             rows += [
-                {"global_step": step, "num_joints": n, "episode": k, "return": float(r)} for k, r in enumerate(returns)
-            ]
-        rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), int(r["episode"])))
+                {"global_step": step, "num_joints": num_joints(body), "episode": k, "return": float(r),
+                 "body": label(body)}
+                for k, r in enumerate(returns)
+            ]  # fmt: skip
+        rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), r["body"], int(r["episode"])))
         # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
         with atomic_writer(run_dir / "eval.csv") as f:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
             w.writeheader()
             w.writerows(rows)
-        means = " ".join(f"{n}:{returns.mean():.1f}" for n, returns in results.items())
+        means = " ".join(f"{label(body)}:{returns.mean():.1f}" for body, returns in results.items())
         log(f"{run_dir.name} step {step}: {means}")
     return rows
 
 
-def evaluate_checkpoint(path: Path, lengths: list[int], cfg: EvalConfig) -> dict[int, np.ndarray]:
-    """The returns of the checkpoint at ``path`` per chain length (its weights read without torch)."""
-    return evaluate_policy(load_checkpoint(path), lengths, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+def evaluate_checkpoint(path: Path, bodies: list[Body], cfg: EvalConfig) -> dict[Body, np.ndarray]:
+    """The returns of the checkpoint at ``path`` per body (its weights read without torch)."""
+    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
 
 
 def one_blas_thread() -> None:
@@ -111,7 +149,7 @@ def one_blas_thread() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
-def _evaluated(jobs: list[tuple[int, Path, list[int]]], cfg: EvalConfig):
+def _evaluated(jobs: list[tuple[int, Path, list[Body]]], cfg: EvalConfig):
     """(step, results) of every job, in order, evaluated ``cfg.processes`` at a time."""
     if cfg.processes == 1 or len(jobs) < 2:
         for step, path, todo in jobs:
@@ -124,15 +162,28 @@ def _evaluated(jobs: list[tuple[int, Path, list[int]]], cfg: EvalConfig):
             yield step, future.result()
 
 
+def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
+    """A Markdown table of the returns of the policy file at ``path`` on ``cfg``'s bodies."""
+    results = evaluate_checkpoint(path, eval_bodies(cfg), cfg)
+    lines = [f"| body | joints | return, mean ± std over {cfg.episodes} episodes |", "|---|---:|---:|"]
+    for body, returns in results.items():
+        lines.append(f"| {label(body)} | {num_joints(body)} | {returns.mean():.1f} ± {returns.std():.1f} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--run", type=Path, nargs="+", required=True, help="training run directories")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--run", type=Path, nargs="+", help="training run directories")
+    source.add_argument("--checkpoint", type=Path, help="one policy file: print its returns, write nothing")
     parser.add_argument("--plots", type=Path, default=None, help="write comparison figures here")
     parser.add_argument("--no-eval", action="store_true", help="only plot what eval.csv already holds")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
-    parser.add_argument("--lengths", type=int, nargs="+", default=None, help="chain lengths (default: 2..10 15 20)")
+    parser.add_argument(
+        "--lengths", type=int, nargs="*", default=None, help="chain lengths (default: 2..10 15 20; none: trees only)"
+    )
     args = parser.parse_args(argv)
     overrides = overrides_from_args(args, EvalConfig)
     if args.lengths is not None:
@@ -141,6 +192,14 @@ def main(argv: list[str] | None = None) -> None:
     bad_lengths = any(not 1 <= n <= 64 for n in cfg.lengths)
     if min(cfg.episodes, cfg.stride, cfg.processes) < 1 or cfg.from_step < 0 or bad_lengths:
         parser.error("episodes, stride and processes must be >= 1, from-step >= 0, lengths in 1..64")
+    try:
+        if not eval_bodies(cfg):
+            parser.error("nothing to evaluate: give --lengths or --bodies")
+    except ValueError as e:
+        parser.error(str(e))
+    if args.checkpoint is not None:
+        print(checkpoint_table(args.checkpoint, cfg))
+        return
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")

@@ -110,8 +110,17 @@ def smooth(y: np.ndarray, window: int) -> np.ndarray:
 
 
 def eval_means(run: Run) -> dict[int, dict[int, float]]:
-    """{num_joints: {global_step: mean return over episodes}} of one run."""
+    """{num_joints: {global_step: mean return over episodes}} of one run's chains (trees: ``body_eval_means``)."""
     acc: dict[int, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in run.eval:
-        acc[int(r["num_joints"])][int(r["global_step"])].append(float(r["return"]))
+        if r.get("body", "chain-").startswith("chain-"):  # files written before trees hold chains only
+            acc[int(r["num_joints"])][int(r["global_step"])].append(float(r["return"]))
     return {n: {s: float(np.mean(v)) for s, v in by_step.items()} for n, by_step in acc.items()}
+
+
+def body_eval_means(run: Run) -> dict[str, dict[int, float]]:
+    """{body label: {global_step: mean return over episodes}} of one run, chains (``chain-N``) and trees."""
+    acc: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for r in run.eval:
+        acc[r.get("body") or f"chain-{r['num_joints']}"][int(r["global_step"])].append(float(r["return"]))
+    return {b: {s: float(np.mean(v)) for s, v in by_step.items()} for b, by_step in acc.items()}

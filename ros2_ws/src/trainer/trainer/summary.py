@@ -12,8 +12,9 @@ chain lengths; per run, whether the longest evaluated (unseen) chain
 scores above every trained length, late in training and per checkpoint;
 per rule the late return on every unseen length evaluated (zero-shot);
 per rule the training marks (runs that reached 200, median steps to 100 and
-200, the last 10 updates, the best trailing mean); and one table that ranks
-the rules claim by claim.
+200, the last 10 updates, the best trailing mean); one table that ranks
+the rules claim by claim; and, for runs evaluated on trees, the late return
+per tree and the last training returns on chains and on trees.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trainer.runs import Run, eval_means, load_runs, series, smooth
+from trainer.runs import Run, body_eval_means, eval_means, load_runs, series, smooth
 
 COLLAPSE = 0.5
 """a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
@@ -86,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
 
     print(training_table(groups))
     print(zero_shot_table(groups))
+    print(tree_table(groups))
     print(ranking_table(groups))
 
 
@@ -93,6 +95,36 @@ def per_dimension(runs: list[Run], key: str) -> np.ndarray:
     """Progress column ``key`` per trained action dimension, averaged over all updates and runs."""
     return np.array([np.mean([np.nanmean(series(r.progress, f"{key}_d{d}")[1]) for r in runs])
                      for d in runs[0].trained_lengths])  # fmt: skip
+
+
+def late_tree_means(run: Run) -> dict[str, float]:
+    """{tree label: mean eval return over the run's checkpoints from half its steps on}; chains left out."""
+    half = 0.5 * run.config["total_timesteps"]
+    by_body = {b: steps for b, steps in body_eval_means(run).items() if not b.startswith("chain-")}
+    late = {b: [r for s, r in steps.items() if s >= half] for b, steps in by_body.items()}
+    return {b: float(np.mean(v)) for b, v in late.items() if v}
+
+
+def tree_table(groups: dict[str, list[Run]]) -> str:
+    """Late eval return per rule on every tree evaluated (mean +- std over runs), and the training return of
+    the last 10 updates on chains and on trees for runs that trained on both."""
+    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)})
+    lines = []
+    if trees:
+        lines += ["\n| rule | runs | " + " | ".join(trees) + " |", "|---|---:|" + "---:|" * len(trees)]
+        for rule, runs in groups.items():
+            cells = [_mean_std([late_tree_means(r).get(b, np.nan) for r in runs]) for b in trees]
+            lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    mixed = {rule: [r for r in runs if "return_trees" in r.progress[0]] for rule, runs in groups.items()}
+    if any(mixed.values()):
+        lines += ["\n| rule | runs | training return, last 10 updates: chains | trees |", "|---|---:|---:|---:|"]
+        for rule, runs in mixed.items():
+            last = {k: [float(np.nanmean(series(r.progress, k)[1][-10:])) for r in runs]
+                    for k in ("return_chains", "return_trees")}  # fmt: skip
+            if runs:
+                lines.append(f"| {rule} | {len(runs)} | {_mean_std(last['return_chains'])} | "
+                             f"{_mean_std(last['return_trees'])} |")  # fmt: skip
+    return "\n".join(lines)
 
 
 def late_means(run: Run) -> dict[int, float]:

@@ -162,8 +162,10 @@ class HelperSpec:
     shm_name: str
     num_steps: int
     num_envs: int
-    min_joints: int
+    bodies: str
+    """the swimmers' bodies, an ``env.bodies`` spec"""
     max_joints: int
+    """the largest of them: the rollout's width"""
     seed: int
     env_threads: int
     num_params: int
@@ -352,7 +354,7 @@ def helper_main(spec: HelperSpec, conn: Connection, signals: tuple) -> None:
 def _serve(spec: HelperSpec, conn: Connection, done, go) -> None:
     torch.set_num_threads(1)
     lo, hi = env_bounds(spec.num_envs, spec.processes)[spec.rank]
-    envs = SwimmerVecEnv(hi - lo, (spec.min_joints, spec.max_joints), seed=spec.seed + lo, num_threads=spec.env_threads)
+    envs = SwimmerVecEnv(hi - lo, spec.bodies, seed=spec.seed + lo, num_threads=spec.env_threads)
     policy = GraphActorCritic(PolicyConfig.from_dict(spec.policy))
     learner = Learner.create(policy, 0.0, 1e-8, spec.compile)  # its optimizer never steps: process 0's does
     if learner.params.theta.numel() != spec.num_params:

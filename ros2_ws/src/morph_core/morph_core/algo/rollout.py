@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from morph_core.algo.update import RolloutBatch
-from morph_core.env.vec_env import PaddedObs, SwimmerVecEnv
+from morph_core.env.vec_env import Episode, PaddedObs, SwimmerVecEnv
 from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 
@@ -24,6 +24,7 @@ def rollout_layout(steps: int, envs: int, max_joints: int) -> dict[str, tuple[tu
     return {
         "joint_pos": ((T, E, J), np.float32), "joint_vel": ((T, E, J), np.float32),
         "global_feats": ((T, E, 4), np.float32), "num_joints": ((T, E), np.int64),
+        "parents": ((T, E, J), np.int64),  # each joint's parent joint (-1: the torso, and at padding)
         "actions": ((T, E, J), np.float32), "log_prob": ((T, E), np.float32),
         "rewards": ((T, E), np.float32), "values": ((T, E), np.float32),
         "terminated": ((T, E), np.bool_), "truncated": ((T, E), np.bool_),
@@ -33,7 +34,7 @@ def rollout_layout(steps: int, envs: int, max_joints: int) -> dict[str, tuple[tu
 
 
 class Rollout:
-    """[T, E] storage of one rollout, padded to the longest chain the range allows; NumPy while
+    """[T, E] storage of one rollout, padded to the largest body the families allow; NumPy while
     collecting, shared with torch (no copy) for the update."""
 
     def __init__(self, steps: int, envs: int, max_joints: int, alloc: Callable[..., np.ndarray] | None = None):
@@ -63,36 +64,37 @@ class Rollout:
             values=flat(self.values),
             advantages=advantages.flatten(),
             returns=returns.flatten(),
+            parents=flat(self.parents),
         )
-
-
-def _arrays(obs: PaddedObs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    return obs.joint_pos, obs.joint_vel, obs.global_feats, obs.num_joints
 
 
 def collect(
     envs: SwimmerVecEnv, actor: NumpyPolicy, rollout: Rollout, obs: PaddedObs, generator: torch.Generator
-) -> tuple[PaddedObs, list[tuple[int, float, int]]]:
+) -> tuple[PaddedObs, list[Episode]]:
     """Fill ``rollout`` by acting from ``obs``; returns the observation after it and the finished episodes.
 
     The action noise comes from the run's torch generator, so a resumed run draws the same noise.
     ``rollout.last_value`` gets the value of the observation after the last step.
     """
     steps, num_envs, max_joints = rollout.actions.shape
-    episodes: list[tuple[int, float, int]] = []
+    episodes: list[Episode] = []
     for t in range(steps):
-        rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t], rollout.num_joints[t] = _arrays(obs)
+        pos, vel, glob, num_joints, parents = obs.arrays()
+        rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t] = pos, vel, glob
+        rollout.num_joints[t], rollout.parents[t] = num_joints, parents
         noise = torch.randn((num_envs, max_joints), generator=generator).numpy()
-        rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(*_arrays(obs), noise)
+        rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(
+            pos, vel, glob, num_joints, noise, parents=parents
+        )
         step = envs.step(rollout.actions[t])
         rollout.rewards[t], rollout.terminated[t], rollout.truncated[t] = step.reward, step.terminated, step.truncated
         # A truncated episode would have gone on: GAE bootstraps it from the value of its final observation.
         rollout.final_values[t] = 0.0
         trunc = [i for i in step.final_obs if step.truncated[i]]
         if trunc:
-            final = pad_observations([step.final_obs[i] for i in trunc], max_joints)
-            rollout.final_values[t, trunc] = actor.forward(*final)[1]
+            final = pad_observations([step.final_obs[i] for i in trunc], max_joints, with_parents=True)
+            rollout.final_values[t, trunc] = actor.forward(*final[:4], parents=final[4])[1]
         obs = step.obs
         episodes += step.episodes
-    rollout.last_value[:] = actor.forward(*_arrays(obs))[1]
+    rollout.last_value[:] = actor.forward(*obs.arrays()[:4], parents=obs.parents)[1]
     return obs, episodes

@@ -32,7 +32,8 @@ from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import Learner, UpdateConfig, epoch_columns, minibatch_cuts, update
-from morph_core.env.vec_env import SwimmerVecEnv, merge_env_states, split_env_state
+from morph_core.env.bodies import BodyMix, parse_bodies
+from morph_core.env.vec_env import Episode, SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, load_checkpoint
@@ -94,9 +95,12 @@ class TrainConfig:
     the update starts, each sample weighted by min(pi_prox / pi_behav, proximal_weight_cap)) or 'behaviour'
     (PPO's own loss, the ratio against the policy that acted); simulator rollouts are on-policy either way"""
     min_joints: int = 2
-    """shortest chain drawn at a reset"""
+    """shortest chain drawn at a reset (when ``bodies`` is empty)"""
     max_joints: int = 10
-    """longest chain drawn at a reset"""
+    """longest chain drawn at a reset (when ``bodies`` is empty)"""
+    bodies: str = ""
+    """the bodies drawn at each reset, in ``env.bodies``' grammar: chains and trees, e.g. '2-10,random:3-10'
+    (chains of 2..10 joints or random trees of 3..10); empty: chains of min_joints..max_joints"""
     checkpoint_interval: int = 6000
     """env steps between checkpoints (taken at the end of the update that crosses the mark)"""
     torch_threads: int = 1
@@ -125,6 +129,7 @@ class TrainConfig:
             raise ValueError(f"clip_mode must be one of {rule_names()}, got {self.clip_mode!r}")
         if not 1 <= self.min_joints <= self.max_joints <= 64:
             raise ValueError(f"need 1 <= min_joints <= max_joints <= 64, got {self.min_joints}, {self.max_joints}")
+        self.body_mix  # noqa: B018 - parsed here so that a bad spec is refused before anything runs
         for name in ("num_envs", "num_steps", "minibatch_size", "update_epochs", "total_timesteps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -143,8 +148,15 @@ class TrainConfig:
         return self.num_envs * self.num_steps
 
     @property
+    def body_mix(self) -> BodyMix:
+        """The bodies of this run's swimmers (``bodies``, or the chains of min_joints..max_joints)."""
+        return parse_bodies(self.bodies or f"{self.min_joints}-{self.max_joints}")
+
+    @property
     def dims(self) -> range:
-        return range(self.min_joints, self.max_joints + 1)
+        """The action dimensions d the run's bodies can have: the keys of its per-dimension statistics."""
+        lo, hi = self.body_mix.joint_range
+        return range(lo, hi + 1)
 
     def update_config(self) -> UpdateConfig:
         return UpdateConfig(
@@ -180,6 +192,7 @@ def log_columns(cfg: TrainConfig) -> list[str]:
         "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "learning_rate", "episodes",
         "return_mean",
         *[f"return_d{d}" for d in cfg.dims],
+        *([] if cfg.body_mix.chains_only else ["return_chains", "return_trees"]),  # keyed by shape as well
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
         *epoch_columns(cfg.dims),
@@ -201,7 +214,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     gen = torch.Generator().manual_seed(cfg.seed)
     # This process steps the first share of the swimmers (all of them, alone); helpers the others.
     bounds = env_bounds(cfg.num_envs, cfg.processes)
-    envs = SwimmerVecEnv(bounds[0][1], (cfg.min_joints, cfg.max_joints), seed=cfg.seed, num_threads=cfg.env_threads)
+    envs = SwimmerVecEnv(bounds[0][1], cfg.body_mix, seed=cfg.seed, num_threads=cfg.env_threads)
     helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
     try:
         global_step, iteration, last_ckpt = 0, 0, 0
@@ -237,11 +250,11 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
     global_step, iteration, last_ckpt = counters
     log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
     T, E = cfg.num_steps, cfg.num_envs
-    rollout = Rollout(T, E, cfg.max_joints) if helpers is None else helpers.rollout
+    rollout = Rollout(T, E, cfg.body_mix.max_joints) if helpers is None else helpers.rollout
     mine = rollout.columns(0, envs.num_envs)  # this process's swimmers' columns
     update_cfg = cfg.update_config()
     obs = envs.observations()
-    recent: list[tuple[int, float, int]] = []
+    recent: list[Episode] = []
     bar = _progress(cfg, global_step)
     while global_step < cfg.total_timesteps:
         iteration += 1
@@ -295,14 +308,16 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
             "update_s": update_s,
             "learning_rate": optimizer.param_groups[0]["lr"],
             "episodes": len(episodes),
-            "return_mean": float(np.mean([r for _, r, _ in episodes])) if episodes else math.nan,
+            "return_mean": _mean_return(episodes),
             **stats.row(cfg.dims),
             "explained_variance": explained,
             "log_std": float(policy.log_std.detach()),
         }
         for d in cfg.dims:
-            rs = [r for n, r, _ in episodes if n == d]
-            row[f"return_d{d}"] = float(np.mean(rs)) if rs else math.nan
+            row[f"return_d{d}"] = _mean_return([e for e in episodes if e.num_joints == d])
+        if not cfg.body_mix.chains_only:
+            row["return_chains"] = _mean_return([e for e in episodes if e.body.startswith("chain-")])
+            row["return_trees"] = _mean_return([e for e in episodes if not e.body.startswith("chain-")])
         log.log(row)
         log.update_histograms(global_step, stats)
         if checkpoint:
@@ -316,18 +331,22 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
             )
         if bar is not None:
             bar.update(T * E)
-            ret = np.mean([r for _, r, _ in recent]) if recent else float("nan")
+            ret = _mean_return(recent)
             bar.set_postfix(ret=f"{ret:.1f}", sps=f"{row['sps']:.0f}", kl=f"{row['approx_kl']:.3f}")
     if bar is not None:
         bar.close()
     log.close()
 
 
+def _mean_return(episodes: list[Episode]) -> float:
+    return float(np.mean([e.episode_return for e in episodes])) if episodes else math.nan
+
+
 def helper_spec(cfg: TrainConfig, learner: Learner) -> HelperSpec:
     """What the helper processes of a run of ``cfg`` start from (``algo.data_parallel``)."""
     return HelperSpec(
         rank=0, processes=cfg.processes, shm_name="", num_steps=cfg.num_steps, num_envs=cfg.num_envs,
-        min_joints=cfg.min_joints, max_joints=cfg.max_joints, seed=cfg.seed, env_threads=cfg.env_threads,
+        bodies=str(cfg.body_mix), max_joints=cfg.body_mix.max_joints, seed=cfg.seed, env_threads=cfg.env_threads,
         num_params=learner.params.theta.numel(), policy=dataclasses.asdict(cfg.policy), compile=cfg.compile,
         update=cfg.update_config(),
     )  # fmt: skip

@@ -1,7 +1,8 @@
-"""Several swimmers stepped together, each redrawing its chain length at every reset.
+"""Several swimmers stepped together, each redrawing its body (a chain length, or a tree of
+``env.bodies``' families) at every reset.
 
-Observations come out padded to the longest chain the range allows, ready for
-``ChainBatch.from_padded``: each swimmer writes its state into its row after
+Observations come out padded to the largest body the families allow, with each
+body's parents beside them, ready for ``ChainBatch.from_padded``: each swimmer writes its state into its row after
 its step (``MorphSwimmerEnv.advance`` and ``write_observation``, the same
 numbers as Gymnasium's ``step`` without its per-step dicts). Episodes end at the time limit (truncation, with
 the final observation kept for bootstrapping) or when the physics diverges
@@ -13,13 +14,15 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 import mujoco
 import numpy as np
 
+from morph_core.env.bodies import BodyMix, body_label, parse_bodies
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
 MAX_EPISODE_STEPS = 1000
 R = TypeVar("R")
@@ -62,12 +65,28 @@ class EnvThreads:
 
 @dataclass
 class PaddedObs:
-    """[E, J] joint states (zero padded), [E, 4] globals, [E] chain lengths."""
+    """[E, J] joint states (zero padded), [E, 4] globals, [E] joint counts, [E, J] parents (``index_plan``'s
+    convention: -1 for the torso and at padding)."""
 
     joint_pos: np.ndarray
     joint_vel: np.ndarray
     global_feats: np.ndarray
     num_joints: np.ndarray
+    parents: np.ndarray
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """(joint_pos, joint_vel, global_feats, num_joints, parents): the policy's arguments, in order."""
+        return self.joint_pos, self.joint_vel, self.global_feats, self.num_joints, self.parents
+
+
+class Episode(NamedTuple):
+    """A finished episode: its body's joint count (the action dimension d) and label (``env.bodies.body_label``:
+    ``chain-N`` or the tree's), return and length."""
+
+    num_joints: int
+    episode_return: float
+    length: int
+    body: str
 
 
 @dataclass
@@ -77,44 +96,57 @@ class StepResult:
     terminated: np.ndarray  # [E] bool
     truncated: np.ndarray  # [E] bool
     final_obs: dict[int, dict] = field(default_factory=dict)  # env index -> last graph obs of a finished episode
-    episodes: list[tuple[int, float, int]] = field(default_factory=list)  # (num_joints, return, length)
+    episodes: list[Episode] = field(default_factory=list)
 
 
 class SwimmerVecEnv:
+    """``num_envs`` swimmers whose bodies are drawn from ``bodies``: a (lo, hi) range of chain lengths, or an
+    ``env.bodies`` spec or ``BodyMix`` (chains and trees); swimmer i is reset first with ``seed + i``."""
+
     def __init__(
         self,
         num_envs: int,
-        joint_range: tuple[int, int],
+        bodies: tuple[int, int] | str | BodyMix,
         seed: int,
         max_episode_steps: int = MAX_EPISODE_STEPS,
         num_threads: int = 1,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        self.envs = [MorphSwimmerEnv(num_joints=joint_range) for _ in range(num_envs)]
-        self.max_joints = joint_range[1]
+        if isinstance(bodies, tuple):
+            bodies = f"{bodies[0]}-{bodies[1]}"
+        self.bodies = parse_bodies(bodies) if isinstance(bodies, str) else bodies
+        self.envs = [MorphSwimmerEnv(bodies=self.bodies) for _ in range(num_envs)]
+        self.max_joints = self.bodies.max_joints
         self.max_episode_steps = max_episode_steps
         self.num_envs = num_envs
+        J = self.max_joints
         self._padded = PaddedObs(
-            np.zeros((num_envs, self.max_joints), np.float32), np.zeros((num_envs, self.max_joints), np.float32),
-            np.zeros((num_envs, 4), np.float32), np.zeros(num_envs, np.int64),
+            np.zeros((num_envs, J), np.float32), np.zeros((num_envs, J), np.float32),
+            np.zeros((num_envs, 4), np.float32), np.zeros(num_envs, np.int64), np.full((num_envs, J), -1, np.int64),
         )  # fmt: skip
         for i, env in enumerate(self.envs):
             env.reset(seed=seed + i)
+            self._write_body(i)
             self._write(i)
         self.episode_steps = np.zeros(num_envs, dtype=np.int64)
         self.episode_returns = np.zeros(num_envs, dtype=np.float64)
         self._threads = EnvThreads(min(num_threads, num_envs))
 
     def observations(self) -> PaddedObs:
-        p = self._padded
-        return PaddedObs(p.joint_pos.copy(), p.joint_vel.copy(), p.global_feats.copy(), p.num_joints.copy())
+        return PaddedObs(*(x.copy() for x in self._padded.arrays()))
 
     def _write(self, i: int) -> None:
         """Swimmer i's observation into row i."""
         env, p = self.envs[i], self._padded
         env.write_observation(p.joint_pos[i], p.joint_vel[i], p.global_feats[i])
+
+    def _write_body(self, i: int) -> None:
+        """Swimmer i's body (joint count, parents) into row i: after each of its resets."""
+        env, p = self.envs[i], self._padded
         p.num_joints[i] = env.num_joints
+        p.parents[i] = -1
+        p.parents[i, : env.num_joints] = env.parents
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
@@ -129,9 +161,11 @@ class SwimmerVecEnv:
         for i in np.flatnonzero(terminated | truncated).tolist():
             env = self.envs[i]
             result.final_obs[i] = env._observation()
-            result.episodes.append((env.num_joints, float(self.episode_returns[i]), int(self.episode_steps[i])))
+            ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
+            result.episodes.append(Episode(env.num_joints, ret, length, body_label(env.tree)))
             self.episode_steps[i], self.episode_returns[i] = 0, 0.0
             env.reset()
+            self._write_body(i)
             self._write(i)
         result.obs = self.observations()
         return result
@@ -148,14 +182,16 @@ class SwimmerVecEnv:
 
     # -- exact save/restore, for checkpoints that resume bit for bit ---------
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """(JSON-able scalars, arrays): chain lengths, RNG states, full MuJoCo integration states."""
+        """(JSON-able scalars, arrays): bodies (joint counts, and a tree's parents), RNG states, full MuJoCo
+        integration states."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         arrays, meta = {}, {"envs": []}
         for i, env in enumerate(self.envs):
             state = np.empty(mujoco.mj_stateSize(env.model, spec))
             mujoco.mj_getState(env.model, env.data, state, spec)
             arrays[f"env{i}.mj_state"] = state
-            meta["envs"].append({"num_joints": env.num_joints, "rng": env.np_random.bit_generator.state})
+            body = {"num_joints": env.num_joints} | ({} if env.tree.is_chain else {"parents": env.parents.tolist()})
+            meta["envs"].append(body | {"rng": env.np_random.bit_generator.state})
         arrays["episode_steps"] = self.episode_steps.copy()
         arrays["episode_returns"] = self.episode_returns.copy()
         return meta, arrays
@@ -165,11 +201,13 @@ class SwimmerVecEnv:
             raise ValueError(f"checkpoint holds {len(meta['envs'])} envs, this run has {self.num_envs}")
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
-            env._build(int(m["num_joints"]))
+            n = int(m["num_joints"])
+            env._build(n if "parents" not in m else KinematicTree.from_parents(m["parents"], swimmer_joint_names(n)))
             env.np_random.bit_generator.state = m["rng"]
             mujoco.mj_setState(env.model, env.data, np.asarray(arrays[f"env{i}.mj_state"], dtype=np.float64), spec)
             # No mj_forward here: it would overwrite the restored solver warm start and the
             # trajectories would drift apart at solver tolerance.
+            self._write_body(i)
             self._write(i)
         self.episode_steps[:] = arrays["episode_steps"]
         self.episode_returns[:] = arrays["episode_returns"]
