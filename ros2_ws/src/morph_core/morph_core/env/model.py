@@ -146,6 +146,10 @@ def body_parents(body) -> tuple[int, ...]:
     if isinstance(body, numbers.Integral) and not isinstance(body, bool):
         return tuple(range(-1, check_num_joints(body) - 1))
     parents = getattr(body, "parents", body)  # a KinematicTree
+    if isinstance(parents, str | bytes) or not isinstance(parents, Sequence | np.ndarray):
+        raise TypeError(
+            f"a body is a chain length (num_joints, an int), a KinematicTree or a parent array, got {body!r:.60}"
+        )
     return check_parents(parents)
 
 
