@@ -1,16 +1,24 @@
-"""SwimmerBatch: swimmers of one length in one MuJoCo call, bit for bit the env's steps, rewards and observations."""
+"""SwimmerBatch: swimmers of one body (chain or tree) in one MuJoCo call, bit for bit the env's steps, rewards and
+observations."""
 
 import numpy as np
 import pytest
 
+from morph_core.env.bodies import parse_bodies
 from morph_core.env.swimmer_batch import SwimmerBatch
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.tree import KinematicTree
+
+Y_TREE = parse_bodies("y:2x2").first()
+RANDOM_TREE = parse_bodies("random:9:b3").draw(np.random.default_rng(3))
 
 
-def _envs(n: int, seeds: list[int]) -> list[MorphSwimmerEnv]:
-    envs = [MorphSwimmerEnv(num_joints=n) for _ in seeds]
+def _envs(body, seeds: list[int]) -> list[MorphSwimmerEnv]:
+    """One env per swimmer, each reset alone: a chain by its length, a tree forced by ``options``."""
+    tree = isinstance(body, KinematicTree)
+    envs = [MorphSwimmerEnv(num_joints=body.num_joints if tree else body) for _ in seeds]
     for env, seed in zip(envs, seeds, strict=True):
-        env.reset(seed=seed)
+        env.reset(seed=seed, options={"tree": body} if tree else None)
     return envs
 
 
@@ -18,10 +26,13 @@ def _observations(rows: int, width: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.full((rows, width), 7.0), np.full((rows, width), 7.0), np.full((rows, 4), 7.0)  # 7: stale padding
 
 
-@pytest.mark.parametrize(("n", "threads"), [(2, 1), (7, 1), (7, 2)])
-def test_the_batch_steps_as_one_env_per_swimmer_bit_for_bit(n, threads):
+@pytest.mark.parametrize(("body", "threads"), [(2, 1), (7, 1), (7, 2), (Y_TREE, 1), (RANDOM_TREE, 2)])
+def test_the_batch_steps_as_one_env_per_swimmer_bit_for_bit(body, threads):
     seeds = [5, 6, 7, 8]
-    batch, envs = SwimmerBatch(n, seeds, num_threads=threads), _envs(n, seeds)
+    batch, envs = SwimmerBatch(body, seeds, num_threads=threads), _envs(body, seeds)
+    n = batch.num_joints
+    np.testing.assert_array_equal(batch.parents, envs[0].parents)
+    assert batch.tree == envs[0].tree and batch.tree.is_chain == (not isinstance(body, KinematicTree))
     width = n + 3  # padded rows, as the evaluation's
     got, want = _observations(len(seeds), width), _observations(len(seeds), width)
     rng = np.random.default_rng(0)

@@ -36,7 +36,8 @@ def test_chain_dimensions(n):
     assert env.action_space.shape == (n,)
     assert obs["joint_pos"].shape == obs["joint_vel"].shape == (n,)
     assert obs["global"].shape == (4,)
-    np.testing.assert_array_equal(obs["edge_index"], [np.arange(n), np.arange(1, n + 1)])
+    np.testing.assert_array_equal(obs["parents"], np.arange(n) - 1)  # a chain: joint j hangs off joint j - 1
+    assert obs["parents"].dtype == np.int64
     assert info["num_joints"] == n
     obs, *_ = env.step(np.zeros(n))
     assert env.observation_space.contains(obs)
@@ -164,3 +165,126 @@ def test_diverging_physics_ends_the_episode_instead_of_silently_resetting():
         if terminated:
             break
     assert terminated and info["physics_unstable"]
+
+
+# -- kinematic trees ---------------------------------------------------------------------------------------
+TREE_SPECS = ["star:2-4x1-3", "y:1-3x1-3", "comb:3-6"]
+
+
+def _tree_bodies():
+    from morph_core.env.bodies import parse_bodies
+
+    named = [tree for spec in TREE_SPECS for tree in parse_bodies(spec).members()]
+    rng = np.random.default_rng(5)
+    random = [parse_bodies(f"random:2-20:b{b}").draw(rng) for b in (2, 3) for _ in range(15)]
+    return named + random
+
+
+def test_tree_models_read_back_as_the_tree_they_were_built_from():
+    from morph_core.policy.tree import KinematicTree
+
+    for tree in _tree_bodies():
+        m = swimmer_model(tree)
+        assert KinematicTree.from_mujoco(m) == tree  # joint order = qpos order = the tree's order
+        assert swimmer_model(list(tree.parents)) is m  # cached by shape
+        n = tree.num_joints
+        assert (m.nq, m.nv, m.nu, m.nbody) == (n + 3, n + 3, n, n + 2)
+        # Swimmer-v5's torso frame and segments, whatever the shape
+        np.testing.assert_allclose(m.body_pos[1], 0.0)
+        np.testing.assert_allclose(m.body_mass[2:], swimmer_model(2).body_mass[2])
+        np.testing.assert_allclose(m.jnt_range[3:], np.tile(np.deg2rad([-100.0, 100.0]), (n, 1)))
+        np.testing.assert_allclose(m.actuator_gear[:, 0], 150.0)
+    assert swimmer_model(KinematicTree.chain(6)) is swimmer_model(6)
+    assert swimmer_mjcf(KinematicTree.chain(2)) == swimmer_mjcf(2)  # a chain given as a tree is the chain
+
+
+def test_siblings_rest_in_distinct_directions():
+    for tree in _tree_bodies():
+        m = swimmer_model(tree)
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)  # qpos0: every hinge at its rest angle
+        axes = d.xmat[2:].reshape(-1, 3, 3)[:, :2, 0]  # each segment's x axis in the plane
+        for parent in np.unique(tree.parents):
+            kids = np.flatnonzero(tree.parents == parent)
+            for a in kids:
+                for b in kids[kids > a]:
+                    assert axes[a] @ axes[b] < np.cos(np.deg2rad(25)), (tree.parents, a, b)
+            # no rest direction points forward: within 60 degrees of the parent segment's axis
+            parent_axis = np.array([1.0, 0.0]) if parent < 0 else axes[parent]
+            assert (axes[kids] @ parent_axis > np.cos(np.deg2rad(60)) - 1e-9).all()
+
+
+def test_tree_observations_carry_parents_and_info_names_the_body():
+    from morph_core.env.bodies import body_label
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
+
+    env = MorphSwimmerEnv(bodies="star:3x2,y:1x2,random:4-9:b3")
+    seen = set()
+    obs, info = env.reset(seed=0)
+    for _ in range(30):
+        tree, n = env.tree, env.num_joints
+        np.testing.assert_array_equal(obs["parents"], tree.parents)
+        assert obs["parents"].dtype == np.int64 and obs["joint_pos"].shape == (n,)
+        assert not env.parents.flags.writeable
+        assert info["body"] == body_label(tree) and info["topology_hash"] == tree.topology_hash
+        assert env.observation_space.contains(obs) and env.action_space.shape == (n,)
+        obs, _, terminated, _, info = env.step(env.action_space.sample())
+        assert not terminated and info["body"] == body_label(tree)
+        assert env.observation_space.contains(obs)
+        seen.add(info["body"])
+        obs, info = env.reset()
+    assert {"star-3x2", "y-1x2"} <= seen and any(label.startswith(("tree-", "chain-")) for label in seen)
+
+
+def test_tree_draws_are_reproducible_from_the_seed():
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
+
+    def run(seed):
+        env, out = MorphSwimmerEnv(bodies="2-6,random:3-10:b2"), []
+        for k in range(15):
+            obs, info = env.reset(seed=seed if k == 0 else None)
+            obs, *_ = env.step(np.full(env.num_joints, 0.5))
+            out.append((info["topology_hash"], obs["joint_pos"].tobytes()))
+        return out
+
+    assert run(4) == run(4) != run(5)
+
+
+def test_reset_options_force_a_tree():
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
+    from morph_core.policy.tree import KinematicTree
+
+    env = MorphSwimmerEnv(bodies="2-10")
+    other = KinematicTree(["a", "b", "c"], [-1, 0, 0], root_link="base")  # names are the swimmer's once built
+    _, info = env.reset(seed=0, options={"tree": other})
+    assert info["body"] == "y-1x1" and env.tree.names == ("motor1_rot", "motor2_rot", "motor3_rot")
+    np.testing.assert_array_equal(env.parents, [-1, 0, 0])
+    assert env.tree == KinematicTree.from_mujoco(env.model)
+    _, info = env.reset(options={"parents": [-1, -1, 1, 1]})
+    assert info["body"] == "tree-" + env.tree.topology_hash[:8] and env.model.nu == 4
+    _, info = env.reset(options={"num_joints": 3})
+    assert info["body"] == "chain-3"
+    with pytest.raises(ValueError, match="pre-order"):
+        env.reset(options={"parents": [-1, -1, 0]})  # joint 2 under joint 0 after joint 0's subtree was left
+    with pytest.raises(ValueError, match="twice"):
+        env.reset(options={"parents": [-1], "num_joints": 1})
+    with pytest.raises(TypeError, match="KinematicTree"):
+        env.reset(options={"tree": [-1, 0]})
+
+
+def test_a_fixed_tree_swims_with_a_travelling_wave():
+    # Physics end to end on a tree: a wave down every branch moves the swimmer.
+    from morph_core.env.bodies import parse_bodies
+    from morph_core.env.swimmer_env import MorphSwimmerEnv
+
+    for spec in ("y:2x2", "star:3x2", "comb:4"):
+        env = MorphSwimmerEnv(bodies=spec)
+        env.reset(seed=0)
+        depth = np.zeros(env.num_joints)
+        for j, p in enumerate(env.parents):
+            depth[j] = 0 if p < 0 else depth[p] + 1
+        x0 = env.data.qpos[0]
+        for t in range(500):  # 20 s; TravellingWave's frequency and phase lag, by depth
+            env.step(np.sin(2 * np.pi * 0.5 * t * env.dt - depth * 2 * np.pi / 5))
+        assert (env.data.qpos[0] - x0) / 20.0 > 0.05, spec  # 0.08..0.13 m/s (a 3-chain: 0.17)
+        assert str(parse_bodies(spec)) == spec

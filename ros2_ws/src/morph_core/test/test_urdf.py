@@ -15,12 +15,23 @@ import numpy as np
 import pytest
 from urdf_parser_py.urdf import URDF
 
+from morph_core.env.bodies import parse_bodies
 from morph_core.env.model import GEAR, HINGE_RANGE_DEG, SEGMENT_LENGTH, SEGMENT_RADIUS, swimmer_model
 from morph_core.env.segments import segment_poses
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
+from morph_core.policy.tree import KinematicTree
 
 LENGTHS = [1, 6, 64]
+TREES = [
+    *(parse_bodies(spec).first() for spec in ("star:3x2", "y:2x3", "comb:5", "star:4x16")),
+    *(parse_bodies(f"random:8-40:b{b}").draw(np.random.default_rng(b)) for b in (2, 3)),
+]
+BODIES = [*LENGTHS, *TREES]
+
+
+def _body_id(body) -> str:
+    return str(body) if isinstance(body, int) else f"tree{body.num_joints}-{body.topology_hash[:6]}"
 
 
 def _rpy_matrix(rpy) -> np.ndarray:
@@ -63,11 +74,14 @@ def _urdf_capsules(robot: URDF, root_pose: np.ndarray, angles: dict[str, float])
     }
 
 
-@pytest.mark.parametrize("joints", LENGTHS)
-def test_urdf_matches_the_mujoco_model(joints):
-    m = swimmer_model(joints)
-    robot = URDF.from_xml_string(swimmer_urdf(joints))
+@pytest.mark.parametrize("body", BODIES, ids=_body_id)
+def test_urdf_matches_the_mujoco_model(body):
+    m = swimmer_model(body)
+    text = swimmer_urdf(body)
+    robot = URDF.from_xml_string(text)
     revolute = [j for j in robot.joints if j.type == "revolute"]
+    joints = m.nu
+    assert KinematicTree.from_urdf(text) == KinematicTree.from_mujoco(m)  # the same tree, in the same order
 
     assert [j.name for j in revolute] == SwimmerSim(num_joints=joints).joint_names()
     assert [link.name for link in robot.links] == [
@@ -88,7 +102,7 @@ def test_urdf_matches_the_mujoco_model(joints):
         assert link.inertial.mass == pytest.approx(m.body_mass[b])
 
     # Random bends and torso poses: every capsule where MuJoCo puts it, pointing the same way.
-    rng = np.random.default_rng(joints)
+    rng = np.random.default_rng(joints + len(robot.links))
     d = mujoco.MjData(m)
     for _ in range(5):
         d.qpos[:2] = rng.uniform(-5, 5, 2)
@@ -116,9 +130,11 @@ def test_urdf_refuses_a_bad_length(bad):
         swimmer_urdf(bad)
 
 
-@pytest.mark.parametrize("joints", LENGTHS)
-def test_segment_poses_are_mujoco_kinematics(joints):
-    m = swimmer_model(joints)
+@pytest.mark.parametrize("body", BODIES, ids=_body_id)
+def test_segment_poses_are_mujoco_kinematics(body):
+    m = swimmer_model(body)
+    joints = m.nu
+    parents = None if isinstance(body, int) else body  # a chain needs no parents
     d = mujoco.MjData(m)
     rng = np.random.default_rng(100 + joints)
     for _ in range(5):
@@ -126,10 +142,15 @@ def test_segment_poses_are_mujoco_kinematics(joints):
         d.qpos[2] = rng.uniform(-10, 10)  # continuous yaw, many turns
         d.qpos[3:] = rng.uniform(*m.jnt_range[3], joints)
         mujoco.mj_kinematics(m, d)
-        poses = segment_poses(d.qpos[0], d.qpos[1], d.qpos[2], d.qpos[3:])
+        poses = segment_poses(d.qpos[0], d.qpos[1], d.qpos[2], d.qpos[3:], parents)
         np.testing.assert_allclose(poses.centers, d.geom_xpos[1:, :2], atol=1e-9)
         axes = d.geom_xmat[1:].reshape(-1, 3, 3)[:, :, 2]  # a capsule's axis is its local z
         heading = np.stack([np.cos(poses.headings), np.sin(poses.headings), np.zeros(joints + 1)], axis=1)
         np.testing.assert_allclose(np.abs(np.sum(axes * heading, axis=1)), 1.0, atol=1e-9)
         np.testing.assert_allclose(poses.lengths, 2 * m.geom_size[1:, 1])
         np.testing.assert_allclose(poses.radii, m.geom_size[1:, 0])
+
+
+def test_segment_poses_refuse_positions_of_another_body():
+    with pytest.raises(ValueError, match="joint positions"):
+        segment_poses(0, 0, 0, np.zeros(3), [-1, 0, 0, 0])

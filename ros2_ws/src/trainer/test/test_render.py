@@ -111,6 +111,31 @@ def test_untrained_policy_mp4(tmp_path):
     assert n_frames == VideoConfig(seconds=0.2).frames_per_take() == 3
 
 
+@pytest.mark.timeout(600)
+def test_trees_are_filmed_beside_chains_and_captioned_with_their_label(tmp_path):
+    gif = tmp_path / "trees.gif"
+    done = _render(
+        "--checkpoint", str(SHIPPED), "--lengths", "3", "--bodies", "star:3x1,y:1x2", "--seconds", "0.24",
+        "--frame-every", "2", "--width", "96", "--height", "64", "--gif", str(gif),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "star-3x1: return" in done.stderr and "y-1x2: return" in done.stderr and "3 joints: return" in done.stderr
+    frames = _gif_frames(gif)
+    assert len(frames) == VideoConfig(seconds=0.24, frame_every=2).frames_per_take() == 4
+    _check_frames(frames, (3 * 64 + 2 * 2, 96))  # three views in one column
+    views = [frames[-1][k * 66 : k * 66 + 64] for k in range(3)]
+    assert all(np.abs(a.astype(int) - b).mean() > 1 for a, b in zip(views, views[1:], strict=False))
+
+
+def test_bodies_are_filmed_after_the_lengths():
+    from morph_core.env.bodies import body_label
+
+    takes = VideoConfig(lengths=[4], bodies="star:2x1,2-3").takes()
+    assert takes[0] == 4 and [body_label(t) for t in takes[1:]] == ["star-2x1", "chain-2", "chain-3"]
+    with pytest.raises(ValueError, match="nothing to film"):
+        VideoConfig(lengths=[]).check()
+
+
 def test_a_broken_backend_is_one_clear_line(tmp_path):
     # glvnd with no EGL vendor: EGL cannot make a display on any machine.
     env = dict(os.environ, MUJOCO_GL="egl", __EGL_VENDOR_LIBRARY_FILENAMES=str(tmp_path / "none.json"))
@@ -138,6 +163,8 @@ def test_a_broken_backend_is_one_clear_line(tmp_path):
         (["--untrained"], "--gif"),
         (["--checkpoint", "nowhere.safetensors", "--gif", "x.gif"], "no such file"),
         (["--untrained", "--gif", "x.gif", "--width", "5000"], "frame size"),
+        (["--untrained", "--gif", "x.gif", "--bodies", "random:3-5"], "no fixed members"),
+        (["--untrained", "--gif", "x.gif", "--bodies", "octopus:3"], "unknown body family"),
     ],
 )
 def test_bad_input_is_refused_in_one_line(tmp_path, args, message):
@@ -169,3 +196,5 @@ def test_training_rule_from_metadata_or_run_config(tmp_path):
 def test_caption_text():
     assert caption(1, "fixed clipping", 0.04, False) == "1 joint, fixed clipping, return +0.0"
     assert caption(20, "untrained", -3.25, True) == "20 joints, untrained, return -3.2 (physics diverged)"
+    assert caption(6, "fixed clipping", 1.0, False, "star-3x2") == "star-3x2 (6 joints), fixed clipping, return +1.0"
+    assert caption(4, "untrained", 0.0, False, "chain-4") == "4 joints, untrained, return +0.0"

@@ -1,16 +1,21 @@
 """``morph-render``: a video of a policy swimming, offscreen, as GIF and/or MP4.
 
-Each chain length is one swimmer driven by the policy's mean action (no
-sampling), filmed from above by a camera that follows it; several lengths
-play side by side in one frame (``--layout tiled``, one column by default:
-chains are long and thin) or one after another (``--layout sequence``).
-Each view is captioned with its chain length, the trust-region rule the
-policy was trained with (the checkpoint's ``clip_mode`` metadata, else its
-run's ``config.json``) and the return so far.
+Each chain length, and each body of ``--bodies`` (a spec of the
+``morph_core.env.bodies`` grammar whose families are finite: chains and named
+trees, e.g. ``star:3x2,y:1x2,comb:4``), is one swimmer driven by the policy's
+mean action (no sampling; a tree's policy is given its parent array), filmed
+from above by a camera that follows it; several swimmers play side by side
+in one frame (``--layout tiled``, one column by default: chains are long and
+thin) or one after another (``--layout sequence``). Each view is captioned
+with its chain length (a tree: its body label and joints), the trust-region
+rule the policy was trained with (the checkpoint's ``clip_mode`` metadata,
+else its run's ``config.json``) and the return so far. With ``--bodies`` and
+no ``--lengths``, only the bodies are filmed.
 
     morph-render --checkpoint runs/compensated-s1/checkpoints/policy_00743424.safetensors \\
         --lengths 2 6 10 20 --gif swim.gif --mp4 swim.mp4
     morph-render --untrained --lengths 3 --seconds 4 --gif untrained.gif
+    morph-render --checkpoint policy.safetensors --bodies star:3x2,y:1x2,comb:4 --gif trees.gif
 
 Rendering needs offscreen OpenGL: ``MUJOCO_GL`` when set, else EGL, else
 OSMesa (``morph_core.env.render.choose_gl_backend``).
@@ -38,6 +43,9 @@ class VideoConfig:
 
     lengths: list[int] = field(default_factory=lambda: [2, 6, 10, 20])
     """chain lengths (joints), one swimmer each"""
+    bodies: str = ""
+    """named bodies to film after the chains of ``lengths``: a spec of finite families (env.bodies), e.g.
+    star:3x2,y:1x2,comb:4; every member is one swimmer"""
     seconds: float = 10.0
     """sim time each swimmer swims"""
     layout: str = "tiled"
@@ -56,14 +64,32 @@ class VideoConfig:
     """palette size of each GIF frame (fewer: a smaller file)"""
 
     def check(self) -> None:
-        if not self.lengths or any(not MIN_JOINTS <= n <= MAX_JOINTS for n in self.lengths):
+        if any(not MIN_JOINTS <= n <= MAX_JOINTS for n in self.lengths):
             raise ValueError(f"lengths must be chain lengths in {MIN_JOINTS}..{MAX_JOINTS}, got {self.lengths}")
+        if not self.lengths and not self.bodies:
+            raise ValueError("nothing to film: give chain lengths or bodies")
+        self.trees()
         if self.layout not in LAYOUTS:
             raise ValueError(f"layout must be one of {LAYOUTS}, got {self.layout!r}")
         if not self.seconds > 0 or self.columns < 1 or self.frame_every < 1:
             raise ValueError("seconds must be > 0, columns and frame_every >= 1")
         if not 2 <= self.gif_colors <= 256:
             raise ValueError(f"gif_colors must be in 2..256, got {self.gif_colors}")
+
+    def trees(self) -> list:
+        """The ``KinematicTree`` of every body of ``bodies`` (ValueError when the spec is bad or random)."""
+        if not self.bodies:
+            return []
+        from morph_core.env.bodies import parse_bodies
+
+        members = parse_bodies(self.bodies).members()
+        if members is None:
+            raise ValueError(f"bodies {self.bodies!r}: a random family has no fixed members to film")
+        return members
+
+    def takes(self) -> list:
+        """What each swimmer is: chain lengths first, then the bodies' trees."""
+        return [*self.lengths, *self.trees()]
 
     @property
     def steps(self) -> int:
@@ -94,9 +120,17 @@ def training_rule(weights: PolicyWeights) -> str:
     return f"{rule} clipping" if isinstance(rule, str) and rule else "rule unknown"
 
 
-def caption(num_joints: int, rule: str, episode_return: float, diverged: bool) -> str:
-    text = f"{num_joints} joint{'s' * (num_joints != 1)}, {rule}, return {episode_return:+.1f}"
+def caption(num_joints: int, rule: str, episode_return: float, diverged: bool, label: str | None = None) -> str:
+    """A view's caption; ``label`` (``bodies.body_label``) names a tree in front of its joint count."""
+    joints = f"{num_joints} joint{'s' * (num_joints != 1)}"
+    if label is not None and not label.startswith("chain-"):
+        joints = f"{label} ({joints})"
+    text = f"{joints}, {rule}, return {episode_return:+.1f}"
     return text + " (physics diverged)" if diverged else text
+
+
+def _name(take) -> str:
+    return f"{take.num_joints} joints" if take.label.startswith("chain-") else take.label
 
 
 def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4: Path | None, log=print) -> int:
@@ -111,15 +145,18 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
     rule = training_rule(weights)
     font = caption_font(max(10, cfg.height // 12))
     writer = VideoWriter(cfg.fps, gif=gif, mp4=mp4, gif_colors=cfg.gif_colors)
-    groups = [cfg.lengths] if cfg.layout == "tiled" else [[n] for n in cfg.lengths]
+    bodies = cfg.takes()
+    groups = [bodies] if cfg.layout == "tiled" else [[body] for body in bodies]
     try:
-        for lengths in groups:
-            takes = [Take(n, policy.mean, cfg.width, cfg.height, reset_seed=cfg.seed) for n in lengths]
+        for group in groups:
+            takes = [Take(body, policy.mean, cfg.width, cfg.height, reset_seed=cfg.seed) for body in group]
             try:
                 for step in range(cfg.steps + 1):
                     if step % cfg.frame_every == 0:
                         views = [
-                            add_caption(t.frame(), caption(t.num_joints, rule, t.episode_return, t.diverged), font)
+                            add_caption(
+                                t.frame(), caption(t.num_joints, rule, t.episode_return, t.diverged, t.label), font
+                            )
                             for t in takes
                         ]
                         writer.add(tile(views, cfg.columns))
@@ -129,7 +166,7 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
             finally:
                 for t in takes:
                     t.close()
-            log(", ".join(f"{t.num_joints} joints: return {t.episode_return:+.1f}" for t in takes))
+            log(", ".join(f"{_name(t)}: return {t.episode_return:+.1f}" for t in takes))
         frames = writer.frames
         for path in writer.close():
             log(f"wrote {path}")
@@ -157,6 +194,8 @@ def main(argv: list[str] | None = None) -> None:
     overrides = overrides_from_args(args, VideoConfig)
     if args.lengths is not None:
         overrides["lengths"] = args.lengths
+    elif args.bodies:
+        overrides["lengths"] = []  # --bodies alone films the bodies alone
     cfg = replace_nested(VideoConfig(), overrides)
     try:
         cfg.check()

@@ -1,4 +1,4 @@
-"""Offscreen frames of a policy swimming: chains of chosen lengths, each filmed by a camera that follows it.
+"""Offscreen frames of a policy swimming: chains of chosen lengths or trees, each filmed by a camera that follows it.
 
 ``choose_gl_backend`` must run before anything imports MuJoCo (it picks the
 OpenGL backend, which MuJoCo and PyOpenGL fix at import): ``MUJOCO_GL`` when
@@ -12,21 +12,28 @@ policy's mean, clipped to the motors' range) and renders it with
 ``mujoco.Renderer`` through a tracking camera: it follows the torso's
 subtree (the whole chain) from straight above, from a height at which the
 chain fits the frame's width, so a 20-joint swimmer fits its tile as a
-2-joint one does (each at its own scale; the floor's checks are 2.7 m).
+2-joint one does (each at its own scale; the floor's checks are 2.7 m). A
+tree is framed by its longest branch (``bodies.tree_depth``) and, since its
+branches fan out sideways, shown at least that tall.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from morph_core.env.model import SEGMENT_LENGTH, check_num_joints
+
+if TYPE_CHECKING:
+    from morph_core.policy.tree import KinematicTree
 
 GL_BACKENDS = ("egl", "osmesa")
 """offscreen OpenGL backends tried in this order when MUJOCO_GL is unset"""
@@ -43,8 +50,9 @@ r.close()
 """
 _PROBE_TIMEOUT = 120.0  # s; importing mujoco on a loaded 2-core machine can take many seconds
 
-Controller = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-"""(joint_pos [N], joint_vel [N], global [4]) -> action [N], e.g. ``NumpyPolicy.mean``"""
+Controller = Callable[..., np.ndarray]
+"""(joint_pos [N], joint_vel [N], global [4]) -> action [N], e.g. ``NumpyPolicy.mean``; for a tree it is also
+given ``parents=`` [N] (``NumpyPolicy.mean`` takes it)"""
 
 
 class RenderUnavailable(RuntimeError):
@@ -116,15 +124,21 @@ class CameraView:
     shadows: bool = False
     """shadows and floor reflections: Swimmer-v5's look, but about five times slower to render"""
 
-    def distance(self, num_joints: int, aspect: float, fovy_deg: float) -> float:
-        """Camera distance [m] for a chain of ``num_joints`` in an image of width / height ``aspect``."""
-        length = (num_joints + 1) * SEGMENT_LENGTH
+    def distance(self, num_joints: int, aspect: float, fovy_deg: float, depth: int | None = None) -> float:
+        """Camera distance [m] for a chain of ``num_joints`` in an image of width / height ``aspect``; for a
+        tree, ``depth`` is its longest branch's joints (``bodies.tree_depth``) and the image is at least as
+        tall as the tree is long (its branches fan sideways)."""
+        length = ((num_joints if depth is None else depth) + 1) * SEGMENT_LENGTH
         height = max((length + 2 * self.pad) / aspect, self.min_extent)
+        if depth is not None:
+            height = max(height, length + 2 * self.pad)
         return height / (2 * math.tan(math.radians(fovy_deg) / 2))
 
 
 class Take:
-    """One swimmer of ``num_joints`` joints driven by ``controller``, filmed at ``width`` x ``height``.
+    """One swimmer driven by ``controller``, filmed at ``width`` x ``height``: ``body`` a chain length
+    (``num_joints``) or a ``KinematicTree`` (reset as ``reset(options={"tree": body})``); ``label`` is its
+    ``bodies.body_label``.
 
     ``reset_seed`` seeds the env's reset noise. ``step()`` advances one control period and adds the
     reward to ``episode_return``; after the physics diverges (``diverged``) the swimmer stays where
@@ -133,7 +147,7 @@ class Take:
 
     def __init__(
         self,
-        num_joints: int,
+        body: int | KinematicTree,
         controller: Controller,
         width: int,
         height: int,
@@ -142,12 +156,16 @@ class Take:
     ):
         import mujoco
 
+        from morph_core.env.bodies import tree_depth
         from morph_core.env.swimmer_env import MorphSwimmerEnv
 
-        self.num_joints = check_num_joints(num_joints)
+        tree = not isinstance(body, numbers.Integral)
+        self.num_joints = body.num_joints if tree else check_num_joints(body)
         self._controller = controller
         self.env = MorphSwimmerEnv(num_joints=self.num_joints)
-        self._obs, _ = self.env.reset(seed=reset_seed)
+        self._obs, _ = self.env.reset(seed=reset_seed, options={"tree": body} if tree else None)
+        self.tree, self.label = self.env.tree, self.env.body_label
+        self._parents = None if self.tree.is_chain else self.env.parents
         model = self.env.model
         limit_w, limit_h = model.vis.global_.offwidth, model.vis.global_.offheight
         if not (16 <= width <= limit_w and 16 <= height <= limit_h):
@@ -157,7 +175,8 @@ class Take:
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
         self.camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
-        self.camera.distance = view.distance(self.num_joints, width / height, model.vis.global_.fovy)
+        depth = None if self._parents is None else tree_depth(self._parents)
+        self.camera.distance = view.distance(self.num_joints, width / height, model.vis.global_.fovy, depth)
         self.camera.elevation = view.elevation
         self.camera.azimuth = view.azimuth
         for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
@@ -170,7 +189,11 @@ class Take:
         if self.diverged:
             return
         o = self._obs
-        action = np.clip(self._controller(o["joint_pos"], o["joint_vel"], o["global"]), -1.0, 1.0)
+        if self._parents is None:
+            action = self._controller(o["joint_pos"], o["joint_vel"], o["global"])
+        else:
+            action = self._controller(o["joint_pos"], o["joint_vel"], o["global"], parents=self._parents)
+        action = np.clip(action, -1.0, 1.0)
         self._obs, reward, terminated, _, info = self.env.step(np.asarray(action, dtype=np.float64))
         self.episode_return += float(reward)
         self.steps += 1

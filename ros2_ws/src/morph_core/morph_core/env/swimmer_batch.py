@@ -1,4 +1,4 @@
-"""Swimmers of one chain length stepped together in one MuJoCo call (``mujoco.batch``).
+"""Swimmers of one body (a chain length or a kinematic tree) stepped together in one MuJoCo call (``mujoco.batch``).
 
 Each swimmer is one row of MuJoCo's batch state (integration state: time,
 qpos, qvel, controls, warm start), stepped by MuJoCo's C loop instead of one
@@ -21,28 +21,36 @@ from mujoco.batch import Batch
 
 from morph_core.env.reward import swimmer_reward
 from morph_core.env.swimmer_env import DIVERGENCE_WARNING, MorphSwimmerEnv, write_graph_observation
+from morph_core.policy.tree import KinematicTree
 
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 class SwimmerBatch:
-    """``len(seeds)`` swimmers of ``num_joints`` joints, swimmer k reset with ``seeds[k]``.
+    """``len(seeds)`` swimmers of one ``body``, swimmer k reset with ``seeds[k]``: ``body`` a chain length
+    (``num_joints``) or a ``KinematicTree`` (reset as ``MorphSwimmerEnv.reset(options={"tree": body})``).
+    ``tree`` and ``parents`` are the env's (the swimmer's joint names).
 
     ``num_threads`` is MuJoCo's: threads stepping the swimmers, the caller's included.
     """
 
-    def __init__(self, num_joints: int, seeds: Sequence[int], num_threads: int = 1):
+    def __init__(self, body: int | KinematicTree, seeds: Sequence[int], num_threads: int = 1):
         if num_threads < 1:
             raise ValueError(f"num_threads must be >= 1, got {num_threads}")  # MuJoCo's 0 would take every core
         if len(seeds) < 1:
             raise ValueError("a batch needs at least one swimmer")
-        env = MorphSwimmerEnv(num_joints=num_joints)
+        if isinstance(body, KinematicTree):
+            env, options = MorphSwimmerEnv(num_joints=body.num_joints), {"tree": body}
+        else:
+            env, options = MorphSwimmerEnv(num_joints=body), None
+        env.reset(options=options)
         self.num_joints, self.size = env.num_joints, len(seeds)
+        self.tree, self.parents = env.tree, env.parents
         self.frame_skip, self.dt = env.frame_skip, env.dt
         self._weights = (env.forward_reward_weight, env.ctrl_cost_weight)
         self._batch = Batch(env.model, self.size, nthread=num_threads, persistent=True)
         for k, seed in enumerate(seeds):
-            env.reset(seed=int(seed))  # Swimmer-v5's reset noise, as every other user of the env
+            env.reset(seed=int(seed), options=options)  # Swimmer-v5's reset noise, as every user of the env
             mujoco.mj_getState(env.model, env.data, self._batch.state[k], _STATE)
         self._qpos, self._qvel = self._batch.bind("qpos"), self._batch.bind("qvel")
         self._ctrl = self._batch.bind("ctrl")

@@ -1,9 +1,12 @@
-"""Gymnasium environment: the Swimmer-v5 task for a chain of any length.
+"""Gymnasium environment: the Swimmer-v5 task for a chain of any length, or a kinematic tree.
 
 ``num_joints`` is an int (fixed chain) or an inclusive range ``(lo, hi)``
 from which the chain length is drawn at every reset with the env's seeded
-RNG. With 2 joints and ``observation_mode="flat"`` this is Swimmer-v5,
-step for step (see the equivalence test).
+RNG. ``bodies`` (a spec, ``env.bodies``) replaces it with body families,
+trees included, one body drawn at every reset from the same RNG; a spec of
+one chain range draws exactly as ``num_joints`` does. With 2 joints and
+``observation_mode="flat"`` this is Swimmer-v5, step for step (see the
+equivalence test).
 """
 
 from __future__ import annotations
@@ -15,8 +18,10 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from morph_core.env.model import check_num_joints, swimmer_model
+from morph_core.env.bodies import BodyMix, body_label, parse_bodies
+from morph_core.env.model import body_parents, check_num_joints, swimmer_model
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, control_cost
+from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
@@ -56,9 +61,15 @@ class MorphSwimmerEnv(gymnasium.Env):
     acceleration warning, ``info["physics_unstable"]``).
 
     Graph observations are a dict: ``joint_pos`` and ``joint_vel`` (one entry
-    per joint, torso to tail), ``global`` (yaw, yaw rate, vx, vy of the torso
-    frame) and ``edge_index`` (2 x N: joint j links segment j to segment j+1,
-    segment 0 being the torso).
+    per joint, in the tree's order: torso to tail for a chain), ``global``
+    (yaw, yaw rate, vx, vy of the torso frame) and ``parents`` ([N] int64:
+    joint j's parent joint, -1 when it hangs off the torso; a chain's is
+    [-1, 0, ..., N-2]).
+
+    ``tree`` is the current body (a ``KinematicTree`` with the swimmer's joint
+    names, root link ``torso``: ``KinematicTree.from_mujoco(model)``), ``parents``
+    its read-only parent array; ``info`` carries ``body`` (``bodies.body_label``)
+    and ``topology_hash``.
     """
 
     metadata = {"render_modes": [], "render_fps": 25}
@@ -71,30 +82,48 @@ class MorphSwimmerEnv(gymnasium.Env):
         forward_reward_weight: float = FORWARD_REWARD_WEIGHT,
         ctrl_cost_weight: float = CTRL_COST_WEIGHT,
         reset_noise_scale: float = 0.1,
+        bodies: str | BodyMix | None = None,
     ):
         if observation_mode not in OBSERVATION_MODES:
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {observation_mode!r}")
         if frame_skip < 1:
             raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
-        self.joint_range = _check_joint_range(num_joints)
+        if bodies is not None:
+            self.bodies: BodyMix | None = parse_bodies(bodies) if isinstance(bodies, str) else bodies
+            if not isinstance(self.bodies, BodyMix):
+                raise TypeError(f"bodies must be a spec string or a BodyMix, got {type(bodies).__name__}")
+            self.joint_range = self.bodies.joint_range
+        else:
+            self.bodies = None
+            self.joint_range = _check_joint_range(num_joints)
         self.observation_mode = observation_mode
         self.frame_skip = int(frame_skip)
         self.forward_reward_weight = forward_reward_weight
         self.ctrl_cost_weight = ctrl_cost_weight
         self.reset_noise_scale = reset_noise_scale
         self.num_joints = 0
+        self.tree: KinematicTree | None = None
+        self._shape: tuple[int, ...] = ()
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
-        self._build(self.joint_range[0])
+        self._build(self.joint_range[0] if self.bodies is None else self.bodies.first())
 
-    # -- chain ---------------------------------------------------------------
-    def _build(self, num_joints: int) -> None:
-        """Switch to a chain of ``num_joints`` (the compiled model is cached per length)."""
-        if num_joints == self.num_joints:
+    # -- body ----------------------------------------------------------------
+    def _build(self, body: int | KinematicTree) -> None:
+        """Switch to a body: a chain length or a tree (a ``KinematicTree`` or a parent array; the compiled
+        model is cached per shape)."""
+        parents = body_parents(body)
+        if parents == self._shape:
             mujoco.mj_resetData(self.model, self.data)
             return
+        num_joints = len(parents)
         self.num_joints = num_joints
-        self.model = swimmer_model(num_joints)
+        self.tree = KinematicTree(swimmer_joint_names(num_joints), np.array(parents, dtype=np.int64), "torso")
+        self.parents = self.tree.parents  # read-only int64 [N]
+        self.body_label = body_label(self.tree)
+        self.topology_hash = self.tree.topology_hash
+        self._shape = parents
+        self.model = swimmer_model(parents)
         self.data = mujoco.MjData(self.model)
         # Views into this MjData, taken once: each attribute read builds a new array (~0.1 µs, and the
         # step reads them for every swimmer at every step).
@@ -103,7 +132,6 @@ class MorphSwimmerEnv(gymnasium.Env):
         self.dt = self.model.opt.timestep * self.frame_skip
         self.action_space = spaces.Box(-1.0, 1.0, shape=(num_joints,), dtype=np.float32)
         self.observation_space = self._observation_space(num_joints)
-        self._edge_index = np.stack([np.arange(num_joints), np.arange(1, num_joints + 1)]).astype(np.int64)
 
     def _observation_space(self, n: int) -> spaces.Space:
         if self.observation_mode == "flat":
@@ -113,20 +141,33 @@ class MorphSwimmerEnv(gymnasium.Env):
                 "joint_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
                 "joint_vel": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
                 "global": spaces.Box(-np.inf, np.inf, shape=(len(GLOBAL_FEATURES),), dtype=np.float64),
-                "edge_index": spaces.Box(0, n, shape=(2, n), dtype=np.int64),
+                "parents": spaces.Box(-1, max(n - 1, 0), shape=(n,), dtype=np.int64),  # parents[j] in -1..j-1
             }
         )
 
     # -- gymnasium API -------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Reset; ``options={"num_joints": n}`` forces the chain length of this episode."""
+        """Reset; ``options`` may force this episode's body (nothing is drawn then): ``{"num_joints": n}`` a
+        chain, ``{"tree": KinematicTree}`` or ``{"parents": [...]}`` a tree (parents in pre-order, see
+        ``model.check_parents``; a tree's own joint names are not kept, the swimmer's are)."""
         super().reset(seed=seed)
-        if options and "num_joints" in options:
-            n = check_num_joints(options["num_joints"])
+        forced = [key for key in ("num_joints", "tree", "parents") if options and key in options]
+        if len(forced) > 1:
+            raise ValueError(f"reset options force the body twice: {forced}")
+        if forced == ["num_joints"]:
+            body = check_num_joints(options["num_joints"])
+        elif forced == ["tree"]:
+            if not isinstance(options["tree"], KinematicTree):
+                raise TypeError(f"options['tree'] must be a KinematicTree, got {type(options['tree']).__name__}")
+            body = options["tree"]
+        elif forced == ["parents"]:
+            body = options["parents"]
+        elif self.bodies is not None:
+            body = self.bodies.draw(self.np_random)
         else:
             lo, hi = self.joint_range
-            n = lo if lo == hi else int(self.np_random.integers(lo, hi + 1))
-        self._build(n)
+            body = lo if lo == hi else int(self.np_random.integers(lo, hi + 1))
+        self._build(body)
         # Swimmer-v5's reset noise, drawn in the same order from the same RNG.
         m, d, s = self.model, self.data, self.reset_noise_scale
         qpos = m.qpos0 + self.np_random.uniform(low=-s, high=s, size=m.nq)
@@ -139,7 +180,7 @@ class MorphSwimmerEnv(gymnasium.Env):
     def step(self, action):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (self.num_joints,):
-            raise ValueError(f"action must have shape ({self.num_joints},) for this chain, got {a.shape}")
+            raise ValueError(f"action must have shape ({self.num_joints},) for this body, got {a.shape}")
         reward, unstable = self.advance(a)
         xy_after, (x_velocity, y_velocity), forward_reward, ctrl_cost = self._last_step
         info = {
@@ -151,6 +192,8 @@ class MorphSwimmerEnv(gymnasium.Env):
             "reward_forward": forward_reward,
             "reward_ctrl": -ctrl_cost,
             "num_joints": self.num_joints,
+            "body": self.body_label,
+            "topology_hash": self.topology_hash,
             "physics_unstable": unstable,
         }
         return self._observation(), reward, unstable, False, info
@@ -186,7 +229,7 @@ class MorphSwimmerEnv(gymnasium.Env):
             "joint_pos": qpos[3:].copy(),
             "joint_vel": qvel[3:].copy(),
             "global": np.array([qpos[2], qvel[2], qvel[0], qvel[1]]),
-            "edge_index": self._edge_index.copy(),
+            "parents": self.parents.copy(),
         }
 
     def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
@@ -201,4 +244,6 @@ class MorphSwimmerEnv(gymnasium.Env):
             "y_position": self.data.qpos[1],
             "distance_from_origin": np.linalg.norm(self.data.qpos[0:2], ord=2),
             "num_joints": self.num_joints,
+            "body": self.body_label,
+            "topology_hash": self.topology_hash,
         }

@@ -3,7 +3,10 @@
 One link per MuJoCo body (``torso``, then the segments under their MJCF
 names), one revolute joint per actuated hinge under its MJCF name
 (``motor{k}_rot``, as ``joint_states`` names them), with the same frames:
-a joint's origin is its child body's position in the parent body, its axis z.
+a joint's origin is its child body's position and rest rotation in the parent
+body, its axis z. Chains and trees alike: links and joints are written in
+MuJoCo's (pre-)order, so ``KinematicTree.from_urdf`` reads back the tree
+``KinematicTree.from_mujoco`` reads off the model.
 Limits are the hinges' ranges in radians and the motors' peak torque (gear x
 ctrl range). Each link carries its capsule as a cylinder of the capsule's
 straight length (the segment length; URDF has no capsule) and radius, and
@@ -26,7 +29,7 @@ from xml.sax.saxutils import quoteattr
 import mujoco
 import numpy as np
 
-from morph_core.env.model import check_num_joints, swimmer_model
+from morph_core.env.model import body_parents, swimmer_model
 
 NO_VELOCITY_LIMIT = 1000.0
 """rad/s written as every joint's velocity limit: the MJCF sets none"""
@@ -76,13 +79,15 @@ def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, index: int) -> str:
     return mujoco.mj_id2name(model, kind, int(index))
 
 
-def swimmer_urdf(num_joints: int, prefix: str = "") -> str:
-    """URDF text of the ``num_joints`` swimmer; ``prefix`` goes in front of every link and joint name
-    (the sim node's ``joint_prefix``)."""
-    n = check_num_joints(num_joints)
-    m = swimmer_model(n)
+def swimmer_urdf(body, prefix: str = "") -> str:
+    """URDF text of a swimmer: ``body`` a chain length (``num_joints``), a ``KinematicTree`` or a parent
+    array (``model.swimmer_model``'s); ``prefix`` goes in front of every link and joint name (the sim
+    node's ``joint_prefix``)."""
+    parents = body_parents(body)
+    m = swimmer_model(parents)
+    n, chain = len(parents), parents == tuple(range(-1, len(parents) - 1))
     rgba = " ".join(f"{c:.6g}" for c in m.geom_rgba[m.geom_bodyid == 1][0])  # float32: 6 digits
-    parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(f"swimmer{n}")}>\n']
+    parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(f"swimmer{n}" if chain else f"swimmer{n}_tree")}>\n']
     parts.append(f'  <material name="segment"><color rgba="{rgba}"/></material>\n')
     for body in range(1, m.nbody):
         parts.append(_link(m, body, prefix))
