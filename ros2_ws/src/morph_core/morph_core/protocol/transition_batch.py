@@ -254,6 +254,7 @@ def _width(joint_pos: np.ndarray) -> int:
 def _chain_rows(num_joints: np.ndarray, width: int) -> np.ndarray:
     """[T, width] int64 chain parents of rows of ``num_joints`` joints (-1 at padding)."""
     j = np.arange(width, dtype=np.int64)
+    # num_joints not [T] integers: no rows here, and _check refuses num_joints itself (before parents)
     n = num_joints.reshape(-1, 1) if num_joints.ndim == 1 and num_joints.dtype.kind in "iu" else np.zeros((0, 1))
     return np.where(j < n, j - 1, -1).astype(np.int64)
 
