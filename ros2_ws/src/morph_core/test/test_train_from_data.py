@@ -22,6 +22,7 @@ from morph_core.algo.train_from_data import (
     train_from_data,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import assemble
@@ -229,3 +230,97 @@ def test_a_batch_never_leaves_one_sample_for_its_last_minibatch(tmp_path, behavi
     single = record(SamplingController(GraphActorCritic.load(init), seed=4), ((3, 1),))
     with pytest.raises(ValueError, match="too few"):
         train_from_data(TrainConfig(**SMALL), single, tmp_path / "one")
+
+
+# -- trees ------------------------------------------------------------------------------------
+
+
+def with_trees(data: TransitionBatch, seed: int = 0) -> TransitionBatch:
+    """``data`` with a random tree per episode (joint j's parent drawn from -1..j-1), nothing else changed."""
+    rng = np.random.default_rng(seed)
+    parents = np.full(data.parents.shape, -1, np.int64)
+    for e in np.unique(data.episode):
+        rows = np.flatnonzero(data.episode == e)
+        n = int(data.num_joints[rows[0]])
+        parents[rows, :n] = [-1, *(rng.integers(-1, j) for j in range(1, n))]
+    trees = TransitionBatch.from_arrays({**data.arrays(), "parents": parents})
+    assert not trees.is_chains
+    return trees
+
+
+def _old_digest(data: TransitionBatch) -> str:
+    """data_digest as it was before ``parents`` existed: every other array, in layout order."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for key, a in data.arrays().items():
+        if key != "parents":
+            a = np.ascontiguousarray(a)
+            h.update(f"{key}:{a.dtype.str}:{a.shape};".encode())
+            h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def test_an_npz_written_before_parents_trains_exactly_as_the_chains_it_holds(tmp_path, behaviour):
+    init, data = behaviour
+    np.savez(tmp_path / "old.npz", **{k: v for k, v in data.arrays().items() if k != "parents"})
+    old = TransitionBatch.from_npz(tmp_path / "old.npz")
+    assert old.is_chains and Samples(old, 10).parents is None  # the policy's chain path
+    # Its digest is the one it had: runs started on it resume on it.
+    assert data_digest(old) == data_digest(data) == _old_digest(data)
+    cfg = TrainConfig(seed=5, **SMALL)
+    a = train_from_data(cfg, data, tmp_path / "a", iterations=2, init=init)
+    b = train_from_data(cfg, old, tmp_path / "b", iterations=2, init=init)
+    (ta, _), (tb, _) = _state(a), _state(b)
+    assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
+
+
+def test_a_tree_dataset_reads_every_state_with_its_tree(behaviour):
+    init, data = behaviour
+    trees = with_trees(data)
+    policy = GraphActorCritic.load(init)
+    samples, chains = Samples(trees, 10), Samples(data, 10)
+    padded = np.pad(trees.parents, ((0, 0), (0, 10 - trees.max_joints)), constant_values=-1)
+    np.testing.assert_array_equal(samples.parents.numpy(), padded)
+
+    # The states' values and the truncated steps' next-state values, each with the row's own tree.
+    states, finals = samples.values(policy)
+    with torch.no_grad():
+        direct = policy(ChainBatch.from_padded(samples.joint_pos, samples.joint_vel, samples.global_feats,
+                                               samples.num_joints, parents=padded))[2]  # fmt: skip
+        rows = samples.truncated_rows
+        direct_finals = policy(ChainBatch.from_padded(*samples.next_obs, samples.num_joints[rows],
+                                                      parents=padded[rows.numpy()]))[2]  # fmt: skip
+    torch.testing.assert_close(states, direct, rtol=0, atol=1e-6)
+    torch.testing.assert_close(finals, direct_finals, rtol=0, atol=1e-6)
+    chain_states, chain_finals = chains.values(policy)
+    assert not torch.allclose(states, chain_states) and not torch.allclose(finals, chain_finals)
+
+    # Every batch and minibatch an update takes carries the data's trees.
+    values, advantages, returns = samples.advantages(policy, 0.98, 0.95)
+    index = torch.tensor([0, 45, 80, 99, 41])
+    batch = samples.batch(index, values, advantages, returns)
+    np.testing.assert_array_equal(batch.parents.numpy(), padded[index.numpy()])
+    minibatch, _ = batch.minibatch(torch.arange(len(index)))
+    width = int(trees.num_joints[index.numpy()].max())
+    np.testing.assert_array_equal(minibatch.parents.numpy(), padded[index.numpy(), :width])
+    assert chains.batch(index, values, advantages, returns).parents is None
+
+
+def test_a_tree_dataset_trains_otherwise_than_its_chains_and_is_other_data(tmp_path, behaviour):
+    init, data = behaviour
+    trees = with_trees(data)
+    assert data_digest(trees) != data_digest(data)
+    assert data_digest(trees) != data_digest(with_trees(data, seed=1))  # only the trees differ
+    assert data_digest(trees) == data_digest(TransitionBatch.from_arrays(trees.arrays()))
+    cfg = TrainConfig(seed=6, **SMALL)
+    a = train_from_data(cfg, data, tmp_path / "chains", iterations=1, init=init)
+    b = train_from_data(cfg, trees, tmp_path / "trees", iterations=1, init=init)
+    (ta, _), (tb, _) = _state(a), _state(b)
+    assert any(not torch.equal(ta[k], tb[k]) for k in ta if k.startswith("policy."))
+    rows = _rows(b)
+    assert np.isfinite(float(rows[0]["policy_loss"])) and rows[0]["clip_frac_d6"] != ""  # per dimension still
+    with pytest.raises(DataMismatchError, match="trains on other data"):
+        train_from_data(cfg, data, b, resume=True)
+    train_from_data(cfg, trees, b, resume=True, iterations=2)
+    assert run_state(b)["done"] == 2

@@ -28,6 +28,7 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.tree import KinematicTree, TreeError
 from morph_core.protocol.loopback import (
     GaussianController,
     LoopbackRecording,
@@ -557,3 +558,179 @@ def test_config_is_checked():
         TransitionConfig(settle_states=-1)
     with pytest.raises(TypeError, match="not a record"):
         TransitionAssembler().push("joint_states")
+
+
+# -- trees: the parents of each row ------------------------------------------------------------
+
+
+def random_trees(batch: TransitionBatch, seed: int = 0) -> TransitionBatch:
+    """``batch`` with one random tree per episode (joint j's parent drawn from -1..j-1; -1 at padding)."""
+    rng = np.random.default_rng(seed)
+    parents = np.full(batch.parents.shape, -1, np.int64)
+    for e in np.unique(batch.episode):
+        rows = np.flatnonzero(batch.episode == e)
+        n = int(batch.num_joints[rows[0]])
+        parents[rows, :n] = [rng.integers(-1, j) if j else -1 for j in range(n)]
+    out = TransitionBatch.from_arrays({**batch.arrays(), "parents": parents})
+    assert not out.is_chains
+    return out
+
+
+def test_a_recording_is_chains_in_message_order(sampled):
+    batch = assemble(sampled.records).batch
+    assert batch.is_chains and batch.parents.dtype == np.int64
+    assert batch.parents[0].tolist() == [-1, 0, 1, -1, -1] and batch.parents[-1].tolist() == [-1, 0, 1, 2, 3]
+
+
+def test_npz_round_trip_keeps_the_trees(sampled, tmp_path):
+    trees = random_trees(assemble(sampled.records).batch)
+    trees.to_npz(tmp_path / "trees.npz")
+    with np.load(tmp_path / "trees.npz") as data:
+        assert tuple(data.files) == EXPORT_KEYS and EXPORT_KEYS[-1] == "parents"
+        assert data["parents"].dtype == np.int64 and data["parents"].shape == (75, 5)
+    back = TransitionBatch.from_npz(tmp_path / "trees.npz")
+    for k, v in trees.arrays().items():
+        np.testing.assert_array_equal(back.arrays()[k], v, err_msg=k)
+    assert not back.is_chains
+    # Concatenating pads the parents with -1, not 0 (a 0 there would be a joint hanging off joint 0).
+    wide = TransitionBatch.concatenate([back, random_trees(assemble(sampled.records).batch, seed=1)])
+    assert wide.max_joints == 5 and (wide.parents[wide.num_joints == 3][:, 3:] == -1).all()
+
+
+def test_an_npz_written_before_parents_reads_as_chains(sampled, tmp_path):
+    batch = assemble(sampled.records).batch
+    np.savez(tmp_path / "old.npz", **{k: v for k, v in batch.arrays().items() if k != "parents"})
+    old = TransitionBatch.from_npz(tmp_path / "old.npz")
+    assert old.is_chains
+    for k, v in batch.arrays().items():
+        np.testing.assert_array_equal(old.arrays()[k], v, err_msg=k)
+    # and built in code without parents, as every caller did
+    fields = {f.name: getattr(batch, f.name) for f in dataclasses.fields(TransitionBatch) if f.name != "parents"}
+    np.testing.assert_array_equal(TransitionBatch(**fields).parents, batch.parents)
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda p: p.astype(np.float64), r"parents: expected int64 \(75, 5\), got float64"),
+        (lambda p: p.astype(np.int32), r"parents: expected int64 \(75, 5\), got int32"),
+        (lambda p: p[:, :4], r"parents: expected int64 \(75, 5\), got int64 \(75, 4\)"),
+        (lambda p: p[:-1], r"parents: expected int64 \(75, 5\), got int64 \(74, 5\)"),
+        (lambda p: np.where(np.arange(5) == 2, 2, p), r"row 0, joint 2 has parent 2"),
+        (lambda p: np.where((np.arange(75)[:, None] == 40) & (np.arange(5) == 1), -2, p), r"row 40, joint 1 .* -2"),
+        (lambda p: np.where((np.arange(75)[:, None] == 7) & (np.arange(5) == 4), 0, p), r"row 7, joint 4 is padding"),
+        (lambda p: np.where((np.arange(75)[:, None] == 50) & (np.arange(5) == 4), 0, p),
+         r"row 50 continues episode 1 with another robot than row 49"),
+    ],
+)  # fmt: skip
+def test_invalid_parents_are_refused_naming_the_file_and_row(sampled, tmp_path, damage, message):
+    arrays = assemble(sampled.records).batch.arrays()
+    path = tmp_path / "bad.npz"
+    np.savez(path, **{**arrays, "parents": damage(arrays["parents"])})
+    with pytest.raises(TransitionBatchError, match=f"^{path}: .*{message}"):
+        TransitionBatch.from_npz(path)
+
+
+def test_fuzzed_parents_give_the_documented_error_or_exactly_the_file(sampled, tmp_path):
+    """Random damage to the parents of a real export: either a valid file read exactly as written, or a
+    TransitionBatchError naming the file; never another exception, never parents other than the file's."""
+    rng = np.random.default_rng(0)
+    exported = tmp_path / "export.npz"
+    random_trees(assemble(sampled.records).batch).to_npz(exported)
+    with np.load(exported) as data:
+        arrays = {k: data[k] for k in data.files}
+    dtypes = [np.int64, np.int32, np.uint8, np.float64, np.float32, np.bool_, np.int16, np.complex64]
+    outcomes = {"read": 0, "refused": 0}
+    for i in range(300):
+        p = arrays["parents"].copy()
+        kind = rng.integers(6)
+        if kind == 0:  # a few entries anywhere, to anything
+            for _ in range(rng.integers(1, 4)):
+                p[rng.integers(p.shape[0]), rng.integers(p.shape[1])] = rng.integers(-4, 7)
+        elif kind == 1:  # extreme values
+            p[rng.integers(p.shape[0]), rng.integers(p.shape[1])] = rng.choice([np.iinfo(np.int64).min, 2**62, -1])
+        elif kind == 2:
+            p = p.astype(dtypes[rng.integers(len(dtypes))])
+        elif kind == 3:  # cut or grown
+            p = p[: rng.integers(0, 76), : rng.integers(0, 6)] if rng.random() < 0.5 else np.pad(p, ((0, 1), (0, 1)))
+        elif kind == 4:  # another dimensionality
+            p = [p.reshape(-1), p[None], np.int64(3), np.zeros((75, 5, 1), np.int64)][rng.integers(4)]
+        else:  # one row's tree swapped for a random tree of its joints (valid unless mid-episode)
+            r = rng.integers(p.shape[0])
+            n = int(arrays["num_joints"][r])
+            p[r, :n] = [rng.integers(-1, j) if j else -1 for j in range(n)]
+        path = tmp_path / f"fuzz{i}.npz"
+        np.savez(path, **{**arrays, "parents": p})
+        try:
+            back = TransitionBatch.from_npz(path)
+        except TransitionBatchError as err:
+            assert str(err).startswith(f"{path}: ") and "parents" in str(err), err
+            outcomes["refused"] += 1
+        else:
+            assert back.parents.dtype == np.int64
+            np.testing.assert_array_equal(back.parents, p)
+            outcomes["read"] += 1
+    assert outcomes["read"] > 10 and outcomes["refused"] > 100, outcomes
+
+
+def test_the_assembler_takes_each_state_tree_from_tree_of(sampled):
+    star = {3: [-1, 0, 0], 5: [-1, 0, 0, 1, -1]}
+    names_seen = []
+
+    def tree_of(names):
+        names_seen.append(names)
+        return KinematicTree.from_parents(star[len(names)], names)
+
+    asm = TransitionAssembler(tree_of=tree_of)
+    transitions = asm.push_many(sampled.records) + asm.flush()
+    assert len(names_seen) == asm.stats.states  # asked once per state
+    batch = TransitionBatch.from_transitions(transitions)
+    chains = assemble(sampled.records).batch
+    for k, v in chains.arrays().items():  # the same steps, only the graph differs
+        if k != "parents":
+            np.testing.assert_array_equal(batch.arrays()[k], v, err_msg=k)
+    assert batch.parents[0].tolist() == [-1, 0, 0, -1, -1] and batch.parents[-1].tolist() == star[5]
+    assert all(t.parents.tolist() == star[len(t.joint_pos)] for t in transitions)
+
+
+def test_a_tree_change_under_the_same_names_splits_the_episode(policy):
+    loop = record(SamplingController(policy, seed=2), episodes=((4, 30),))
+    calls = []
+
+    def tree_of(names):  # the robot's description changes as the 16th state arrives; its joints keep their names
+        calls.append(names)
+        return np.array([-1, 0, 1, 2] if len(calls) <= 15 else [-1, 0, 0, 2])
+
+    result = assemble_with(loop.records, tree_of)
+    assert np.bincount(result.batch.episode).tolist() == [14, 15]
+    assert result.stats.boundaries_new_chain == 1 and result.skips == SkipCounts()
+    assert (result.batch.parents[:14] == [-1, 0, 1, 2]).all() and (result.batch.parents[14:] == [-1, 0, 0, 2]).all()
+    assert result.batch.truncated[[13, 28]].all()
+
+
+def assemble_with(records, tree_of):
+    asm = TransitionAssembler(tree_of=tree_of)
+    transitions = asm.push_many(records) + asm.flush()
+
+    class Result:
+        batch = TransitionBatch.from_transitions(transitions)
+        stats, skips = asm.stats, asm.skips
+
+    return Result
+
+
+@pytest.mark.parametrize(
+    "tree_of",
+    [
+        lambda names: (_ for _ in ()).throw(TreeError("no robot_description yet")),
+        lambda names: KinematicTree.chain(len(names), [f"j{k}" for k in range(len(names))]),  # other names
+        lambda names: KinematicTree.from_parents(range(-1, len(names) - 1), tuple(reversed(names))),
+        lambda names: np.arange(len(names)),  # joint 0 its own parent
+        lambda names: np.array([-1.0] * len(names)),
+        lambda names: [-1] * (len(names) + 1),
+    ],
+)
+def test_a_state_whose_tree_cannot_be_told_is_malformed(policy, tree_of):
+    loop = record(SamplingController(policy, seed=2), episodes=((3, 5),))
+    result = assemble_with(loop.records, tree_of)
+    assert len(result.batch) == 0 and result.skips.malformed == 5 and result.stats.states == 6

@@ -24,8 +24,8 @@ from morph_core.msgs.records import (
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
-from morph_core.protocol.transitions import assemble
-from trainer.bag_cli import main
+from morph_core.protocol.transitions import TransitionConfig, assemble
+from trainer.bag_cli import main, summarize_bag
 from trainer.bag_messages import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -104,6 +104,20 @@ def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, poli
     for k, v in expected.arrays().items():
         np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
     assert got.num_episodes == 3
+
+
+def test_a_bag_exports_chains_of_message_order_unless_tree_of_says_otherwise(tmp_path, sampled_records):
+    bag = write_bag(tmp_path / "run", sampled_records)
+    out = tmp_path / "t.npz"
+    assert main(["export", str(bag), "--out", str(out)]) == 0
+    got = TransitionBatch.from_npz(out)
+    assert got.is_chains and got.parents[-1].tolist() == [-1, 0, 1, 2, 3, 4]
+    # The seam robot_description will fill: a tree per state's joint names (here a star under joint 0).
+    trees = summarize_bag(bag, TransitionConfig(), tree_of=lambda names: [-1] + [0] * (len(names) - 1)).batch
+    assert trees.parents[0].tolist() == [-1, 0, 0, -1, -1, -1] and trees.parents[-1].tolist() == [-1, 0, 0, 0, 0, 0]
+    for k, v in got.arrays().items():
+        if k != "parents":
+            np.testing.assert_array_equal(trees.arrays()[k], v, err_msg=k)
 
 
 def test_without_policy_info_export_says_so_and_can_refuse(tmp_path, policy, capsys):

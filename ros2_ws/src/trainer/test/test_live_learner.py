@@ -245,3 +245,37 @@ def test_the_update_compiled_ahead_is_the_graph_the_first_update_runs(tmp_path, 
     row = learner.update()
     assert len(gradient.graphs) == 1 and not gradient.fell_back
     assert row["version"] == 1 and np.isfinite(row["approx_kl"])
+
+
+def test_steps_carry_their_tree_into_the_update_and_an_episode_is_one_tree(tmp_path):
+    torch.set_num_threads(1)
+    torch.manual_seed(3)
+    loop = LoopbackRecording(SwimmerSim(6, seed=0, effort_timeout=None), SamplingController(GraphActorCritic(), 2))
+    loop.run(70)
+    loop.finish()
+    tree = np.array([-1, 0, 0, 1, 1, 2])
+
+    def episode(tree_of=None):
+        asm = TransitionAssembler(tree_of=tree_of)
+        steps = asm.push_many(loop.records) + asm.flush()
+        assert len(steps) == 70 and steps[-1].truncated
+        return steps
+
+    chains, trees = episode(), episode(lambda names: tree)
+    assert all(np.array_equal(t.parents, np.arange(6) - 1) for t in chains)  # message order: a chain
+    assert all(np.array_equal(t.parents, tree) for t in trees)
+
+    params = {}
+    for name, steps in (("chains", chains), ("trees", trees)):
+        learner = LiveLearner(SMALL, tmp_path / name)
+        assert learner.add_episode(steps, [0] * 70) == 70
+        pool, versions = learner.take_pool()
+        assert pool[0].is_chains == (name == "chains")
+        np.testing.assert_array_equal(pool[0].parents, np.tile(tree if name == "trees" else np.arange(6) - 1, (70, 1)))
+        learner.update((pool, versions))
+        params[name] = learner.learner.params.theta.detach().clone()
+    assert not torch.equal(params["chains"], params["trees"])  # the same steps, read as another robot
+
+    # Two trees in one episode (its steps disagree on the robot): not one episode, dropped.
+    learner = LiveLearner(SMALL, tmp_path / "mixed")
+    assert learner.add_episode(chains[:35] + trees[35:], [0] * 70) == 0 and learner.dropped_no_info == 70

@@ -25,6 +25,12 @@ objective still holds, only the drop cannot be applied. Steps without
 policy_info (no behaviour log-prob) cannot enter PPO: the episode keeps only
 its part after the last such step.
 
+Each step carries its robot's tree (``Transition.parents``, the assembler's
+``tree_of``: a chain in the ``joint_states`` message's order unless told
+otherwise); the values, GAE bootstraps and the update read each sample with
+its own tree (``train_from_data.Samples``). An episode is one robot: one whose
+steps disagree on their joints or tree is dropped (``dropped_no_info``).
+
 The run directory is the simulator trainer's: config.json, progress.csv
 (``train_from_data.log_columns`` plus live columns), tb/, checkpoints every
 ``checkpoint_interval`` steps, state.safetensors (policy, Adam, generator,
@@ -74,6 +80,7 @@ from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns
 from morph_core.algo.update import Learner, compile_ahead, update, with_proximal
 from morph_core.msgs.policy_weights import pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.index_plan import chain_parents
 from morph_core.policy.weights import SignedWeights, write_checkpoint
 from morph_core.protocol.transition_batch import TransitionBatch
 from morph_core.protocol.transitions import Transition
@@ -142,6 +149,11 @@ def live_log_columns(cfg: TrainConfig) -> list[str]:
 
 class NonFiniteUpdate(RuntimeError):
     """An update made the policy's parameters NaN or inf; the learner kept the ones before it."""
+
+
+def _tree(t: Transition) -> np.ndarray:
+    """A step's parents (a chain's when it has none)."""
+    return chain_parents(len(t.joint_pos)) if t.parents is None else np.asarray(t.parents)
 
 
 class LiveLearner:
@@ -222,9 +234,10 @@ class LiveLearner:
         kept = list(transitions[keep_from:])
         if not kept:
             return 0
-        n = len(kept[0].joint_pos)
-        if not all(len(t.joint_pos) == n for t in kept) or not self.cfg.min_joints <= n <= self.cfg.max_joints:
-            self.dropped_no_info += len(kept)  # a chain the run does not train on
+        n, tree = len(kept[0].joint_pos), _tree(kept[0])
+        same = all(len(t.joint_pos) == n and np.array_equal(_tree(t), tree) for t in kept)
+        if not same or not self.cfg.min_joints <= n <= self.cfg.max_joints:
+            self.dropped_no_info += len(kept)  # a robot the run does not train on, or two robots in one episode
             return 0
         self._pool.append(TransitionBatch.from_transitions(kept))
         self._pool_versions.append(np.array([np.nan if v is None else v for v in versions[keep_from:]], np.float64))

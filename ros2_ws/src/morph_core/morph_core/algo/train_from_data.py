@@ -106,9 +106,16 @@ class DataMismatchError(ValueError):
 
 
 def data_digest(data: TransitionBatch) -> str:
-    """SHA-256 of the transitions (every array's key, dtype, shape and bytes): the data's identity."""
+    """SHA-256 of the transitions (every array's key, dtype, shape and bytes): the data's identity.
+
+    Data whose every row is a chain leave ``parents`` out, so their digest is the one they had before the key
+    existed (a run started on them resumes on them); any tree puts the parents in, so data that differ only in
+    their graphs differ."""
     h = hashlib.sha256()
+    chains = data.is_chains
     for key, a in data.arrays().items():
+        if key == "parents" and chains:
+            continue
         a = np.ascontiguousarray(a)
         h.update(f"{key}:{a.dtype.str}:{a.shape};".encode())
         h.update(a.tobytes())
@@ -178,7 +185,11 @@ class Samples:
     """The transitions as the tensors an update needs (float32, padded to ``width`` joints, the run's
     longest chain: the update's per-dimension statistics go up to it), and the GAE layout: episodes as the
     columns of an [L, E] grid (L = longest episode), so the recursion runs L steps over E episodes at once
-    rather than once per transition."""
+    rather than once per transition.
+
+    ``parents`` [N, width] int64 (-1 at padding) is each sample's tree, None when every sample is a chain (the
+    policy's chain path); the states, the truncated steps' next states (the same robot, so the same row) and
+    every batch are read with it."""
 
     def __init__(self, data: TransitionBatch, width: int):
         if width < data.max_joints:
@@ -191,6 +202,10 @@ class Samples:
 
         self.size = len(data)
         self.num_joints = torch.from_numpy(data.num_joints.astype(np.int64))
+        self.parents = None
+        if not data.is_chains:
+            padded = np.pad(data.parents, ((0, 0), (0, width - data.max_joints)), constant_values=-1)
+            self.parents = torch.from_numpy(np.ascontiguousarray(padded, dtype=np.int64))
         self.joint_pos, self.joint_vel = f32(data.joint_pos, True), f32(data.joint_vel, True)
         self.global_feats, self.actions = f32(data.global_feats), f32(data.action, True)
         self.log_prob, self.rewards = f32(data.log_prob), f32(data.reward)
@@ -218,16 +233,18 @@ class Samples:
     def values(self, policy: GraphActorCritic, chunk: int = 1024) -> tuple[torch.Tensor, torch.Tensor]:
         """(V of every state [N], V of every truncated step's next state [K]) under ``policy`` now."""
 
-        def value(pos, vel, glob, nj) -> torch.Tensor:
+        def value(pos, vel, glob, nj, parents) -> torch.Tensor:
             out = []
             for s in range(0, len(nj), chunk):
+                tree = None if parents is None else parents[s : s + chunk]
                 chains = ChainBatch.from_padded(pos[s : s + chunk], vel[s : s + chunk], glob[s : s + chunk],
-                                                nj[s : s + chunk])  # fmt: skip
+                                                nj[s : s + chunk], parents=tree)  # fmt: skip
                 out.append(policy(chains)[2])
             return torch.cat(out) if out else torch.zeros(0)
 
-        states = value(self.joint_pos, self.joint_vel, self.global_feats, self.num_joints)
-        finals = value(*self.next_obs, self.num_joints[self.truncated_rows])
+        rows = self.truncated_rows
+        states = value(self.joint_pos, self.joint_vel, self.global_feats, self.num_joints, self.parents)
+        finals = value(*self.next_obs, self.num_joints[rows], None if self.parents is None else self.parents[rows])
         return states, finals
 
     def advantages(
@@ -259,6 +276,7 @@ class Samples:
             values=values[index],
             advantages=advantages[index],
             returns=returns[index],
+            parents=None if self.parents is None else self.parents[index],
         )
 
 

@@ -1,12 +1,22 @@
 """Transitions as flat per-step arrays: the layout ``morph-bag export`` writes and a trainer reads.
 
-One row per transition, in stream order; chains of different lengths are
-zero-padded to the longest one (``num_joints`` says how many entries of a row
-are real). Rows of one ``episode`` are consecutive control periods of one
-swimmer; the last row of every episode is ``terminated`` or ``truncated``,
-and ``next_*`` always hold the observation after the step (what a truncated
-step is bootstrapped on: ``reward + gamma * V(next)``, as the simulator
-trainer does).
+One row per transition, in stream order; robots with different numbers of
+joints are zero-padded to the largest one (``num_joints`` says how many entries
+of a row are real). Rows of one ``episode`` are consecutive control periods of
+one robot, so they share ``num_joints`` and ``parents`` (checked); the last
+row of every episode is ``terminated`` or ``truncated``, and ``next_*`` always
+hold the observation after the step, of the same robot (what a truncated step
+is bootstrapped on: ``reward + gamma * V(next)``, as the simulator trainer
+does).
+
+The robot's graph is ``parents`` (``policy.index_plan``): joints in
+topological order, each row's parent joint of each joint, -1 when the joint
+hangs off the torso and at padding; a chain of N joints is [-1, 0, ..., N-2].
+A file written before the key existed holds chains (the joint order of the
+``joint_states`` message was the chain), and reads as such. Parents that are
+not int64 [T, J], not -1 at padding, a parent not earlier than its joint, or
+two trees in one episode are refused (``TransitionBatchError``, naming the row
+and, from ``from_npz``, the file).
 
 Keys of the ``.npz`` (T rows, J = longest chain, 0 if T = 0):
 
@@ -25,6 +35,8 @@ Keys of the ``.npz`` (T rows, J = longest chain, 0 if T = 0):
     next_joint_pos   float64 [T, J]  observation at the next state
     next_joint_vel   float64 [T, J]
     next_global      float64 [T, 4]
+    parents          int64   [T, J]  parent joint of each joint (-1: the torso, and at padding); optional when
+                                     read: without it every row is a chain
 """
 
 from __future__ import annotations
@@ -38,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES
+from morph_core.policy.index_plan import chain_parents
 from morph_core.util.atomic import atomic_write_bytes
 
 # npz key -> (dataclass field, dtype, per-row shape: "J" = padded joints)
@@ -57,9 +70,14 @@ _LAYOUT: dict[str, tuple[str, type, tuple]] = {
     "next_joint_pos": ("next_joint_pos", np.float64, ("J",)),
     "next_joint_vel": ("next_joint_vel", np.float64, ("J",)),
     "next_global": ("next_global", np.float64, (NUM_GLOBAL_FEATURES,)),
+    "parents": ("parents", np.int64, ("J",)),
 }
 EXPORT_KEYS = tuple(_LAYOUT)
 """every key of an exported ``.npz``, in the order written"""
+OPTIONAL_KEYS = ("parents",)
+"""keys a reader may find missing (files written before them): without ``parents`` every row is a chain"""
+_PAD = {"parents": -1}
+"""padding value of a [T, J] key other than 0"""
 
 
 class TransitionBatchError(ValueError):
@@ -90,25 +108,36 @@ class TransitionBatch:
     next_joint_pos: np.ndarray
     next_joint_vel: np.ndarray
     next_global: np.ndarray
+    parents: np.ndarray | None = None
+    """[T, J] int64; None (as given) means every row is a chain, and becomes chain parents"""
 
     def __post_init__(self):
+        if self.parents is None:
+            object.__setattr__(self, "parents", _chain_rows(np.asarray(self.num_joints), _width(self.joint_pos)))
         _check(self.arrays())
 
     # -- building ---------------------------------------------------------------
     @classmethod
     def empty(cls) -> TransitionBatch:
-        return cls.from_arrays({k: np.zeros((0, *_row_shape(s, 0)), dtype=d) for k, (_, d, s) in _LAYOUT.items()})
+        return cls.from_arrays(cls._blank(0, 0))
+
+    @classmethod
+    def _blank(cls, t_count: int, width: int) -> dict[str, np.ndarray]:
+        layout = _LAYOUT.items()
+        return {k: np.full((t_count, *_row_shape(s, width)), _PAD.get(k, 0), dtype=d) for k, (_, d, s) in layout}
 
     @classmethod
     def from_transitions(cls, transitions: Sequence) -> TransitionBatch:
-        """Pad a sequence of ``protocol.transitions.Transition`` into one batch (episode ids kept)."""
+        """Pad a sequence of ``protocol.transitions.Transition`` into one batch (episode ids kept; a
+        transition's ``parents`` None is a chain)."""
         if not transitions:
             return cls.empty()
         t_count = len(transitions)
         width = max(len(t.joint_pos) for t in transitions)
-        out = {k: np.zeros((t_count, *_row_shape(s, width)), dtype=d) for k, (_, d, s) in _LAYOUT.items()}
+        out = cls._blank(t_count, width)
         for i, t in enumerate(transitions):
             n = len(t.joint_pos)
+            out["parents"][i, :n] = chain_parents(n) if t.parents is None else t.parents
             out["episode"][i] = t.episode
             out["stamp_ns"][i] = t.stamp_ns
             out["num_joints"][i] = n
@@ -128,12 +157,13 @@ class TransitionBatch:
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> TransitionBatch:
-        """From a dict with exactly the layout's keys (raises ``TransitionBatchError`` otherwise)."""
-        missing = [k for k in EXPORT_KEYS if k not in arrays]
+        """From a dict with exactly the layout's keys, those of ``OPTIONAL_KEYS`` optional (raises
+        ``TransitionBatchError`` otherwise). Without ``parents`` every row is a chain."""
+        missing = [k for k in EXPORT_KEYS if k not in arrays and k not in OPTIONAL_KEYS]
         extra = sorted(set(arrays) - set(EXPORT_KEYS))
         if missing or extra:
             raise TransitionBatchError(f"not a transition batch: missing keys {missing}, unknown keys {extra}")
-        return cls(**{field: np.asarray(arrays[k]) for k, (field, _, _) in _LAYOUT.items()})
+        return cls(**{field: np.asarray(arrays[k]) for k, (field, _, _) in _LAYOUT.items() if k in arrays})
 
     @classmethod
     def concatenate(cls, batches: Sequence[TransitionBatch]) -> TransitionBatch:
@@ -149,7 +179,7 @@ class TransitionBatch:
             for k, (_, _, shape) in _LAYOUT.items():
                 a = arrays[k]
                 if "J" in shape:
-                    a = np.pad(a, ((0, 0), (0, width - a.shape[1])))
+                    a = np.pad(a, ((0, 0), (0, width - a.shape[1])), constant_values=_PAD.get(k, 0))
                 out[k].append(a)
             # Episode ids restart at 0 per batch in stream order: shift past the previous batch's.
             out["episode"][-1] = np.unique(arrays["episode"], return_inverse=True)[1].astype(np.int64) + offset
@@ -163,6 +193,11 @@ class TransitionBatch:
     @property
     def max_joints(self) -> int:
         return self.joint_pos.shape[1]
+
+    @property
+    def is_chains(self) -> bool:
+        """Whether every row is a chain (as every file written before ``parents`` existed)."""
+        return bool(np.array_equal(self.parents, _chain_rows(self.num_joints, self.max_joints)))
 
     @property
     def num_episodes(self) -> int:
@@ -195,17 +230,33 @@ class TransitionBatch:
 
     @classmethod
     def from_npz(cls, path: str | Path) -> TransitionBatch:
-        """Read a file written by ``to_npz``; raises ``TransitionBatchError`` if it is not one."""
+        """Read a file written by ``to_npz`` (or before ``parents`` existed: chains); raises
+        ``TransitionBatchError``, naming the file, if it is not one."""
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-        except (zipfile.BadZipFile, ValueError, EOFError) as err:
+        except (zipfile.BadZipFile, ValueError, EOFError, OSError) as err:
             raise TransitionBatchError(f"{path}: not an .npz of arrays ({err})") from err
-        return cls.from_arrays(arrays)
+        try:
+            return cls.from_arrays(arrays)
+        except TransitionBatchError as err:
+            raise TransitionBatchError(f"{path}: {err}") from None
 
 
 def _row_shape(shape: tuple, width: int) -> tuple[int, ...]:
     return tuple(width if s == "J" else s for s in shape)
+
+
+def _width(joint_pos: np.ndarray) -> int:
+    return joint_pos.shape[1] if joint_pos.ndim == 2 else 0
+
+
+def _chain_rows(num_joints: np.ndarray, width: int) -> np.ndarray:
+    """[T, width] int64 chain parents of rows of ``num_joints`` joints (-1 at padding)."""
+    j = np.arange(width, dtype=np.int64)
+    # num_joints not [T] integers: no rows here, and _check refuses num_joints itself (before parents)
+    n = num_joints.reshape(-1, 1) if num_joints.ndim == 1 and num_joints.dtype.kind in "iu" else np.zeros((0, 1))
+    return np.where(j < n, j - 1, -1).astype(np.int64)
 
 
 def _check(arrays: dict[str, np.ndarray]) -> None:
@@ -219,3 +270,34 @@ def _check(arrays: dict[str, np.ndarray]) -> None:
     n = arrays["num_joints"]
     if t_count and (n.min() < 1 or n.max() > width):
         raise TransitionBatchError(f"num_joints must be in 1..{width} (the padded width), got {n.min()}..{n.max()}")
+    _check_parents(arrays["parents"], n, arrays["episode"])
+
+
+def _check_parents(parents: np.ndarray, num_joints: np.ndarray, episode: np.ndarray) -> None:
+    """Each row's parents a tree in topological order, -1 at padding, one tree per episode (shape and dtype
+    are checked with the other keys)."""
+    j = np.arange(parents.shape[1])
+    real = j < num_joints[:, None]
+    bad = real & ((parents < -1) | (parents >= j))
+    if bad.any():
+        row, joint = (int(x) for x in np.argwhere(bad)[0])
+        raise TransitionBatchError(
+            f"parents: row {row}, joint {joint} has parent {int(parents[row, joint])}: it must be -1 (the torso) "
+            f"or an earlier joint (0..{joint - 1}); joints go in topological order"
+        )
+    bad = ~real & (parents != -1)
+    if bad.any():
+        row, joint = (int(x) for x in np.argwhere(bad)[0])
+        raise TransitionBatchError(
+            f"parents: row {row}, joint {joint} is padding (the row has {int(num_joints[row])} joints) but has "
+            f"parent {int(parents[row, joint])}, not -1"
+        )
+    same = episode[1:] == episode[:-1]
+    changed = same & ((num_joints[1:] != num_joints[:-1]) | (parents[1:] != parents[:-1]).any(axis=1))
+    if changed.any():
+        row = int(np.flatnonzero(changed)[0]) + 1
+        raise TransitionBatchError(
+            f"parents: row {row} continues episode {int(episode[row])} with another robot than row {row - 1} "
+            f"({int(num_joints[row])} joints, parents {parents[row, : num_joints[row]].tolist()} after "
+            f"{int(num_joints[row - 1])}, {parents[row - 1, : num_joints[row - 1]].tolist()}): an episode has one tree"
+        )

@@ -32,9 +32,20 @@ state named by its answer tag (``msgs.stamps``), a policy_info carries the
 stamp of the state it answers. An untagged effort (another controller) is
 taken as the answer to the latest state received before it.
 
+The robot's graph. Each transition carries its state's ``parents``
+(``policy.index_plan``: joint j's parent joint in the message's joint order,
+-1 off the torso). Which tree a state's joints form is the assembler's
+``tree_of`` (a ``TreeOf``): called with a state's joint names as the state
+arrives, it returns the tree (a ``policy.tree.KinematicTree`` listing those
+names in that order, or the parent array itself). The default,
+``chain_of_names``, is today's meaning: the joints form a chain in the
+message's order. A state whose tree cannot be told (``tree_of`` raises
+``ValueError``, or gives a tree that does not fit the names) is skipped as
+``malformed``.
+
 Episode boundaries (no transition across them): an episode announcement for
-s' (``EpisodeStartRecord``), a change of joint names (a new robot), or s'
-not stamped one control period after s (a lost state, a restarted sim whose
+s' (``EpisodeStartRecord``), a change of joint names or of their tree (a new
+robot), or s' not stamped one control period after s (a lost state, a restarted sim whose
 clock went back). A different state with the latest state's own stamp is a
 robot rebuilt or reset without the clock moving on (the sim node's runtime
 rebuild does this): the odometry and announcement received after the old
@@ -55,7 +66,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict, deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -72,7 +83,41 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.policy.index_plan import chain_parents, check_parents
+from morph_core.policy.tree import KinematicTree
 from morph_core.protocol.transition_batch import TransitionBatch
+
+TreeOf = Callable[[tuple[str, ...]], "KinematicTree | np.ndarray"]
+"""A state's joint names (in the ``joint_states`` message's order) -> the tree they form: a ``KinematicTree``
+whose ``names`` are exactly those names in that order, or the [N] parent array in that order. Raises
+``ValueError`` (e.g. ``policy.tree.TreeError``) when it cannot tell. Called once per state, as it arrives."""
+
+_CHAINS: dict[int, np.ndarray] = {}
+
+
+def chain_of_names(names: tuple[str, ...]) -> np.ndarray:
+    """The default ``TreeOf``: the joints form a chain in the message's order ([-1, 0, ..., N-2], read-only)."""
+    n = len(names)
+    parents = _CHAINS.get(n)
+    if parents is None:
+        parents = chain_parents(n)
+        parents.setflags(write=False)
+        _CHAINS[n] = parents
+    return parents
+
+
+def _parents_of(tree_of: TreeOf, names: tuple[str, ...]) -> np.ndarray:
+    """``tree_of(names)`` as a checked read-only [N] int64 parent array; ValueError if it does not fit."""
+    tree = tree_of(names)
+    if isinstance(tree, KinematicTree):
+        if tree.names != tuple(names):
+            raise ValueError(f"the tree's joints {list(tree.names)} are not the state's {list(names)}, in its order")
+        return tree.parents
+    if tree is _CHAINS.get(len(names)):
+        return tree
+    parents = check_parents(tree, np.ones(len(names), dtype=bool))
+    parents.setflags(write=False)
+    return parents
 
 
 @dataclass(frozen=True)
@@ -246,6 +291,9 @@ class Transition:
     next_joint_pos: np.ndarray
     next_joint_vel: np.ndarray
     next_global: np.ndarray
+    parents: np.ndarray | None = None
+    """[N] int64 parent joint of each joint (-1: the torso), the state's and the next state's (an episode has one
+    tree); None: a chain"""
 
 
 @dataclass
@@ -276,13 +324,18 @@ class _Slot:
     obs: _Observation | None = None
     obs_error: str | None = None
     observed: bool = False
+    parents: np.ndarray | None = None
+    """the state's tree (``TreeOf``), None if it could not be told"""
 
 
 class TransitionAssembler:
     """Records in, transitions out, for one stream (one robot); see the module docstring."""
 
-    def __init__(self, config: TransitionConfig | None = None):
+    def __init__(self, config: TransitionConfig | None = None, tree_of: TreeOf | None = None):
+        """``tree_of``: the tree a state's joint names form (see the module docstring); default
+        ``chain_of_names``, a chain in the message's order."""
         self.config = config or TransitionConfig()
+        self.tree_of = chain_of_names if tree_of is None else tree_of
         self.skips = SkipCounts()
         self.stats = StreamStats()
         self._period_ns = self.config.control_period_ns
@@ -397,22 +450,31 @@ class TransitionAssembler:
         on. The odometry and announcement received since the old state are the new state's."""
         odom, announced = old.later_odom, old.announced_later
         old.later_odom, old.announced_later = None, False
-        cause = "announced" if announced else "new_chain" if record.names != old.state.names else "stamp_gap"
+        # Without an odometry of its own, which state the stamp's odometry belongs to cannot be told.
+        new = _Slot(record.stamp_ns, self._states_seen, odom=odom, announced=announced, conflict=odom is None)
+        self._set_state(new, record)
+        cause = "announced" if announced else "new_chain" if _other_robot(old, new) else "stamp_gap"
         self.stats.count_boundary(cause)
         self._cut()
         self._judged.pop(old.stamp, None)
         if cause != "stamp_gap":
             self._unwrap.reset()
-        # Without an odometry of its own, which state the stamp's odometry belongs to cannot be told.
-        new = _Slot(record.stamp_ns, self._states_seen, odom=odom, announced=announced, conflict=odom is None)
         self._add_state(record, new)
+
+    def _set_state(self, slot: _Slot, record: JointStateRecord) -> None:
+        """Put the state in its slot, with its tree (``tree_of``, asked once, as the state arrives)."""
+        slot.state = record
+        try:
+            slot.parents = _parents_of(self.tree_of, record.names)
+        except ValueError:
+            slot.parents = None  # judged malformed (_observe)
 
     def _add_state(self, record: JointStateRecord, slot: _Slot | None) -> None:
         if slot is None:
             slot = _Slot(record.stamp_ns, self._states_seen)
         self._slots[record.stamp_ns] = slot
         self._stateless.pop(record.stamp_ns, None)
-        slot.state = record
+        self._set_state(slot, record)
         self._sequence.append(record.stamp_ns)
         self._states_seen += 1
         self.stats.states += 1
@@ -522,12 +584,13 @@ class TransitionAssembler:
             next_joint_pos=obs_next.pos,
             next_joint_vel=obs_next.vel,
             next_global=obs_next.glob,
+            parents=a.parents,
         )
 
     def _boundary(self, a: _Slot, b: _Slot) -> str | None:
         if b.announced or b.announced_later:
             return "announced"
-        if b.state.names != a.state.names:
+        if _other_robot(a, b):
             return "new_chain"
         if abs(b.stamp - a.stamp - self._period_ns) > self.config.stamp_tolerance_ns:
             return "stamp_gap"
@@ -549,7 +612,7 @@ class TransitionAssembler:
             except JointStateError:
                 slot.obs_error = "malformed"
                 return None
-            if s.effort.size not in (0, len(s.names)):
+            if s.effort.size not in (0, len(s.names)) or slot.parents is None:
                 slot.obs_error = "malformed"
             elif odom is None:
                 slot.obs_error = "no_odometry"
@@ -647,6 +710,14 @@ def _finite(*values) -> bool:
         elif not np.isfinite(np.asarray(v, dtype=np.float64)).all():
             return False
     return True
+
+
+def _other_robot(a: _Slot, b: _Slot) -> bool:
+    """Whether two states are of different robots: other joint names, or the same names in another tree (a
+    state whose tree could not be told is skipped as malformed, not a boundary)."""
+    if a.state.names != b.state.names:
+        return True
+    return a.parents is not None and b.parents is not None and not np.array_equal(a.parents, b.parents)
 
 
 def _same_state(a: JointStateRecord, b: JointStateRecord) -> bool:
