@@ -144,8 +144,8 @@ class _BangBang(NumpyPolicy):
     """The policy's own mean action, but +-1 on every joint of a 64-joint chain: driven so from rest, 64
     joints can diverge at their first step (MuJoCo's bad-acceleration warning; one of three episodes here)."""
 
-    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints):
-        mean = super().mean_actions(joint_pos, joint_vel, global_feats, num_joints)
+    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None):
+        mean = super().mean_actions(joint_pos, joint_vel, global_feats, num_joints, parents)
         return np.where((num_joints == 64)[:, None], bang(mean.shape[1]), mean).astype(np.float32)
 
 
