@@ -128,14 +128,15 @@ def test_random_trees_keep_their_size_and_branching_limit(branching):
         ("octopus:3", "unknown body family 'octopus'"),
         ("star:1x3", "star arms must be at least 2"),
         (f"star:{STAR_MAX_ARMS + 1}x1", f"star arms must be at most {STAR_MAX_ARMS}"),
-        ("star:4x17", "more than the maximum of 64"),
+        ("star:4x9", "more than a tree's maximum of 32"),
         ("y:0x2", "y stem joints must be at least 1"),
         ("y:1x0", "y branch joints must be at least 1"),
         ("comb:2", "comb spine joints must be at least 3"),
-        ("comb:33", "more than the maximum of 64"),
+        ("comb:17", "more than a tree's maximum of 32"),
+        ("y:31x1", "more than a tree's maximum of 32"),
         ("random:3-10:b0", "branching must be in"),
         (f"random:3-10:b{RANDOM_MAX_BRANCHING + 1}", "branching must be in"),
-        ("random:3-100", "at most 64"),
+        ("random:3-33", "at most 32"),
         ("star:3", "cannot read body item"),
         ("2 - 4", "cannot read body item"),
         ("x" * 2000, "longer than"),
@@ -171,3 +172,33 @@ def test_fuzzed_specs_parse_or_raise_value_error_only():
         assert lo <= tree.num_joints <= hi
     assert parsed > 100  # the fuzzer reaches valid specs too, not only errors
     assert time.monotonic() - started < 60
+
+
+def test_drawn_trees_swim_without_diverging_under_random_and_bang_bang_actions():
+    # The fast version of bench/check_body_stability.py (its full sweep is quoted in docs/bodies.md).
+    from morph_core.env.swimmer_batch import SwimmerBatch
+
+    rng = np.random.default_rng(0)
+    trees = parse_bodies("star:2-4x1-3,y:1-3x1-3,comb:3-6").members()
+    trees += [parse_bodies(f"random:4-16:b{b}").draw(rng) for b in range(2, RANDOM_MAX_BRANCHING + 1) for _ in range(6)]
+    trees += [parse_bodies(spec).first() for spec in ("star:4x8", "y:14x9", "comb:16", "star:2x16")]  # the largest
+    for tree in trees:
+        n = tree.num_joints
+        batch = SwimmerBatch(tree, [0, 1, 2, 3])
+        diverged = np.zeros(4, dtype=bool)
+        for step in range(150):
+            flip = 1.0 if step % 2 == 0 else -1.0
+            bang = 1.0 if (step // 10) % 2 == 0 else -1.0
+            actions = np.stack(
+                [
+                    rng.uniform(-1, 1, n),  # random
+                    np.full(n, flip),  # all +1 / -1, switching every step
+                    np.full(n, bang),  # all +1 / -1, switching every 10 steps
+                    bang * np.where(np.arange(n) % 2 == 0, 1.0, -1.0),  # alternating signs
+                ]
+            )
+            diverged |= batch.advance(actions)[1]
+        assert not diverged.any(), (body_label(tree), tree.parents.tolist(), diverged)
+        state = np.zeros((4, n)), np.zeros((4, n)), np.zeros((4, 4))
+        batch.write_observation(*state)
+        assert all(np.isfinite(part).all() for part in state)

@@ -24,8 +24,8 @@ from morph_core.policy.tree import KinematicTree
 
 LENGTHS = [1, 6, 64]
 TREES = [
-    *(parse_bodies(spec).first() for spec in ("star:3x2", "y:2x3", "comb:5", "star:4x16")),
-    *(parse_bodies(f"random:8-40:b{b}").draw(np.random.default_rng(b)) for b in (2, 3)),
+    *(parse_bodies(spec).first() for spec in ("star:3x2", "y:2x3", "comb:5", "star:4x8")),
+    *(parse_bodies(f"random:8-32:b{b}").draw(np.random.default_rng(b)) for b in (2, 3)),
 ]
 BODIES = [*LENGTHS, *TREES]
 

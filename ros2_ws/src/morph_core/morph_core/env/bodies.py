@@ -12,7 +12,8 @@ A spec is one or more items separated by commas; at each reset one item is drawn
                                                link (the torso included); B defaults to 2
 
 Every size of a named shape (K, A, S, B) may be a range ``LO-HI`` too (``star:2-3x1-2``: the four stars
-of 2..3 arms of 1..2 joints, one drawn uniformly). Limits: at most ``MAX_JOINTS`` joints per body,
+of 2..3 arms of 1..2 joints, one drawn uniformly). Limits: chains 1..``MAX_JOINTS`` joints (as
+``num_joints``), trees (named or random) at most ``MAX_TREE_JOINTS``,
 ``star`` K in 2..``STAR_MAX_ARMS``, ``y`` S >= 1, B >= 1, ``comb`` S >= 3 (``comb:2`` would be
 ``y:1x1``), ``random`` B in 1..``RANDOM_MAX_BRANCHING``; the caps come from the stability sweep
 (``bench/check_body_stability.py``, docs/bodies.md). A bad spec raises ``ValueError`` with the reason.
@@ -40,6 +41,9 @@ import numpy as np
 from morph_core.env.model import MAX_JOINTS
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
+MAX_TREE_JOINTS = 32
+"""most joints of a tree family's member: chains of 56+ joints diverge at Swimmer-v5's timestep from the reset
+noise alone (docs/bodies.md); trees are kept well clear of that depth, and the sweep covers every size allowed"""
 STAR_MAX_ARMS = 4
 """most arms off the torso: the rest directions fan over 120 degrees (``env.model``); more would crowd it"""
 RANDOM_MAX_BRANCHING = 3
@@ -252,7 +256,7 @@ def _parse_item(item: str) -> Family:
     elif m := _COMB_RE.fullmatch(item):
         family = CombFamily(_pair(m[1], m[2], "comb spine joints", 3))
     elif m := _RANDOM_RE.fullmatch(item):
-        lo, hi = _pair(m[1], m[2], "random tree joints", 1)
+        lo, hi = _pair(m[1], m[2], "random tree joints", 1, MAX_TREE_JOINTS)
         b = DEFAULT_BRANCHING if m[3] is None else int(m[3])
         if not 1 <= b <= RANDOM_MAX_BRANCHING:
             raise ValueError(f"random tree branching must be in 1..{RANDOM_MAX_BRANCHING}, got b{b}")
@@ -264,8 +268,8 @@ def _parse_item(item: str) -> Family:
             raise ValueError(f"unknown body family {family_name[:20]!r} (known: {known})")
         raise ValueError(f"cannot read body item {item[:40]!r} (forms: {known})")
     lo, hi = family.joint_range
-    if hi > MAX_JOINTS:
-        raise ValueError(f"{family} has a member of {hi} joints, more than the maximum of {MAX_JOINTS}")
+    if hi > MAX_TREE_JOINTS:
+        raise ValueError(f"{family} has a member of {hi} joints, more than a tree's maximum of {MAX_TREE_JOINTS}")
     return family
 
 
@@ -334,14 +338,14 @@ def parse_bodies(spec: str) -> BodyMix:
 def _named_labels() -> dict[bytes, str]:
     """Parents (int64 bytes) -> label of every shape the named families can draw."""
     families: list[_Finite] = [
-        StarFamily((2, STAR_MAX_ARMS), (1, MAX_JOINTS // 2)),
-        YFamily((1, MAX_JOINTS - 2), (1, (MAX_JOINTS - 1) // 2)),
-        CombFamily((3, (MAX_JOINTS + 1) // 2)),
+        StarFamily((2, STAR_MAX_ARMS), (1, MAX_TREE_JOINTS // 2)),
+        YFamily((1, MAX_TREE_JOINTS - 2), (1, (MAX_TREE_JOINTS - 1) // 2)),
+        CombFamily((3, (MAX_TREE_JOINTS + 1) // 2)),
     ]
     labels: dict[bytes, str] = {}
     for family in families:
         for label, parents in family.shapes():
-            if len(parents) <= MAX_JOINTS:
+            if len(parents) <= MAX_TREE_JOINTS:
                 key = np.asarray(parents, dtype=np.int64).tobytes()
                 if key in labels:  # two named shapes with one parent array: the families would be ambiguous
                     raise AssertionError(f"{label} is also {labels[key]}")
