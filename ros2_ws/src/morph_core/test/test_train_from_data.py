@@ -235,19 +235,6 @@ def test_a_batch_never_leaves_one_sample_for_its_last_minibatch(tmp_path, behavi
 # -- trees ------------------------------------------------------------------------------------
 
 
-def with_trees(data: TransitionBatch, seed: int = 0) -> TransitionBatch:
-    """``data`` with a random tree per episode (joint j's parent drawn from -1..j-1), nothing else changed."""
-    rng = np.random.default_rng(seed)
-    parents = np.full(data.parents.shape, -1, np.int64)
-    for e in np.unique(data.episode):
-        rows = np.flatnonzero(data.episode == e)
-        n = int(data.num_joints[rows[0]])
-        parents[rows, :n] = [-1, *(rng.integers(-1, j) for j in range(1, n))]
-    trees = TransitionBatch.from_arrays({**data.arrays(), "parents": parents})
-    assert not trees.is_chains
-    return trees
-
-
 def _old_digest(data: TransitionBatch) -> str:
     """data_digest as it was before ``parents`` existed: every other array, in layout order."""
     import hashlib
@@ -275,9 +262,9 @@ def test_an_npz_written_before_parents_trains_exactly_as_the_chains_it_holds(tmp
     assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)
 
 
-def test_a_tree_dataset_reads_every_state_with_its_tree(behaviour):
+def test_a_tree_dataset_reads_every_state_with_its_tree(behaviour, random_trees):
     init, data = behaviour
-    trees = with_trees(data)
+    trees = random_trees(data)
     policy = GraphActorCritic.load(init)
     samples, chains = Samples(trees, 10), Samples(data, 10)
     padded = np.pad(trees.parents, ((0, 0), (0, 10 - trees.max_joints)), constant_values=-1)
@@ -307,11 +294,11 @@ def test_a_tree_dataset_reads_every_state_with_its_tree(behaviour):
     assert chains.batch(index, values, advantages, returns).parents is None
 
 
-def test_a_tree_dataset_trains_otherwise_than_its_chains_and_is_other_data(tmp_path, behaviour):
+def test_a_tree_dataset_trains_otherwise_than_its_chains_and_is_other_data(tmp_path, behaviour, random_trees):
     init, data = behaviour
-    trees = with_trees(data)
+    trees = random_trees(data)
     assert data_digest(trees) != data_digest(data)
-    assert data_digest(trees) != data_digest(with_trees(data, seed=1))  # only the trees differ
+    assert data_digest(trees) != data_digest(random_trees(data, seed=1))  # only the trees differ
     assert data_digest(trees) == data_digest(TransitionBatch.from_arrays(trees.arrays()))
     cfg = TrainConfig(seed=6, **SMALL)
     a = train_from_data(cfg, data, tmp_path / "chains", iterations=1, init=init)

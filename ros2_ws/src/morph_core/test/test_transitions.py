@@ -563,26 +563,13 @@ def test_config_is_checked():
 # -- trees: the parents of each row ------------------------------------------------------------
 
 
-def random_trees(batch: TransitionBatch, seed: int = 0) -> TransitionBatch:
-    """``batch`` with one random tree per episode (joint j's parent drawn from -1..j-1; -1 at padding)."""
-    rng = np.random.default_rng(seed)
-    parents = np.full(batch.parents.shape, -1, np.int64)
-    for e in np.unique(batch.episode):
-        rows = np.flatnonzero(batch.episode == e)
-        n = int(batch.num_joints[rows[0]])
-        parents[rows, :n] = [rng.integers(-1, j) if j else -1 for j in range(n)]
-    out = TransitionBatch.from_arrays({**batch.arrays(), "parents": parents})
-    assert not out.is_chains
-    return out
-
-
 def test_a_recording_is_chains_in_message_order(sampled):
     batch = assemble(sampled.records).batch
     assert batch.is_chains and batch.parents.dtype == np.int64
     assert batch.parents[0].tolist() == [-1, 0, 1, -1, -1] and batch.parents[-1].tolist() == [-1, 0, 1, 2, 3]
 
 
-def test_npz_round_trip_keeps_the_trees(sampled, tmp_path):
+def test_npz_round_trip_keeps_the_trees(sampled, tmp_path, random_trees):
     trees = random_trees(assemble(sampled.records).batch)
     trees.to_npz(tmp_path / "trees.npz")
     with np.load(tmp_path / "trees.npz") as data:
@@ -631,7 +618,7 @@ def test_invalid_parents_are_refused_naming_the_file_and_row(sampled, tmp_path, 
         TransitionBatch.from_npz(path)
 
 
-def test_fuzzed_parents_give_the_documented_error_or_exactly_the_file(sampled, tmp_path):
+def test_fuzzed_parents_give_the_documented_error_or_exactly_the_file(sampled, tmp_path, random_trees):
     """Random damage to the parents of a real export: either a valid file read exactly as written, or a
     TransitionBatchError naming the file; never another exception, never parents other than the file's."""
     rng = np.random.default_rng(0)
