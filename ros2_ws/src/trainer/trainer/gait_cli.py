@@ -1,23 +1,35 @@
-"""``morph-gait``: swim chains of several lengths open-loop and print their forward speeds."""
+"""``morph-gait``: swim chains of several lengths, and named trees, open-loop and print their forward speeds."""
 
 from __future__ import annotations
 
 import argparse
 
+from morph_core.env.bodies import body_label, parse_bodies
 from morph_core.env.gait import TravellingWave, run_gait
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--joints", type=int, nargs="+", default=[2, 3, 5, 6, 10, 15, 20])
-    parser.add_argument("--seconds", type=float, default=40.0, help="sim time per chain")
+    parser.add_argument("--joints", type=int, nargs="*", default=[2, 3, 5, 6, 10, 15, 20])
+    parser.add_argument("--bodies", default="", help="named trees too, an env.bodies spec (e.g. y:2x2,star:3x2)")
+    parser.add_argument("--seconds", type=float, default=40.0, help="sim time per body")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    bodies: list = list(args.joints)
+    if args.bodies:
+        try:
+            members = parse_bodies(args.bodies).members()
+        except ValueError as e:
+            parser.error(str(e))
+        if members is None:
+            parser.error(f"--bodies {args.bodies!r} holds a random family: name the trees")
+        bodies += members
     gait = TravellingWave()
-    print(f"travelling wave {gait}, {args.seconds:.0f} s sim time per chain")
-    print(f"{'joints':>6}  {'speed [m/s]':>11}")
-    for n in args.joints:
-        print(f"{n:>6}  {run_gait(n, gait, args.seconds, args.seed):>11.4f}")
+    print(f"travelling wave {gait}, {args.seconds:.0f} s sim time per body (trees: the wave runs by depth)")
+    print(f"{'body':>10}  {'speed [m/s]':>11}")
+    for body in bodies:
+        name = f"chain-{body}" if isinstance(body, int) else body_label(body)
+        print(f"{name:>10}  {run_gait(body, gait, args.seconds, args.seed):>11.4f}")
 
 
 if __name__ == "__main__":
