@@ -61,7 +61,8 @@ _COMB_RE = re.compile(rf"comb:{_RANGE}")
 _RANDOM_RE = re.compile(rf"random:{_RANGE}(?::b{_INT})?")
 
 
-def _tree(parents) -> KinematicTree:
+def swimmer_tree(parents) -> KinematicTree:
+    """The swimmer whose joints have these parents: joint names ``motor{k}_rot``, root link ``torso``."""
     return KinematicTree(swimmer_joint_names(len(parents)), np.asarray(parents, dtype=np.int64), "torso")
 
 
@@ -123,7 +124,7 @@ class _Finite:
         raise NotImplementedError
 
     def members(self) -> list[KinematicTree]:
-        return [_tree(p) for _, p in self.shapes()]
+        return [swimmer_tree(p) for _, p in self.shapes()]
 
     @property
     def joint_range(self) -> tuple[int, int]:
@@ -133,10 +134,10 @@ class _Finite:
     def draw(self, rng: np.random.Generator) -> KinematicTree:
         shapes = self.shapes()
         k = 0 if len(shapes) == 1 else int(rng.integers(len(shapes)))
-        return _tree(shapes[k][1])
+        return swimmer_tree(shapes[k][1])
 
     def first(self) -> KinematicTree:
-        return _tree(self.shapes()[0][1])
+        return swimmer_tree(self.shapes()[0][1])
 
 
 @dataclass(frozen=True)
@@ -235,7 +236,7 @@ class RandomTreeFamily:
             parents.append(link - 1)
             children[link] += 1
             path = path[: path.index(link) + 1] + [j + 1]
-        return _tree(parents)
+        return swimmer_tree(parents)
 
     def first(self) -> KinematicTree:
         return KinematicTree.chain(self.lo)

@@ -19,10 +19,9 @@ from typing import NamedTuple, TypeVar
 import mujoco
 import numpy as np
 
-from morph_core.env.bodies import BodyMix, body_label, parse_bodies
+from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmer_tree
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
 MAX_EPISODE_STEPS = 1000
 R = TypeVar("R")
@@ -202,7 +201,7 @@ class SwimmerVecEnv:
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
             n = int(m["num_joints"])
-            env._build(n if "parents" not in m else KinematicTree.from_parents(m["parents"], swimmer_joint_names(n)))
+            env._build(n if "parents" not in m else swimmer_tree(m["parents"]))
             env.np_random.bit_generator.state = m["rng"]
             mujoco.mj_setState(env.model, env.data, np.asarray(arrays[f"env{i}.mj_state"], dtype=np.float64), spec)
             # No mj_forward here: it would overwrite the restored solver warm start and the
