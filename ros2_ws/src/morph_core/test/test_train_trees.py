@@ -100,6 +100,12 @@ def test_a_bad_body_spec_is_refused_before_anything_runs(tmp_path):
         with pytest.raises(ValueError):
             TrainConfig(bodies=spec, **SMALL)
     assert not (tmp_path / "never").exists()
+    # min_joints..max_joints follow the bodies (what every reader of config.json takes for the trained range)
+    cfg = TrainConfig(bodies="3-5,star:3x2", **SMALL)
+    assert (cfg.min_joints, cfg.max_joints, list(cfg.dims)) == (3, 6, [3, 4, 5, 6])
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg  # and a resumed run reads them back
+    with pytest.raises(ValueError, match="disagree with bodies"):
+        TrainConfig(bodies="3-5", min_joints=2, max_joints=8, **SMALL)
 
 
 def test_chains_drawn_from_a_spec_carry_chain_parents():

@@ -95,9 +95,9 @@ class TrainConfig:
     the update starts, each sample weighted by min(pi_prox / pi_behav, proximal_weight_cap)) or 'behaviour'
     (PPO's own loss, the ratio against the policy that acted); simulator rollouts are on-policy either way"""
     min_joints: int = 2
-    """shortest chain drawn at a reset (when ``bodies`` is empty)"""
+    """shortest chain drawn at a reset; with ``bodies``, the fewest joints its bodies have (set from it)"""
     max_joints: int = 10
-    """longest chain drawn at a reset (when ``bodies`` is empty)"""
+    """longest chain drawn at a reset; with ``bodies``, the most joints its bodies have (set from it)"""
     bodies: str = ""
     """the bodies drawn at each reset, in ``env.bodies``' grammar: chains and trees, e.g. '2-10,random:3-10'
     (chains of 2..10 joints or random trees of 3..10); empty: chains of min_joints..max_joints"""
@@ -129,7 +129,8 @@ class TrainConfig:
             raise ValueError(f"clip_mode must be one of {rule_names()}, got {self.clip_mode!r}")
         if not 1 <= self.min_joints <= self.max_joints <= 64:
             raise ValueError(f"need 1 <= min_joints <= max_joints <= 64, got {self.min_joints}, {self.max_joints}")
-        self.body_mix  # noqa: B018 - parsed here so that a bad spec is refused before anything runs
+        if self.bodies:  # parsed here, so that a bad spec is refused before anything runs
+            self._joint_range_from_bodies()
         for name in ("num_envs", "num_steps", "minibatch_size", "update_epochs", "total_timesteps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -146,6 +147,16 @@ class TrainConfig:
     @property
     def batch_size(self) -> int:
         return self.num_envs * self.num_steps
+
+    def _joint_range_from_bodies(self) -> None:
+        """min_joints..max_joints become the bodies' joint range (the action dimensions they draw), which
+        every reader of a run's config takes for the trained range; a range given that disagrees is refused."""
+        lo, hi = parse_bodies(self.bodies).joint_range
+        defaults = tuple(f.default for f in dataclasses.fields(self) if f.name in ("min_joints", "max_joints"))
+        if (self.min_joints, self.max_joints) not in (defaults, (lo, hi)):
+            raise ValueError(f"min_joints..max_joints ({self.min_joints}..{self.max_joints}) disagree with bodies "
+                             f"{self.bodies!r} ({lo}..{hi} joints): give bodies alone")  # fmt: skip
+        self.min_joints, self.max_joints = lo, hi
 
     @property
     def body_mix(self) -> BodyMix:
