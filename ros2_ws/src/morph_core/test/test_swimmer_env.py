@@ -275,8 +275,9 @@ def test_reset_options_force_a_tree():
 def test_a_fixed_tree_swims_with_a_travelling_wave():
     # Physics end to end on a tree: a wave down every branch moves the swimmer.
     from morph_core.env.bodies import parse_bodies
-    from morph_core.env.gait import TravellingWave, joint_depths, run_gait
+    from morph_core.env.gait import TravellingWave, run_gait
     from morph_core.env.swimmer_env import MorphSwimmerEnv
+    from morph_core.policy.index_plan import joint_depths
 
     for spec in ("y:2x2", "star:3x2", "comb:4"):
         env = MorphSwimmerEnv(bodies=spec)

@@ -39,6 +39,7 @@ from functools import cache
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
+from morph_core.policy.index_plan import joint_depths
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
 MAX_TREE_JOINTS = 32
@@ -109,10 +110,7 @@ def comb_parents(spine: int) -> list[int]:
 
 def tree_depth(parents) -> int:
     """Joints on the longest torso-to-tip path (a chain's length)."""
-    depth: list[int] = []
-    for p in parents:
-        depth.append(1 if p < 0 else depth[p] + 1)
-    return max(depth)
+    return int(joint_depths(parents).max()) + 1
 
 
 # -- families ------------------------------------------------------------------------------------------------

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.index_plan import joint_depths
 from morph_core.policy.tree import KinematicTree
 
 
@@ -24,14 +25,6 @@ class TravellingWave:
         """The actions at time ``t``; ``depth`` [num_joints] for a tree (``joint_depths``), None for a chain."""
         d = np.arange(num_joints) if depth is None else depth
         return self.amplitude * np.sin(2 * np.pi * self.frequency * t - d * self.phase_lag)
-
-
-def joint_depths(parents: np.ndarray) -> np.ndarray:
-    """[N] each joint's number of joint ancestors (parents in topological order): a chain's j."""
-    depth = np.zeros(len(parents), dtype=np.int64)
-    for j, p in enumerate(parents):
-        depth[j] = 0 if p < 0 else depth[p] + 1
-    return depth
 
 
 def run_gait(body: int | KinematicTree, gait: TravellingWave, seconds: float, seed: int = 0) -> float:

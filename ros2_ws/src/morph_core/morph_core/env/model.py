@@ -38,6 +38,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from morph_core.policy.index_plan import joint_depths
+
 if TYPE_CHECKING:
     import mujoco
 
@@ -165,10 +167,9 @@ def rest_angles_deg(parents: Sequence[int]) -> list[float]:
     for j in range(n - 1, -1, -1):
         if parents[j] >= 0:
             size[parents[j]] += size[j]
-    depth = [0] * n  # of the joint's parent link (torso: 0)
+    depth = joint_depths(parents)  # that of the joint's parent link (torso: 0)
     children: dict[int, list[int]] = {}
     for j, p in enumerate(parents):
-        depth[j] = 0 if p < 0 else depth[p] + 1
         children.setdefault(p, []).append(j)
     angles = [0.0] * n
     for kids in children.values():

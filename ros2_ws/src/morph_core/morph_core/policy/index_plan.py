@@ -31,6 +31,14 @@ def chain_parents(num_joints: int) -> np.ndarray:
     return np.arange(num_joints, dtype=np.int64) - 1
 
 
+def joint_depths(parents) -> np.ndarray:
+    """[N] int64 each joint's number of joint ancestors (0: hangs off the torso; a chain's joint j: j)."""
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for j, p in enumerate(parents):
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    return depth
+
+
 def check_parents(parents, mask: np.ndarray) -> np.ndarray:
     """``parents`` as int64 [B, J] (or [N] for one tree, ``mask`` [N]), checked: every joint's parent must
     be in -1..j-1 (joints in topological order); entries where ``mask`` is False (padding) are ignored and
