@@ -34,7 +34,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from morph_core.algo.evaluate import Body, evaluate_policy
-from morph_core.env.bodies import body_label, parse_bodies
+from morph_core.env.bodies import body_label, chain_label, parse_bodies
 from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
@@ -82,7 +82,7 @@ def read_eval(run_dir: Path) -> list[dict]:
     with path.open() as f:
         rows = [r for r in csv.DictReader(f) if None not in r.values()]
     for r in rows:  # files written before trees hold chains only
-        r.setdefault("body", f"chain-{r['num_joints']}")
+        r.setdefault("body", chain_label(int(r["num_joints"])))
     return rows
 
 
@@ -95,11 +95,6 @@ def eval_bodies(cfg: EvalConfig) -> list[Body]:
             raise ValueError(f"bodies {cfg.bodies!r} holds a random family: name the trees to evaluate")
         bodies += [m.num_joints if m.is_chain else m for m in members]
     return list(dict.fromkeys(bodies))
-
-
-def label(body: Body) -> str:
-    """The eval.csv key of a body: ``chain-N`` for a chain length, the tree's label otherwise."""
-    return f"chain-{body}" if isinstance(body, int) else body_label(body)
 
 
 def num_joints(body: Body) -> int:
@@ -117,13 +112,15 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
     jobs = [
-        (step, path, todo) for step, path in chosen if (todo := [b for b in bodies if (step, label(b)) not in done])
+        (step, path, todo)
+        for step, path in chosen
+        if (todo := [b for b in bodies if (step, body_label(b)) not in done])
     ]
     for step, results in _evaluated(jobs, cfg):
         for body, returns in results.items():  # once per body, even one given twice (evaluate_policy)
             rows += [
                 {"global_step": step, "num_joints": num_joints(body), "episode": k, "return": float(r),
-                 "body": label(body)}
+                 "body": body_label(body)}
                 for k, r in enumerate(returns)
             ]  # fmt: skip
         rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), r["body"], int(r["episode"])))
@@ -132,7 +129,7 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
             w.writeheader()
             w.writerows(rows)
-        means = " ".join(f"{label(body)}:{returns.mean():.1f}" for body, returns in results.items())
+        means = " ".join(f"{body_label(body)}:{returns.mean():.1f}" for body, returns in results.items())
         log(f"{run_dir.name} step {step}: {means}")
     return rows
 
@@ -167,7 +164,7 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
     results = evaluate_checkpoint(path, eval_bodies(cfg), cfg)
     lines = [f"| body | joints | return, mean ± std over {cfg.episodes} episodes |", "|---|---:|---:|"]
     for body, returns in results.items():
-        lines.append(f"| {label(body)} | {num_joints(body)} | {returns.mean():.1f} ± {returns.std():.1f} |")
+        lines.append(f"| {body_label(body)} | {num_joints(body)} | {returns.mean():.1f} ± {returns.std():.1f} |")
     return "\n".join(lines)
 
 

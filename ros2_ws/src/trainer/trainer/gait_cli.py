@@ -28,8 +28,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"travelling wave {gait}, {args.seconds:.0f} s sim time per body (trees: the wave runs by depth)")
     print(f"{'body':>10}  {'speed [m/s]':>11}")
     for body in bodies:
-        name = f"chain-{body}" if isinstance(body, int) else body_label(body)
-        print(f"{name:>10}  {run_gait(body, gait, args.seconds, args.seed):>11.4f}")
+        print(f"{body_label(body):>10}  {run_gait(body, gait, args.seconds, args.seed):>11.4f}")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.policy.weights import CheckpointError, PolicyWeights, load_checkpoint, untrained_weights
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
@@ -80,8 +81,6 @@ class VideoConfig:
         """The ``KinematicTree`` of every body of ``bodies`` (ValueError when the spec is bad or random)."""
         if not self.bodies:
             return []
-        from morph_core.env.bodies import parse_bodies
-
         members = parse_bodies(self.bodies).members()
         if members is None:
             raise ValueError(f"bodies {self.bodies!r}: a random family has no fixed members to film")
@@ -123,14 +122,14 @@ def training_rule(weights: PolicyWeights) -> str:
 def caption(num_joints: int, rule: str, episode_return: float, diverged: bool, label: str | None = None) -> str:
     """A view's caption; ``label`` (``bodies.body_label``) names a tree in front of its joint count."""
     joints = f"{num_joints} joint{'s' * (num_joints != 1)}"
-    if label is not None and not label.startswith("chain-"):
+    if label is not None and not is_chain_label(label):
         joints = f"{label} ({joints})"
     text = f"{joints}, {rule}, return {episode_return:+.1f}"
     return text + " (physics diverged)" if diverged else text
 
 
 def _name(take) -> str:
-    return f"{take.num_joints} joints" if take.label.startswith("chain-") else take.label
+    return f"{take.num_joints} joints" if is_chain_label(take.label) else take.label
 
 
 def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4: Path | None, log=print) -> int:

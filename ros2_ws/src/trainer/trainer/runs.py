@@ -21,6 +21,7 @@ import numpy as np
 
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.trust_region import rule_names
+from morph_core.env.bodies import chain_label, is_chain_label
 
 # Config keys that say how a run was executed, logged or saved, not what it learned.
 HOW_RUN = frozenset({"seed", "torch_threads", "env_threads", "processes", "compile", "tensorboard",
@@ -113,7 +114,7 @@ def eval_means(run: Run) -> dict[int, dict[int, float]]:
     """{num_joints: {global_step: mean return over episodes}} of one run's chains (trees: ``body_eval_means``)."""
     acc: dict[int, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in run.eval:
-        if r.get("body", "chain-").startswith("chain-"):  # files written before trees hold chains only
+        if not r.get("body") or is_chain_label(r["body"]):  # files written before trees hold chains only
             acc[int(r["num_joints"])][int(r["global_step"])].append(float(r["return"]))
     return {n: {s: float(np.mean(v)) for s, v in by_step.items()} for n, by_step in acc.items()}
 
@@ -122,5 +123,5 @@ def body_eval_means(run: Run) -> dict[str, dict[int, float]]:
     """{body label: {global_step: mean return over episodes}} of one run, chains (``chain-N``) and trees."""
     acc: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in run.eval:
-        acc[r.get("body") or f"chain-{r['num_joints']}"][int(r["global_step"])].append(float(r["return"]))
+        acc[r.get("body") or chain_label(int(r["num_joints"]))][int(r["global_step"])].append(float(r["return"]))
     return {b: {s: float(np.mean(v)) for s, v in by_step.items()} for b, by_step in acc.items()}

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.env.bodies import is_chain_label
 from trainer.runs import Run, body_eval_means, eval_means, load_runs, series, smooth
 
 COLLAPSE = 0.5
@@ -100,7 +101,7 @@ def per_dimension(runs: list[Run], key: str) -> np.ndarray:
 def late_tree_means(run: Run) -> dict[str, float]:
     """{tree label: mean eval return over the run's checkpoints from half its steps on}; chains left out."""
     half = 0.5 * run.config["total_timesteps"]
-    by_body = {b: steps for b, steps in body_eval_means(run).items() if not b.startswith("chain-")}
+    by_body = {b: steps for b, steps in body_eval_means(run).items() if not is_chain_label(b)}
     late = {b: [r for s, r in steps.items() if s >= half] for b, steps in by_body.items()}
     return {b: float(np.mean(v)) for b, v in late.items() if v}
 

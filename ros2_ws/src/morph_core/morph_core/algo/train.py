@@ -32,7 +32,7 @@ from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import Learner, UpdateConfig, epoch_columns, minibatch_cuts, update
-from morph_core.env.bodies import BodyMix, parse_bodies
+from morph_core.env.bodies import BodyMix, is_chain_label, parse_bodies
 from morph_core.env.vec_env import Episode, SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -327,8 +327,8 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
         for d in cfg.dims:
             row[f"return_d{d}"] = _mean_return([e for e in episodes if e.num_joints == d])
         if not cfg.body_mix.chains_only:
-            row["return_chains"] = _mean_return([e for e in episodes if e.body.startswith("chain-")])
-            row["return_trees"] = _mean_return([e for e in episodes if not e.body.startswith("chain-")])
+            row["return_chains"] = _mean_return([e for e in episodes if is_chain_label(e.body)])
+            row["return_trees"] = _mean_return([e for e in episodes if not is_chain_label(e.body)])
         log.log(row)
         log.update_histograms(global_step, stats)
         if checkpoint:

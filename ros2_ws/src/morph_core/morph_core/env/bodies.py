@@ -147,7 +147,7 @@ class ChainFamily(_Finite):
         return _range_text(self.lo, self.hi)
 
     def shapes(self):
-        return [(f"chain-{n}", list(range(-1, n - 1))) for n in range(self.lo, self.hi + 1)]
+        return [(chain_label(n), list(range(-1, n - 1))) for n in range(self.lo, self.hi + 1)]
 
     @property
     def joint_range(self) -> tuple[int, int]:
@@ -352,11 +352,24 @@ def _named_labels() -> dict[bytes, str]:
     return labels
 
 
-def body_label(tree: KinematicTree) -> str:
-    """``chain-N`` for a chain, the named shape's label (``star-3x2``, ``y-1x2``, ``comb-4``) for a tree of
-    a named family (recognised by its parent array, which is what the topology hash covers), else
-    ``tree-`` and the first 8 hex digits of ``tree.topology_hash``."""
+def chain_label(num_joints: int) -> str:
+    """The label of the chain of ``num_joints`` joints: ``chain-N``."""
+    return f"chain-{num_joints}"
+
+
+def is_chain_label(label: str) -> bool:
+    """Whether ``label`` (a ``body_label``) names a chain."""
+    return label.startswith("chain-")
+
+
+def body_label(body: int | KinematicTree) -> str:
+    """``chain-N`` for a chain (or a chain length), the named shape's label (``star-3x2``, ``y-1x2``,
+    ``comb-4``) for a tree of a named family (recognised by its parent array, which is what the topology
+    hash covers), else ``tree-`` and the first 8 hex digits of ``tree.topology_hash``."""
+    if isinstance(body, int):
+        return chain_label(body)
+    tree = body
     if tree.is_chain:
-        return f"chain-{tree.num_joints}"
+        return chain_label(tree.num_joints)
     label = _named_labels().get(tree.parents.astype(np.int64).tobytes())
     return label if label is not None else "tree-" + tree.topology_hash[:8]
