@@ -261,10 +261,11 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
     global_step, iteration, last_ckpt = counters
     log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
     T, E = cfg.num_steps, cfg.num_envs
-    rollout = Rollout(T, E, cfg.body_mix.max_joints) if helpers is None else helpers.rollout
+    rollout = Rollout(T, E, envs.max_joints) if helpers is None else helpers.rollout
     mine = rollout.columns(0, envs.num_envs)  # this process's swimmers' columns
     update_cfg = cfg.update_config()
     obs = envs.observations()
+    dims, trees = cfg.dims, not envs.bodies.chains_only  # the spec parsed once, not at every iteration
     recent: list[Episode] = []
     bar = _progress(cfg, global_step)
     while global_step < cfg.total_timesteps:
@@ -320,13 +321,13 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
             "learning_rate": optimizer.param_groups[0]["lr"],
             "episodes": len(episodes),
             "return_mean": _mean_return(episodes),
-            **stats.row(cfg.dims),
+            **stats.row(dims),
             "explained_variance": explained,
             "log_std": float(policy.log_std.detach()),
         }
-        for d in cfg.dims:
+        for d in dims:
             row[f"return_d{d}"] = _mean_return([e for e in episodes if e.num_joints == d])
-        if not cfg.body_mix.chains_only:
+        if trees:
             row["return_chains"] = _mean_return([e for e in episodes if is_chain_label(e.body)])
             row["return_trees"] = _mean_return([e for e in episodes if not is_chain_label(e.body)])
         log.log(row)
