@@ -48,8 +48,6 @@ def evaluate_policy(
     rows = [slice(g * episodes, (g + 1) * episodes) for g in range(len(bodies))]
     for swimmers, r in zip(groups, rows, strict=True):
         parents[r, : swimmers.num_joints] = swimmers.parents
-    if all(g.tree.is_chain for g in groups):
-        parents = None  # chains: the policy's chain path, without a per-step look at the parents
     for swimmers, r in zip(groups, rows, strict=True):
         swimmers.write_observation(pos[r], vel[r], glob[r])
     returns = np.zeros(count)
@@ -63,8 +61,9 @@ def evaluate_policy(
         if idx.size == count:  # every swimmer still going (the usual case)
             applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents)).astype(np.float64)
         else:  # the ended swimmers' rows keep their last actions and are not stepped
-            sub = None if parents is None else parents[idx]
-            applied[idx] = applied_action(actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx], sub))
+            applied[idx] = applied_action(
+                actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx], parents[idx])
+            )
         for swimmers, r in zip(groups, rows, strict=True):
             going = np.flatnonzero(alive[r])
             if going.size == swimmers.size:
