@@ -183,59 +183,96 @@ class KinematicTree:
 
     @classmethod
     def from_urdf(cls, text: str | bytes) -> KinematicTree:
-        """The tree of a URDF's revolute and continuous joints; fixed joints merge their child link into its parent.
+        """The tree of a URDF's actuated hinges (``read_urdf``, which says what is refused)."""
+        return read_urdf(text).tree
 
-        Parsed with the standard library only. Refused: malformed XML, more than ``MAX_DESCRIPTION_BYTES``,
-        prismatic / planar / floating / unknown joint types, mimic joints, missing or duplicate names, a joint
-        naming a link that does not exist, a link with two parent joints, a cycle, more than one root link.
-        """
-        robot = _parse_robot(text)
-        links: list[str] = []
-        for element in robot.findall("link"):
-            name = element.get("name")
-            if not name:
-                raise TreeError("a <link> has no name")
-            links.append(name)
-        if not links:
-            raise TreeError("the robot has no <link>")
-        _refuse_duplicates("link", links)
-        known_links = set(links)
-        joints = [_urdf_joint(element, known_links) for element in robot.findall("joint")]
-        _refuse_duplicates("joint", [name for name, *_ in joints])
 
-        parent_of: dict[str, str] = {}  # child link -> parent link
-        children: dict[str, list[tuple[str, bool, str]]] = {link: [] for link in links}
-        for name, actuated, parent, child in joints:
-            if child in parent_of:
-                raise TreeError(f"link {_quote(child)} is the child of two joints: a closed loop, not a tree")
-            parent_of[child] = parent
-            children[parent].append((name, actuated, child))
-        roots = [link for link in links if link not in parent_of]
-        if not roots:
-            raise TreeError("no root link: the joints form a cycle")
-        if len(roots) > 1:
-            raise TreeError(f"more than one root link ({', '.join(map(_quote, roots[:3]))}): a robot is one tree")
+@dataclass(frozen=True)
+class UrdfRobot:
+    """What a URDF says about a robot's joints: the tree of its actuated hinges, and its other joints."""
 
-        names: list[str] = []
-        parents: list[int] = []
-        base_links: list[str] = []  # the links the root's joints hang off
-        reached = {roots[0]}
-        # Iterative (a tree may be thousands of links deep); a joint is numbered when popped: pre-order.
-        stack = [(roots[0], joint, -1) for joint in reversed(children[roots[0]])]
-        while stack:
-            parent, (name, actuated, child), above = stack.pop()  # above: the joint the parent link hangs below
-            reached.add(child)
-            if actuated:
-                if above == -1:
-                    base_links.append(parent)
-                names.append(name)
-                parents.append(above)
-                above = len(names) - 1
-            stack.extend((child, joint, above) for joint in reversed(children[child]))
-        if len(reached) < len(links):  # one parent per link and one root: the links not reached form a loop
-            cyclic = next(link for link in links if link not in reached)
-            raise TreeError(f"the joints form a cycle through link {_quote(cyclic)}")
-        return cls(names, np.array(parents, dtype=np.int64), _deepest_common_ancestor(base_links, parent_of.get))
+    tree: KinematicTree
+    unactuated: frozenset[str]
+    """names of the URDF's joints that are not in the tree: fixed joints, and hinges no ``<ros2_control>``
+    command interface drives. A joint state may carry them; the policy leaves them alone."""
+
+
+def read_urdf(text: str | bytes) -> UrdfRobot:
+    """The kinematic tree of a URDF, and the names of its joints that are not actuated hinges.
+
+    Actuated hinges are its revolute and continuous joints; when the URDF has ``<ros2_control>`` blocks (as a
+    ros2_control robot's does), only those of them with a ``<command_interface>`` there. Fixed joints, and
+    hinges nothing commands, merge their child link into its parent. Parsed with the standard library only.
+    Refused: malformed XML, more than ``MAX_DESCRIPTION_BYTES``, prismatic / planar / floating / unknown joint
+    types, mimic joints, missing or duplicate names, a joint naming a link that does not exist, a link with two
+    parent joints, a cycle, more than one root link, a ``<ros2_control>`` joint the URDF does not have.
+    """
+    robot = _parse_robot(text)
+    links: list[str] = []
+    for element in robot.findall("link"):
+        name = element.get("name")
+        if not name:
+            raise TreeError("a <link> has no name")
+        links.append(name)
+    if not links:
+        raise TreeError("the robot has no <link>")
+    _refuse_duplicates("link", links)
+    known_links = set(links)
+    joints = [_urdf_joint(element, known_links) for element in robot.findall("joint")]
+    _refuse_duplicates("joint", [name for name, *_ in joints])
+    commanded = _commanded_joints(robot, {name for name, *_ in joints})
+    if commanded is not None:
+        joints = [(name, hinge and name in commanded, parent, child) for name, hinge, parent, child in joints]
+
+    parent_of: dict[str, str] = {}  # child link -> parent link
+    children: dict[str, list[tuple[str, bool, str]]] = {link: [] for link in links}
+    for name, actuated, parent, child in joints:
+        if child in parent_of:
+            raise TreeError(f"link {_quote(child)} is the child of two joints: a closed loop, not a tree")
+        parent_of[child] = parent
+        children[parent].append((name, actuated, child))
+    roots = [link for link in links if link not in parent_of]
+    if not roots:
+        raise TreeError("no root link: the joints form a cycle")
+    if len(roots) > 1:
+        raise TreeError(f"more than one root link ({', '.join(map(_quote, roots[:3]))}): a robot is one tree")
+
+    names: list[str] = []
+    parents: list[int] = []
+    base_links: list[str] = []  # the links the root's joints hang off
+    reached = {roots[0]}
+    # Iterative (a tree may be thousands of links deep); a joint is numbered when popped: pre-order.
+    stack = [(roots[0], joint, -1) for joint in reversed(children[roots[0]])]
+    while stack:
+        parent, (name, actuated, child), above = stack.pop()  # above: the joint the parent link hangs below
+        reached.add(child)
+        if actuated:
+            if above == -1:
+                base_links.append(parent)
+            names.append(name)
+            parents.append(above)
+            above = len(names) - 1
+        stack.extend((child, joint, above) for joint in reversed(children[child]))
+    if len(reached) < len(links):  # one parent per link and one root: the links not reached form a loop
+        cyclic = next(link for link in links if link not in reached)
+        raise TreeError(f"the joints form a cycle through link {_quote(cyclic)}")
+    tree = KinematicTree(names, np.array(parents, dtype=np.int64), _deepest_common_ancestor(base_links, parent_of.get))
+    return UrdfRobot(tree, frozenset(name for name, actuated, *_ in joints if not actuated))
+
+
+def _commanded_joints(robot: ET.Element, joints: set[str]) -> set[str] | None:
+    """Joints a ``<ros2_control>`` block gives a command interface, or None when the URDF has no such block."""
+    blocks = robot.findall("ros2_control")
+    if not blocks:
+        return None
+    commanded: set[str] = set()
+    for element in (joint for block in blocks for joint in block.findall("joint")):
+        name = element.get("name")
+        if name not in joints:
+            raise TreeError(f"<ros2_control> names joint {_quote(name)}, which the URDF does not have")
+        if element.find("command_interface") is not None:
+            commanded.add(name)
+    return commanded
 
 
 # -- validation and parsing helpers ----------------------------------------------------------------
