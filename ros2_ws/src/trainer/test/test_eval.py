@@ -20,6 +20,7 @@ from morph_core.protocol.policy_updates import checkpoint_trust
 from morph_core.protocol.trust import TrustedKeys, load_public_key
 from trainer.eval_cli import EvalConfig, evaluate_run
 from trainer.keys_cli import main as keys_main
+from trainer.ship import body_key, scored_bodies
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
@@ -254,3 +255,15 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
     want = next(float(r["return"]) for r in evaluate_run(run, cfg, log=lambda _: None)
                 if r["body"] == "y-1x1" and int(r["global_step"]) == 256)  # fmt: skip
     assert f"| y-1x1 | 3 | {want:.1f} ± 0.0 |" in table and "chain-" not in table
+
+
+def test_a_tree_run_is_shipped_by_its_chains_and_trees_a_chain_run_by_its_chains_alone():
+    table = {"2": 10.0, "3": 20.0, "12": -50.0, "y-1x2": 4.0, "star-3x2": 6.0}
+    chains = {"min_joints": 2, "max_joints": 3, "bodies": ""}
+    trees = {"min_joints": 2, "max_joints": 3, "bodies": "2-3,random:3-10"}
+    assert scored_bodies(chains, table) == ["2", "3"]
+    assert scored_bodies({**chains, "bodies": "2-3"}, table) == ["2", "3"]
+    assert scored_bodies(trees, table) == ["2", "3", "y-1x2", "star-3x2"]
+    assert [body_key(label) for label in ("chain-2", "chain-40", "y-1x2", "tree-0a1b2c3d")] == [
+        "2", "40", "y-1x2", "tree-0a1b2c3d"
+    ]  # fmt: skip

@@ -9,8 +9,10 @@ a trainer overwrites is the caller's decision, not a path this package
 derives from where its source happens to sit.
 
 "Best" is the evaluated checkpoint (any run, any step in its eval.csv) with
-the highest mean deterministic return over the training chain lengths; the
-unseen lengths are reported, not used to choose. (At the paper's constant
+the highest mean deterministic return over the training chain lengths, and,
+for a run trained on trees (``--bodies`` with a tree family), over every
+tree it was evaluated on too; the unseen chain lengths are reported, not used
+to choose. (At the paper's constant
 learning rate of 0.01 the last checkpoint is not always the best one.) The JSON beside the weights
 records the source run, its training command and the evaluation table. The
 weights are copied byte for byte, and a trainer's signature goes with them
@@ -33,28 +35,43 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.algo.train import TrainConfig
+from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
-from trainer.runs import eval_means, load_run
+from trainer.runs import body_eval_means, load_run
 
 
-def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[int, float]]:
-    """{global_step: {num_joints: mean return}} of every evaluated checkpoint of a run."""
-    by_step: dict[int, dict[int, float]] = {}
-    for n, steps in eval_means(load_run(run_dir)).items():
+def body_key(label: str) -> str:
+    """A body's key in a shipped policy's ``eval_mean_return``: the chain length for a chain (as policies
+    shipped before trees recorded it), else the tree's label."""
+    return label.removeprefix("chain-") if is_chain_label(label) else label
+
+
+def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[str, float]]:
+    """{global_step: {body key: mean return}} of every evaluated checkpoint of a run (``body_key``)."""
+    by_step: dict[int, dict[str, float]] = {}
+    for label, steps in body_eval_means(load_run(run_dir)).items():
         for step, ret in steps.items():
-            by_step.setdefault(step, {})[n] = ret
+            by_step.setdefault(step, {})[body_key(label)] = ret
     if not by_step:
         raise ValueError(f"{run_dir} has no eval.csv yet: run morph-eval first")
     return by_step
 
 
-def shipped_score(dest: Path, lengths: list[int]) -> tuple[float, str, int] | None:
-    """(mean recorded return over ``lengths``, source run, step) of the policy at ``dest``; None when there is
-    no usable checkpoint there, or its metadata lacks an evaluation of one of those lengths (no comparison)."""
+def scored_bodies(cfg: dict, table: dict[str, float]) -> list[str]:
+    """The evaluated bodies a checkpoint is chosen by: the chain lengths it trained on, and every evaluated
+    tree when it trained on trees."""
+    trees = bool(cfg.get("bodies")) and not parse_bodies(cfg["bodies"]).chains_only
+    chains = [k for k in table if k.isdigit() and cfg["min_joints"] <= int(k) <= cfg["max_joints"]]
+    return chains + ([k for k in table if not k.isdigit()] if trees else [])
+
+
+def shipped_score(dest: Path, bodies: list[str]) -> tuple[float, str, int] | None:
+    """(mean recorded return over ``bodies``, source run, step) of the policy at ``dest``; None when there is
+    no usable checkpoint there, or its metadata lacks an evaluation of one of those bodies (no comparison)."""
     try:
         meta = load_checkpoint(dest).metadata
         returns = meta["eval_mean_return"]
-        return float(np.mean([returns[str(n)] for n in lengths])), str(meta["source_run"]), int(meta["global_step"])
+        return float(np.mean([returns[b] for b in bodies])), str(meta["source_run"]), int(meta["global_step"])
     except (CheckpointError, KeyError, TypeError, ValueError):
         return None
 
@@ -95,12 +112,10 @@ def main(argv: list[str] | None = None) -> None:
     for run in args.run:
         cfg = json.loads((run / "config.json").read_text())
         for step, table in evaluated_checkpoints(run).items():
-            train_lengths = [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]]
-            scored.append(
-                (float(np.mean([table[n] for n in train_lengths])), run, cfg, step, dict(sorted(table.items())))
-            )
-    score, run, cfg, step, table = max(scored, key=lambda s: s[0])
-    shipped = shipped_score(args.dest, [n for n in table if cfg["min_joints"] <= n <= cfg["max_joints"]])
+            bodies = scored_bodies(cfg, table)
+            scored.append((float(np.mean([table[b] for b in bodies])), run, cfg, step, table, bodies))
+    score, run, cfg, step, table, bodies = max(scored, key=lambda s: s[0])
+    shipped = shipped_score(args.dest, bodies)
     if shipped is not None and shipped[0] >= score and not args.replace:
         print(f"kept {args.dest} ({shipped[1]} step {shipped[2]}, score {shipped[0]:.1f}): the best evaluated "
               f"checkpoint of the runs, {run.name} step {step}, scores {score:.1f}")  # fmt: skip
@@ -121,13 +136,25 @@ def main(argv: list[str] | None = None) -> None:
             "clip_mode": cfg["clip_mode"],
             "seed": cfg["seed"],
             "training_command": training_command(cfg, run.name),
-            "eval": "deterministic, 10 episodes of 1000 steps per chain length (morph-eval)",
-            "eval_mean_return": {str(n): round(r, 2) for n, r in table.items()},
-            "chosen_by": f"mean return over chain lengths {cfg['min_joints']}..{cfg['max_joints']} ({score:.1f})",
+            "eval": "deterministic, 10 episodes of 1000 steps per body (morph-eval)",
+            "eval_mean_return": {b: round(r, 2) for b, r in sorted(table.items(), key=_body_order)},
+            "chosen_by": f"mean return over {_described(bodies)} ({score:.1f})",
         },
         signed=source.signed,
     )
     print(f"shipped {run.name} step {step} (score {score:.1f}) to {args.dest}")
+
+
+def _body_order(item: tuple[str, float]) -> tuple:
+    key = item[0]
+    return (0, int(key), "") if key.isdigit() else (1, 0, key)
+
+
+def _described(bodies: list[str]) -> str:
+    lengths = sorted(int(b) for b in bodies if b.isdigit())
+    trees = [b for b in bodies if not b.isdigit()]
+    text = f"chain lengths {lengths[0]}..{lengths[-1]}" if lengths else "no chain"
+    return text + (f" and the trees {', '.join(trees)}" if trees else "")
 
 
 if __name__ == "__main__":
