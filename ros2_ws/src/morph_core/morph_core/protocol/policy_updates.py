@@ -166,7 +166,7 @@ class CheckpointTrust:
     """What a checkpoint's signature says, for the node to report when it loads the file."""
 
     description: str
-    """e.g. "unsigned", "signed by <key> (trusted), version N", "signed by <key>, not a trusted key (not checked)"
+    """e.g. ``unsigned``, ``signed by <key> (trusted), version N``, ``signed by <key>, not a trusted key (not checked)``
     """
     signer: str = ""
     order: tuple[int, int] | None = None
