@@ -174,6 +174,23 @@ def test_shuffled_joints_change_the_order_not_the_physics(probe, launch, by_name
     assert max(abs(e) for s in states[1:] for e in s.effort) > 0.1  # efforts were applied, not zeros
 
 
+@pytest.mark.timeout(120)
+def test_a_state_sent_again_after_a_prefix_change_is_shuffled_under_the_new_names(probe, launch, namespace):
+    """Lockstep with no controller: the first state goes out again and again (same stamp, same order); once
+    the prefix changes it goes out under the new names, in an order of their own."""
+    states = probe.collect(JointState, "joint_states")
+    proc = launch("swimmer_sim_node", num_joints=4, shuffle_joints=True, lockstep=True, effort_timeout=0.05)
+    probe.spin_until(lambda: len(states) >= 3, STARTUP, "the first state sent three times")
+    assert len({_ns(s) for s in states}) == 1 and len({tuple(s.name) for s in states}) == 1
+    assert probe.set_parameter(f"{namespace}/swimmer_sim", "joint_prefix", "p/").successful
+    n = len(states)
+    probe.spin_until(lambda: any(s.name[0].startswith("p/") for s in states[n:]), 20.0, "the new names")
+    renamed = [s for s in states[n:] if s.name[0].startswith("p/")]
+    assert {_ns(s) for s in renamed} == {_ns(states[0])}  # still the first state, never stepped
+    assert sorted(renamed[0].name) == [f"p/motor{k}_rot" for k in range(1, 5)]
+    assert proc.alive()
+
+
 @pytest.mark.timeout(180)
 def test_efforts_naming_joints_the_body_lacks_are_rejected_and_counted(probe, launch, namespace, diagnostics):
     states = probe.collect(JointState, "joint_states")

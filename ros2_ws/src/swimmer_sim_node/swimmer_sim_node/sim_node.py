@@ -416,6 +416,7 @@ class SwimmerSimNode(Node):
             elif param.name == "joint_prefix":
                 self._prefix = param.value
                 self._names = self.sim.joint_names(self._prefix)
+                self._sent.clear()  # orders under the old names: a state published again gets one of the new
             elif param.name == "real_time_factor":
                 self._rtf = self._pacer.real_time_factor = param.value
                 self._restart_pacing()
