@@ -337,3 +337,41 @@ def test_make_sim_builds_the_body_the_parameters_ask_for(args, kind):
             mujoco.MjModel.from_xml_path(str(ANT_XML))
         )
         assert "'ant'" in described
+
+
+# -- the demo's bring-up ------------------------------------------------------------------------------------
+def _bringup(tmp_path: Path, *args: str) -> tuple[int, str]:
+    import subprocess
+    import sys
+
+    log = tmp_path / "bringup.log"
+    with open(log, "wb") as out:
+        proc = subprocess.run(
+            [sys.executable, "-m", "morph_policy_node.bringup", "--sim-seconds", "2", *args],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            timeout=300,
+        )
+    return proc.returncode, log.read_text(errors="replace")
+
+
+@pytest.mark.timeout(320)
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--bodies", "y:1x1"], "bodies y:1x1, 3 joints"),
+        (["--model-file", str(ANT_XML)], f"robot {ANT_XML}, 8 joints"),
+    ],
+    ids=["bodies", "model_file"],
+)
+def test_the_bringup_runs_a_tree_or_a_robot_and_prints_its_speed(tmp_path, untrained_checkpoint, args, words):
+    code, log = _bringup(tmp_path, *args, "--checkpoint", str(untrained_checkpoint))
+    lines = [line for line in log.splitlines() if line.startswith("swim speed:")]
+    assert code == 0 and len(lines) == 1 and words in lines[0], log[-3000:]
+
+
+@pytest.mark.timeout(320)
+def test_the_bringup_stops_with_one_line_when_the_model_file_cannot_run(tmp_path):
+    code, log = _bringup(tmp_path, "--model-file", str(tmp_path / "missing.xml"), "--startup-timeout", "60")
+    assert code == 1 and "no such file" in log and "bringup: the sim node did not come up" in log, log[-3000:]
+    assert "Traceback" not in log
