@@ -104,11 +104,14 @@ running they are applied, in lockstep ignored (counted in
 only slow, which made lockstep runs differ from the in-process rollout under load.
 
 Bad input: an effort command of the wrong length, with NaN/inf, with a tag
-that starts ``joints@`` but does not parse, or tagged with a state not yet
-published is rejected (the previous command stays in force, the loop does not
-step); counts of what each input received, rejected and ignored, by reason,
-go out on ``/diagnostics`` every second (``morph_ros_util.diagnostics``);
-warnings are throttled. See ``docs/robustness.md``.
+that starts ``joints@`` but does not parse, tagged with a state not yet
+published, with a names dimension that does not parse (``names``) or does not
+name the body's joints (``unknown_joint``, ``missing_joint``), or, shuffled
+and unnamed, answering a state whose order is forgotten (``order``) is
+rejected (the previous command stays in force, the loop does not step);
+counts of what each input received, rejected and ignored, by reason, go out
+on ``/diagnostics`` every second (``morph_ros_util.diagnostics``); warnings
+are throttled. See ``docs/robustness.md``.
 """
 
 from __future__ import annotations
