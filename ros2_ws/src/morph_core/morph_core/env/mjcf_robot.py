@@ -51,6 +51,7 @@ import mujoco
 import numpy as np
 
 from morph_core.env.swimmer_env import DIVERGENCE_WARNING
+from morph_core.env.urdf import model_name
 from morph_core.policy.tree import KinematicTree, TreeError
 
 CONTROL_PERIOD = 0.04
@@ -131,7 +132,7 @@ class MjcfRobot:
         self.num_joints = self.tree.num_joints
         self.joint_range = (self.num_joints, self.num_joints)
         self.reset_noise_scale = float(reset_noise_scale)
-        self.name = model.names[: model.names.index(b"\0")].decode(errors="replace") or "robot"
+        self.name = model_name(model)
         joint_ids = np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in self.tree.names])
         self._qpos_at = model.jnt_qposadr[joint_ids].copy()
         self._qvel_at = model.jnt_dofadr[joint_ids].copy()

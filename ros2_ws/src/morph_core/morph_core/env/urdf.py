@@ -92,6 +92,11 @@ def _name(model: mujoco.MjModel, kind: mujoco.mjtObj, index: int) -> str:
     return mujoco.mj_id2name(model, kind, int(index))
 
 
+def model_name(m: mujoco.MjModel) -> str:
+    """The MJCF's ``<mujoco model=...>`` (``robot`` when it has none): the URDF's robot name."""
+    return m.names[: m.names.index(b"\0")].decode(errors="replace") or "robot"
+
+
 def swimmer_urdf(body, prefix: str = "") -> str:
     """URDF text of a swimmer: ``body`` a chain length (``num_joints``), a ``KinematicTree`` or a parent
     array (``model.swimmer_model``'s); ``prefix`` goes in front of every link and joint name (the sim
@@ -169,8 +174,7 @@ def _urdf(m: mujoco.MjModel, tree: KinematicTree, prefix: str, materials: tuple[
                 mujoco.mju_mulQuat(turned, quat, back)
                 quat = turned
             joints.append(_joint(m, j, prefix, ends[i], ends[i + 1], xyz, _rpy(quat)))
-    name = m.names[: m.names.index(b"\0")].decode(errors="replace") or "robot"
-    parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(name)}>\n']
+    parts = [f'<?xml version="1.0"?>\n<robot name={quoteattr(model_name(m))}>\n']
     parts += [f"  <material name={quoteattr(n)}><color rgba={quoteattr(c)}/></material>\n" for c, n in colours.items()]
     parts += links + joints
     parts.append("</robot>\n")
