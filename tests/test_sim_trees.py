@@ -317,7 +317,7 @@ def test_your_robot_doc_bringup_runs(tmp_path):
     assert code == 0 and f"robot {ANT_XML}, 8 joints" in log, log[-3000:]
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(120)
 def test_the_ant_cannot_be_rebuilt(probe, launch, namespace):
     states = probe.collect(JointState, "joint_states")
     launch("swimmer_sim_node", model_file=str(ANT_XML))
