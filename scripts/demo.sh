@@ -5,7 +5,9 @@
 # ROS 2 discovery needs multicast, which a sandbox or CI runner often lacks:
 # the nodes run in a private network namespace whose loopback carries it
 # (scripts/in_netns.sh), which also keeps the demo's DDS traffic off any network.
-# Options go to the bring-up, e.g. --joints 10 --sim-seconds 60 --checkpoint PATH.
+# Options go to the bring-up, e.g. --joints 10 --sim-seconds 60 --checkpoint PATH;
+# --bodies y:2x2 swims a branched swimmer (a body spec, docs/bodies.md) and
+# --model-file PATH runs your own robot's MJCF (docs/your_robot.md) instead of a chain.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"

@@ -1,4 +1,4 @@
-"""The sim node's robot_description (latched URDF) and segment markers, over real DDS.
+"""The sim node's robot_description (latched URDF) and segment markers (chains and trees), over real DDS.
 
 Runs inside a private network namespace (``scripts/test.sh``). The URDF is
 parsed with a real URDF parser; the markers are checked against MuJoCo's own
@@ -19,6 +19,7 @@ from std_msgs.msg import Float64MultiArray, String
 from urdf_parser_py.urdf import URDF
 from visualization_msgs.msg import Marker, MarkerArray
 
+from morph_core.env.bodies import parse_bodies
 from morph_core.env.model import swimmer_model
 
 STARTUP = 60.0
@@ -66,9 +67,9 @@ def test_late_subscriber_gets_the_urdf_and_it_follows_num_joints(probe, launch, 
     assert [len(_revolute_names(m.data)) for m in late] == [11]
 
 
-def _mujoco_geoms(odom: Odometry, state: JointState) -> tuple[np.ndarray, np.ndarray, mujoco.MjModel]:
+def _mujoco_geoms(odom: Odometry, state: JointState, body) -> tuple[np.ndarray, np.ndarray, mujoco.MjModel]:
     """World capsule centres and axes of the published state, by MuJoCo's own kinematics."""
-    m = swimmer_model(len(state.name))
+    m = swimmer_model(body)
     d = mujoco.MjData(m)
     q = odom.pose.pose.orientation
     yaw = 2 * math.atan2(q.z, q.w)  # a rotation about z only
@@ -87,8 +88,10 @@ def _marker_axis(marker: Marker) -> np.ndarray:
 
 
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("joints", [1, 6])
-def test_markers_are_the_sims_segments(probe, launch, namespace, joints):
+@pytest.mark.parametrize("spec", ["1", "6", "y:1x2"])
+def test_markers_are_the_sims_segments(probe, launch, namespace, spec):
+    body = parse_bodies(spec).first()  # one member: the sim's body throughout
+    joints = body.num_joints
     states = probe.collect(JointState, "joint_states")
     odoms = probe.collect(Odometry, "odom")
     arrays = probe.collect(MarkerArray, "markers")
@@ -103,7 +106,8 @@ def test_markers_are_the_sims_segments(probe, launch, namespace, joints):
             )
         ),
     )
-    launch("swimmer_sim_node", num_joints=joints, real_time_factor=2.0)
+    body_param = {"num_joints": joints} if body.is_chain else {"topology": spec}  # chains as they always were
+    launch("swimmer_sim_node", real_time_factor=2.0, **body_param)
     probe.spin_until(lambda: len(arrays) >= 40, STARTUP, "40 marker arrays")
 
     odom_at = {_stamp_ns(o.header): o for o in odoms}
@@ -115,7 +119,7 @@ def test_markers_are_the_sims_segments(probe, launch, namespace, joints):
         stamp = _stamp_ns(segments[0].header)
         if stamp not in odom_at or stamp not in state_at:
             continue  # published before this probe matched both state topics
-        centres, axes, m = _mujoco_geoms(odom_at[stamp], state_at[stamp])
+        centres, axes, m = _mujoco_geoms(odom_at[stamp], state_at[stamp], body)
         for k, mk in enumerate(segments):
             assert mk.header.frame_id == "odom" and mk.type == Marker.CYLINDER
             assert _stamp_ns(mk.header) == stamp

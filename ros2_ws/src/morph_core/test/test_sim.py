@@ -9,6 +9,8 @@ import pytest
 
 from morph_core.env.sim import EffortError, SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.env.urdf import swimmer_urdf
+from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 
 
 def _global(sim: SwimmerSim) -> list[float]:
@@ -91,3 +93,28 @@ def test_torso_moves_under_a_travelling_wave():
         sim.command(np.sin(2 * np.pi * (0.5 * t - np.arange(6) / 6)), now=t)
         sim.step(now=t)
     assert math.hypot(sim.torso().x, sim.torso().y) > 0.1
+
+
+def test_odometry_is_the_torso_in_the_plane():
+    """What the sim node puts in odom for a swimmer: x, y, z = 0; yaw about z; the world-frame velocity turned
+    into the torso frame; the yaw rate about z."""
+    sim = SwimmerSim(num_joints=4, seed=2, effort_timeout=None)
+    for k in range(40):
+        sim.command(np.sin(0.3 * k + np.arange(4)), now=k)
+        sim.step(now=k)
+    t, odom = sim.torso(), sim.odometry()
+    assert odom.frame == "torso"
+    assert odom.position == (t.x, t.y, 0.0)
+    assert odom.orientation == quaternion_from_yaw(t.yaw)
+    assert odom.linear == (*world_to_body(t.yaw, t.vx, t.vy), 0.0)
+    assert odom.angular == (0.0, 0.0, t.yaw_rate)
+    assert abs(t.yaw) > 1e-3 and abs(t.vx) > 1e-3  # a state that turned and moved
+
+
+def test_a_trees_joints_are_its_mjcf_names_in_tree_order_and_its_urdf_the_swimmers():
+    sim = SwimmerSim(bodies="y:1x2", seed=0)
+    assert sim.tree.parents.tolist() == [-1, 0, 1, 0, 3]
+    assert sim.joint_names("p/") == [f"p/motor{k}_rot" for k in range(1, 6)]
+    assert sim.urdf("p/") == swimmer_urdf(sim.tree, "p/")
+    np.testing.assert_array_equal(sim.joint_positions, sim._env.data.qpos[3:])
+    assert SwimmerSim(num_joints=3).urdf() == swimmer_urdf(3)

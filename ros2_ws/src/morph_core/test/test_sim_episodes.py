@@ -1,6 +1,7 @@
 """SwimmerSim episodes: a run replays exactly in a fresh MorphSwimmerEnv reset at the same boundaries.
 
-The rule a recording is replayed by: ``env = MorphSwimmerEnv(num_joints)``,
+The rule a recording is replayed by: ``env = MorphSwimmerEnv(num_joints)``
+(``MorphSwimmerEnv(bodies=spec)`` for a sim of a body spec),
 ``env.reset(seed=seed)`` for the first episode, ``env.reset()`` for each next
 one (``env.reset(options={"num_joints": n})`` after a rebuild to n), the
 recorded efforts stepped in between.
@@ -9,6 +10,7 @@ recorded efforts stepped in between.
 import numpy as np
 import pytest
 
+from morph_core.env.bodies import parse_bodies
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.protocol.episode_start import EpisodeCause
@@ -26,6 +28,7 @@ def _snapshot(sim: SwimmerSim) -> dict:
         "qpos": np.concatenate([[t.x, t.y, t.yaw], sim.joint_positions]),
         "qvel": np.concatenate([[t.vx, t.vy, t.yaw_rate], sim.joint_velocities]),
         "applied": sim.applied.copy(),
+        "tree": sim.tree,
     }
 
 
@@ -53,8 +56,8 @@ def _run(sim: SwimmerSim, steps: int, rng, resets_at=(), rebuilds=None):
     return states, events
 
 
-def _replay(num_joints, seed, states, events):
-    env = MorphSwimmerEnv(num_joints=num_joints)
+def _replay(num_joints, seed, states, events, bodies=None):
+    env = MorphSwimmerEnv(num_joints=num_joints, bodies=bodies)
     env.reset(seed=seed)
     _assert_state(env, states[0], np.zeros(env.num_joints))
     for (kind, arg), state in zip(events, states[1:], strict=True):
@@ -68,6 +71,7 @@ def _replay(num_joints, seed, states, events):
 
 
 def _assert_state(env: MorphSwimmerEnv, state: dict, applied) -> None:
+    assert env.tree == state["tree"]  # the same body: names, shape and order
     np.testing.assert_array_equal(env.data.qpos, state["qpos"])
     np.testing.assert_array_equal(env.data.qvel, state["qvel"])
     np.testing.assert_array_equal(applied, state["applied"])
@@ -96,6 +100,45 @@ def test_episodes_replay_in_a_fresh_env(num_joints):
     np.testing.assert_array_equal(np.diff(stamps), PERIOD_NS)
     for i in firsts:
         assert states[i]["start_ns"] == states[i]["stamp_ns"]
+
+
+@pytest.mark.parametrize("spec", ["y:2x2", "y:1-2x1-2,star:2-3x1,comb:3-4", "2-6,random:3-10"])
+def test_bodies_drawn_per_episode_replay_in_a_fresh_env_of_the_spec(spec):
+    sim = SwimmerSim(bodies=spec, seed=11, effort_timeout=None, episode_steps=5)
+    states, events = _run(sim, 90, np.random.default_rng(0), resets_at={30})
+    _replay(None, 11, states, events, bodies=spec)
+
+    bodies = parse_bodies(spec)
+    trees = [s["tree"] for s in states]
+    assert sim.bodies == bodies and sim.joint_range == bodies.joint_range
+    assert all(t.names == tuple(f"motor{k}_rot" for k in range(1, t.num_joints + 1)) for t in trees)
+    assert all(len(s["qpos"]) - 3 == t.num_joints for s, t in zip(states, trees, strict=True))
+    shapes = {t.parents.tobytes() for t in trees}
+    if bodies.members() is not None and len(bodies.members()) == 1:
+        assert shapes == {bodies.first().parents.tobytes()}
+    else:
+        assert len(shapes) >= 4 and not all(t.is_chain for t in trees)  # redrawn, trees among them
+    # A body changes only where an episode begins.
+    for before, after in zip(states, states[1:], strict=False):
+        if after["episode"] == before["episode"]:
+            assert after["tree"] is before["tree"]
+
+
+def test_a_spec_of_chains_is_the_chain_range_bit_for_bit():
+    by_range = SwimmerSim(num_joints=(2, 9), seed=4, effort_timeout=None, episode_steps=6)
+    by_spec = SwimmerSim(bodies="2-9", seed=4, effort_timeout=None, episode_steps=6)
+    a, _ = _run(by_range, 60, np.random.default_rng(2))
+    b, _ = _run(by_spec, 60, np.random.default_rng(2))
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x["qpos"], y["qpos"])
+        np.testing.assert_array_equal(x["qvel"], y["qvel"])
+
+
+def test_a_spec_refuses_a_rebuild():
+    sim = SwimmerSim(bodies="y:2x2", seed=0)
+    with pytest.raises(ValueError, match="drawn from 'y:2x2'.*cannot be rebuilt"):
+        sim.rebuild(4)
+    assert sim.episode == 0 and sim.num_joints == 6
 
 
 def test_a_different_seed_or_no_redraw_would_not_replay():

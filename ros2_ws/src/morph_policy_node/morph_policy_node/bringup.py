@@ -1,17 +1,26 @@
 """Bring up sim + policy as two processes, run a fixed stretch of sim time, print the swim speed.
 
-    python -m morph_policy_node.bringup [--joints 6] [--sim-seconds 30] [--checkpoint PATH]
+    python -m morph_policy_node.bringup [--joints 6 | --bodies SPEC | --model-file PATH] [--sim-seconds 30]
+                                        [--checkpoint PATH]
 
 What ``ros2 launch morph_policy_node swimmer_policy.launch.py`` does on a Jazzy
 install, for machines without ``launch``: the sim runs in lockstep as fast as
 possible (a deterministic closed loop), the policy uses the shipped model (or
 ``--checkpoint``), and this process watches ``odom`` until the sim clock has
 run ``--sim-seconds``, then stops both nodes with SIGINT.
+
+The body: a chain of ``--joints``, or a swimmer drawn from ``--bodies`` (a body
+spec of ``morph_core.env.bodies``, e.g. ``y:2x2``: the sim's ``topology``;
+one body for the whole run, the sim draws again only at a reset), or your own
+robot, ``--model-file`` (an MJCF of actuated hinges: the sim's ``model_file``,
+docs/your_robot.md). The shipped model was trained on chains: a tree or a
+robot is driven zero-shot, or by the ``--checkpoint`` given.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import subprocess
@@ -24,7 +33,9 @@ from morph_policy_node import FASTDDS_PROFILE
 def _start(module: str, params: dict) -> subprocess.Popen:
     args = [sys.executable, "-m", module, "--ros-args"]
     for k, v in params.items():
-        args += ["-p", f"{k}:={v}"]
+        # A string goes quoted (JSON is YAML): a spec such as "6" or a path must stay a string.
+        text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, str) else v
+        args += ["-p", f"{k}:={text}"]
     return subprocess.Popen(args)
 
 
@@ -40,7 +51,14 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             p.wait()
 
 
-def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout: float) -> dict:
+def run(
+    joints: int,
+    sim_seconds: float,
+    checkpoint: str | None,
+    startup_timeout: float,
+    bodies: str | None = None,
+    model_file: str | None = None,
+) -> dict:
     # Nodes started together must find each other quickly: fast initial announcements.
     os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
     import rclpy
@@ -48,11 +66,12 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
-    sim_params = {"num_joints": joints, "lockstep": "true", "real_time_factor": 0.0, "effort_timeout": 2.0}
+    body = {"topology": bodies} if bodies else {"model_file": model_file} if model_file else {"num_joints": joints}
+    sim_params = {**body, "lockstep": True, "real_time_factor": 0.0, "effort_timeout": 2.0}
     policy_params = {} if checkpoint is None else {"checkpoint": checkpoint}
     rclpy.init()
     node = rclpy.create_node("bringup")
-    first, last, loop_start = [], [], []
+    first, last, loop_start, joint_counts = [], [], [], set()
 
     def on_odom(msg: Odometry) -> None:
         t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
@@ -66,7 +85,7 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(Odometry, "odom", on_odom, qos)
     # A joint_states listener makes the lockstep sim publish its reset state before the policy is up.
-    node.create_subscription(JointState, "joint_states", lambda msg: None, qos)
+    node.create_subscription(JointState, "joint_states", lambda msg: joint_counts.add(len(msg.name)), qos)
     procs = [_start("swimmer_sim_node.sim_node", sim_params)]
     try:
         # Start the policy only once the reset state has reached us, so the measurement
@@ -91,12 +110,22 @@ def run(joints: int, sim_seconds: float, checkpoint: str | None, startup_timeout
     (t0, x0, y0), (t1, x1, y1) = first[0], last[0]
     if t0 > 0:
         raise RuntimeError(f"missed the start of the run (first odometry at t={t0:.2f} s)")
-    return {"sim_seconds": t1 - t0, "dx": x1 - x0, "dy": y1 - y0, "speed": (x1 - x0) / (t1 - t0), "rate": rate}
+    return {
+        "sim_seconds": t1 - t0,
+        "dx": x1 - x0,
+        "dy": y1 - y0,
+        "speed": (x1 - x0) / (t1 - t0),
+        "rate": rate,
+        "joints": "/".join(map(str, sorted(joint_counts))),
+    }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    body = ap.add_mutually_exclusive_group()
+    body.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    body.add_argument("--bodies", default=None, help="body spec of the swimmer (the sim's topology), e.g. y:2x2")
+    body.add_argument("--model-file", default=None, help="MJCF of your own robot (the sim's model_file)")
     ap.add_argument("--sim-seconds", type=float, default=30.0, help="sim time to run")
     ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
@@ -106,10 +135,15 @@ def main(argv=None) -> int:
     if args.checkpoint is None and not SHIPPED_MODEL.is_file():
         print(f"bringup: no shipped policy at {SHIPPED_MODEL}: give --checkpoint", flush=True)
         return 2
-    r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout)
+    try:
+        r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout, args.bodies, args.model_file)
+    except RuntimeError as err:  # the node said why above (a bad --bodies or --model-file, say)
+        print(f"bringup: {err}", flush=True)
+        return 1
+    body = f"bodies {args.bodies}, " if args.bodies else f"robot {args.model_file}, " if args.model_file else ""
     print(
         f"swim speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
-        f"over {r['sim_seconds']:.2f} s of sim time, {args.joints} joints; "
+        f"over {r['sim_seconds']:.2f} s of sim time, {body}{r['joints'] or args.joints} joints; "
         f"closed loop over DDS at {r['rate']:.1f}x real time",
         flush=True,
     )

@@ -1,18 +1,20 @@
 """What the sim node shows to RViz and Foxglove: ``robot_description`` (URDF) and ``markers``.
 
-- ``robot_description`` (std_msgs/String): the chain as URDF
-  (``morph_core.env.urdf``), joint names as in ``joint_states``, links named
-  ``<joint_prefix><MJCF body>``; reliable, transient local, keep last 1, as
-  robot_state_publisher publishes it, so a viewer that starts late gets it.
-  Published at start and again whenever the chain changes (``num_joints``
-  set, a new length drawn at a reset, ``joint_prefix`` set); a new episode
-  with the same chain leaves it alone.
-- ``markers`` (visualization_msgs/MarkerArray): one CYLINDER per segment
+- ``robot_description`` (std_msgs/String): the body as URDF
+  (``morph_core.env.urdf``: a chain, a tree, or your own robot's model),
+  joint names as in ``joint_states``, links named ``<joint_prefix><MJCF
+  body>``; reliable, transient local, keep last 1, as robot_state_publisher
+  publishes it, so a viewer that starts late gets it. Published at start and
+  again whenever the body changes (``num_joints`` set, a new length or tree
+  drawn at a reset, ``joint_prefix`` set), before the new body's first
+  state; a new episode with the same body leaves it alone.
+- ``markers`` (visualization_msgs/MarkerArray), swimmers only (chains and
+  trees; a robot model's shapes are its URDF's): one CYLINDER per segment
   (torso first, ids 0..N, namespace ``<joint_prefix>swimmer``) in frame
   ``odom`` with the state's stamp, placed from the published state
   (``morph_core.env.segments``), so the swimmer shows without TF. When the
-  chain's length changes the array starts with a DELETEALL, so no segment of
-  a longer chain lingers. Built only while someone subscribes: the sim can
+  body changes the array starts with a DELETEALL, so no segment of an
+  earlier body lingers. Built only while someone subscribes: the sim can
   run thousands of steps a second and 65 markers a step would cost more than
   the physics. QoS as ``joint_states`` (reliable, volatile, keep last 10).
 """
@@ -29,7 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from morph_core.env.segments import segment_poses
 from morph_core.env.sim import SwimmerSim
-from morph_core.env.urdf import swimmer_urdf
+from morph_core.policy.tree import KinematicTree
 
 LATCHED_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -58,24 +60,32 @@ class ChainViz:
     def __init__(self, node: Node):
         self._description_pub = node.create_publisher(String, "robot_description", DESCRIPTION_QOS)
         self._marker_pub = node.create_publisher(MarkerArray, "markers", MARKER_QOS)
-        self._described: tuple[int, str] | None = None
-        self._marked_joints = -1  # chain length of the last marker array published
+        self._described: tuple[KinematicTree, str] | None = None
+        self._marked: KinematicTree | None = None  # the body of the last marker array published
 
-    def describe(self, num_joints: int, prefix: str) -> None:
-        """Publish the URDF of this chain unless it is the one already published."""
-        if self._described != (num_joints, prefix):
-            self._description_pub.publish(String(data=swimmer_urdf(num_joints, prefix)))
-            self._described = (num_joints, prefix)
+    def describe(self, sim: SwimmerSim, prefix: str) -> None:
+        """Publish the URDF of the sim's body unless it is the one already published."""
+        tree = sim.tree  # the same object while the body stays the same: the common case costs no comparison
+        if self._described is None or not (self._described[0] is tree or self._described[0] == tree):
+            changed = True
+        else:
+            changed = self._described[1] != prefix
+        if changed:
+            self._description_pub.publish(String(data=sim.urdf(prefix)))
+            self._described = (tree, prefix)
 
     def markers(self, sim: SwimmerSim, prefix: str, stamp) -> None:
-        """The current state's segments, if anyone listens."""
+        """The current state's segments, if anyone listens (a swimmer's: a robot model has none)."""
+        if sim.robot is not None:
+            return
         if self._marker_pub.get_subscription_count() == 0:
-            self._marked_joints = -1  # a new listener gets a DELETEALL first
+            self._marked = None  # a new listener gets a DELETEALL first
             return
         torso = sim.torso()
-        poses = segment_poses(torso.x, torso.y, torso.yaw, sim.joint_positions)
+        tree = sim.tree
+        poses = segment_poses(torso.x, torso.y, torso.yaw, sim.joint_positions, None if tree.is_chain else tree)
         markers = []
-        if sim.num_joints != self._marked_joints:
+        if not (self._marked is tree or self._marked == tree):
             clear = Marker(action=Marker.DELETEALL)
             clear.header.frame_id = "odom"
             clear.header.stamp = stamp
@@ -90,4 +100,4 @@ class ChainViz:
             m.scale.z = float(poses.lengths[k])
             markers.append(m)
         self._marker_pub.publish(MarkerArray(markers=markers))
-        self._marked_joints = sim.num_joints
+        self._marked = tree

@@ -1,27 +1,55 @@
-"""MuJoCo swimmer as a ROS 2 node: JointState, Odometry, /clock and episode announcements out, efforts in.
+"""MuJoCo swimmer (or your own robot) as a ROS 2 node: JointState, Odometry, /clock, episodes out, efforts in.
 
 All physics and episode logic is ``morph_core.env.sim.SwimmerSim``; this node
 only paces it, converts messages and handles parameters.
 
+Bodies (read-only parameters, one of):
+- chains (default): ``num_joints``, or ``min_joints``..``max_joints`` (below);
+- ``topology``: a body spec of ``morph_core.env.bodies`` (``y:2x2``,
+  ``star:3x2``, ``2-10,random:3-10``, ...): swimmers, trees included, one
+  drawn at every reset from the sim's seeded generator;
+- ``model_file``: your own robot, an MJCF of actuated hinges
+  (``morph_core.env.mjcf_robot``; docs/your_robot.md).
+With ``topology`` or ``model_file``, ``num_joints`` only reports the body's
+joint count: setting it to anything else is refused with the reason (a chain
+cannot be rebuilt inside a spec or a model; its value at start-up is
+ignored), and ``min_joints``/``max_joints`` must stay 0. Refused at start-up,
+one line and exit 1: a bad spec, a model file that cannot be simulated (the
+reason: missing, not MJCF, MuJoCo's compile error, an actuator on a
+non-hinge, no actuated hinge, more than 64), both set.
+
 Wire conventions
-- ``joint_states`` (sensor_msgs/JointState): joints torso to tail; position
-  [rad], velocity [rad/s], effort = the normalised motor command applied over
-  the control period that ended at this state (torque = 150 x effort; zeros
-  for an episode's first state); stamp = sim time.
-- ``odom`` (nav_msgs/Odometry): frame ``odom`` -> ``<joint_prefix>torso``;
-  pose in the world frame (yaw as a quaternion about z); twist in the torso
-  (child) frame, as the message defines it.
+- ``joint_states`` (sensor_msgs/JointState): joints in the body's tree order
+  (torso to tail for a chain; depth-first from the root for a tree or a
+  robot), under the MJCF's names, or, with ``shuffle_joints``, in an order
+  drawn afresh for every state (its own generator, seeded from ``seed``:
+  the physics and its draws are unchanged; a state published again keeps its
+  order); position [rad], velocity [rad/s], effort = the normalised motor
+  command applied over the control period that ended at this state (a
+  swimmer's torque = 150 x effort; zeros for an episode's first state);
+  stamp = sim time.
+- ``odom`` (nav_msgs/Odometry): frame ``odom`` -> ``<joint_prefix><root>``
+  (``torso`` for a swimmer, the root body of a robot model); pose in the
+  world frame (a swimmer's: x, y and yaw as a quaternion about z; a robot's:
+  3-D); twist in the root's (child) frame, as the message defines it.
 - ``/clock`` (rosgraph_msgs/Clock): sim time.
 - ``episode_start`` (std_msgs/Int64MultiArray): one message per episode,
   published just before the episode's first state; ``layout.dim[0]`` =
   (label ``"episode,stamp_ns,num_joints,cause"``, size 4, stride 4) and
   ``data = [episode, stamp_ns, num_joints, cause]``: the episode's index (0
   first), the stamp of its first ``joint_states`` in ns (sec * 10**9 +
-  nanosec), its chain length, and why it began (0 node start, 1 the previous
+  nanosec), its body's joint count, and why it began (0 node start, 1 the previous
   one ran ``episode_steps``, 2 reset service, 3 ``num_joints`` set, 4 the
   physics diverged). Layout and decoding: ``morph_core.protocol.episode_start``.
-- ``effort_commands`` (std_msgs/Float64MultiArray): one value per joint in
-  ``joint_states`` order, clipped to [-1, 1].
+- ``effort_commands`` (std_msgs/Float64MultiArray): one value per joint,
+  clipped to [-1, 1]. A command whose layout names its joints (a
+  ``names=<JSON list>`` dimension, ``morph_core.msgs.effort_names``) is
+  applied by name (a name the body does not have, or a joint left out, is
+  rejected: ``unknown_joint``, ``missing_joint``); one without is in the
+  order of the state it answers (the tagged one; untagged, the latest
+  published; the order of the last ``REMEMBERED_ORDERS`` states is kept, an
+  answer to an older one is rejected: ``order``). Without shuffling that is
+  the tree order: without names, exactly as before names existed.
 - ``~/reset`` (std_srvs/Trigger): end the episode now; the next one's first
   state is published (and announced) at once; the response names it.
 - ``robot_description`` (std_msgs/String, latched URDF) and ``markers``
@@ -45,8 +73,9 @@ follows the drawn length; setting it rebuilds the chain at that length for
 one episode). Reset noise and draws come from the sim's generator seeded
 once with ``seed``, so a lockstep recording replays exactly in
 ``MorphSwimmerEnv(num_joints=(min_joints, max_joints))`` (or
-``num_joints``): ``reset(seed=seed)``, then ``reset()`` at each announced
-episode, the recorded efforts stepped in between. Sim time counts on across
+``num_joints``, or ``MorphSwimmerEnv(bodies=topology)``): ``reset(seed=seed)``,
+then ``reset()`` at each announced episode, the recorded efforts (in tree
+order) stepped in between. Sim time counts on across
 resets: an episode's first state is one control period after the previous
 episode's last, so /clock never goes back and episodes are split by the
 announcements (and by the joint names when the length changes). Efforts
@@ -75,11 +104,14 @@ running they are applied, in lockstep ignored (counted in
 only slow, which made lockstep runs differ from the in-process rollout under load.
 
 Bad input: an effort command of the wrong length, with NaN/inf, with a tag
-that starts ``joints@`` but does not parse, or tagged with a state not yet
-published is rejected (the previous command stays in force, the loop does not
-step); counts of what each input received, rejected and ignored, by reason,
-go out on ``/diagnostics`` every second (``morph_ros_util.diagnostics``);
-warnings are throttled. See ``docs/robustness.md``.
+that starts ``joints@`` but does not parse, tagged with a state not yet
+published, with a names dimension that does not parse (``names``) or does not
+name the body's joints (``unknown_joint``, ``missing_joint``), or, shuffled
+and unnamed, answering a state whose order is forgotten (``order``) is
+rejected (the previous command stays in force, the loop does not step);
+counts of what each input received, rejected and ignored, by reason, go out
+on ``/diagnostics`` every second (``morph_ros_util.diagnostics``); warnings
+are throttled. See ``docs/robustness.md``.
 """
 
 from __future__ import annotations
@@ -87,8 +119,10 @@ from __future__ import annotations
 import array
 import math
 import time
+from collections import OrderedDict
 from typing import NoReturn
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import (
@@ -105,12 +139,17 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
+from morph_core.env.bodies import parse_bodies
+from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
-from morph_core.msgs.joint_state import MAX_NAME_CHARS, quaternion_from_yaw, world_to_body
+from morph_core.msgs.effort_names import EffortNamesError, effort_names
+from morph_core.msgs.joint_state import MAX_NAME_CHARS
 from morph_core.msgs.stamps import SILENCE_TAG, StampError, from_ns, parse_answer_tag
+from morph_core.policy.tree import KinematicTree, UrdfRobot
 from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.input_counts import InputCounts
+from morph_core.protocol.joint_map import JointMap, JointMapError
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
@@ -123,7 +162,12 @@ _TICK_BUDGET = 0.02
 _LOG_THROTTLE = 5.0
 _MAX_EPISODE_STEPS = 2**31 - 1
 EFFORTS = "effort_commands"
-MAX_PREFIX_CHARS = MAX_NAME_CHARS - len("motor64_rot")  # the longest name the sim gives: <prefix>motor<k>_rot
+MAX_PREFIX_CHARS = MAX_NAME_CHARS - len("motor64_rot")  # the longest name a swimmer has: <prefix>motor<k>_rot
+REMEMBERED_ORDERS = 64
+"""states whose published joint order is kept (shuffling) to map an answer without names: a lockstep loop needs
+the latest only, a free-running controller answers within a few periods"""
+SHUFFLE_STREAM = 0x5348_5546
+"""mixed with ``seed`` to seed the shuffling's own generator, apart from the physics'"""
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 """joint_states, odom, /clock"""
@@ -156,12 +200,39 @@ def chain_lengths(num_joints: int, min_joints: int, max_joints: int) -> int | tu
     return min_joints, max_joints
 
 
-def prefix_error(prefix: str) -> str | None:
-    """Why ``prefix`` cannot start joint names (a controller refuses names that are not short printable
-    ASCII, ``msgs.joint_state``), or None."""
-    if len(prefix) > MAX_PREFIX_CHARS or not (prefix.isascii() and prefix.isprintable()):
-        return f"must be at most {MAX_PREFIX_CHARS} printable ASCII characters"
+def prefix_error(prefix: str, longest_name: int = MAX_NAME_CHARS - MAX_PREFIX_CHARS) -> str | None:
+    """Why ``prefix`` cannot start joint names of up to ``longest_name`` characters (a controller refuses
+    names that are not short printable ASCII, ``msgs.joint_state``), or None."""
+    most = MAX_NAME_CHARS - longest_name
+    if len(prefix) > most or not (prefix.isascii() and prefix.isprintable()):
+        return f"must be at most {most} printable ASCII characters"
     return None
+
+
+def make_sim(
+    num_joints: int, min_joints: int, max_joints: int, topology: str, model_file: str, **kwargs
+) -> tuple[SwimmerSim, str]:
+    """The sim the body parameters ask for, and a phrase naming its bodies for the log. ValueError (one line,
+    naming the parameters) for a combination that is refused, a bad spec or a model file that cannot run."""
+    if topology and model_file:
+        raise ValueError("topology and model_file are both set: the sim runs swimmers of a spec or one robot model")
+    given = "topology" if topology else "model_file" if model_file else None
+    if given and (min_joints or max_joints):
+        raise ValueError(f"{given} is set: min_joints and max_joints must stay 0 (its bodies are the {given}'s)")
+    if topology:
+        try:
+            bodies = parse_bodies(topology)
+        except ValueError as err:
+            raise ValueError(f"topology {topology[:60]!r}: {err}") from None
+        lo, hi = bodies.joint_range
+        return SwimmerSim(bodies=bodies, **kwargs), f"swimmers of {str(bodies)!r} ({lo}..{hi} joints)"
+    if model_file:
+        robot = load_robot(model_file)  # RobotModelError, a ValueError, says why not
+        described = f"robot {robot.name!r} from {model_file} ({robot.num_joints} joints, root {robot.tree.root_link!r})"
+        return SwimmerSim(robot=robot, **kwargs), described
+    lengths = chain_lengths(num_joints, min_joints, max_joints)
+    described = f"{lengths[0]}..{lengths[1]} joints" if isinstance(lengths, tuple) else f"{lengths} joints"
+    return SwimmerSim(num_joints=lengths, **kwargs), f"swimmer with {described}"
 
 
 class SwimmerSimNode(Node):
@@ -173,7 +244,8 @@ class SwimmerSimNode(Node):
             6,
             ParameterDescriptor(
                 description="actuated joints in the chain (with a range set: the current episode's, drawn); "
-                "setting it starts a new episode with that chain",
+                "setting it starts a new episode with that chain; with topology or model_file it reports the "
+                "body's count and cannot be set",
                 integer_range=[joints],
             ),
         )
@@ -197,7 +269,7 @@ class SwimmerSimNode(Node):
             ),
         )
         self.declare_parameter(
-            "joint_prefix", "", ParameterDescriptor(description="prefix of joint and torso frame names")
+            "joint_prefix", "", ParameterDescriptor(description="prefix of joint, link and root frame names")
         )
         self.declare_parameter(
             "real_time_factor",
@@ -221,23 +293,61 @@ class SwimmerSimNode(Node):
             ),
         )
         self.declare_parameter(
-            "seed", 0, ParameterDescriptor(description="seed of the reset noise and chain draws", read_only=True)
+            "seed",
+            0,
+            ParameterDescriptor(description="seed of the reset noise, body draws and joint shuffling", read_only=True),
+        )
+        self.declare_parameter(
+            "topology",
+            "",
+            ParameterDescriptor(
+                description="body spec of the swimmers drawn at each reset (e.g. y:2x2, star:3x2, 2-10,random:3-10); "
+                "'' = chains of num_joints / min_joints..max_joints",
+                read_only=True,
+            ),
+        )
+        self.declare_parameter(
+            "model_file",
+            "",
+            ParameterDescriptor(
+                description="MJCF of your own robot (actuated hinges) to simulate instead of a swimmer", read_only=True
+            ),
+        )
+        self.declare_parameter(
+            "shuffle_joints",
+            False,
+            ParameterDescriptor(
+                description="list the joints of every joint state in a random order (efforts map by name or by "
+                "the order of the state they answer)",
+                read_only=True,
+            ),
         )
 
         p = self.get_parameter
         self._prefix = p("joint_prefix").value
-        if prefix_error(self._prefix) is not None:
-            raise ValueError(f"joint_prefix {prefix_error(self._prefix)}")
         self._rtf = p("real_time_factor").value
         self._lockstep = p("lockstep").value
-        lengths = chain_lengths(p("num_joints").value, p("min_joints").value, p("max_joints").value)
-        self.sim = SwimmerSim(
-            num_joints=lengths,
+        self.sim, described = make_sim(
+            p("num_joints").value,
+            p("min_joints").value,
+            p("max_joints").value,
+            p("topology").value,
+            p("model_file").value,
             seed=p("seed").value,
             effort_timeout=p("effort_timeout").value,
             episode_steps=p("episode_steps").value,
         )
+        self._fixed_body = "topology" if p("topology").value else "model_file" if p("model_file").value else None
+        # The longest joint name a body can have: a swimmer's motor64_rot, or the robot's own.
+        self._longest_name = max(map(len, self.sim.tree.names)) if self.sim.robot else len("motor64_rot")
+        if prefix_error(self._prefix, self._longest_name) is not None:
+            raise ValueError(f"joint_prefix {prefix_error(self._prefix, self._longest_name)}")
         self._names = self.sim.joint_names(self._prefix)
+        self._shuffle = p("shuffle_joints").value
+        self._order_rng = np.random.default_rng([SHUFFLE_STREAM, p("seed").value])
+        self._sent: OrderedDict[int, tuple[str, ...]] = OrderedDict()  # stamp -> the names as published
+        self._latest_names: tuple[str, ...] = tuple(self._names)
+        self._joint_map: tuple[tuple[str, ...], JointMap] | None = None
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -248,7 +358,7 @@ class SwimmerSimNode(Node):
         self.create_subscription(Float64MultiArray, "effort_commands", self._on_efforts, COMMAND_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self._viz = ChainViz(self)  # robot_description and markers (see chain_viz)
-        self._viz.describe(self.sim.num_joints, self._prefix)
+        self._viz.describe(self.sim, self._prefix)
 
         self._pacer = RealTimePacer(self._rtf)
         self._gate = LockstepGate(resend_after=p("effort_timeout").value)
@@ -261,10 +371,10 @@ class SwimmerSimNode(Node):
         self._timer = None
         self._restart_pacing()
         self._follow_chain()
-        described = f"{lengths[0]}..{lengths[1]} joints" if isinstance(lengths, tuple) else f"{lengths} joints"
         self.get_logger().info(
-            f"swimmer with {described}, episode_steps {self.sim.episode_steps or 'unlimited'}, "
+            f"{described}, episode_steps {self.sim.episode_steps or 'unlimited'}, "
             f"real_time_factor {self._rtf}, lockstep {self._lockstep}"
+            + (", joints shuffled in every state" if self._shuffle else "")
         )
 
     # -- parameters -------------------------------------------------------------
@@ -274,6 +384,13 @@ class SwimmerSimNode(Node):
                 if param.type_ != Parameter.Type.INTEGER or not MIN_JOINTS <= param.value <= MAX_JOINTS:
                     return SetParametersResult(
                         successful=False, reason=f"num_joints must be an integer in {MIN_JOINTS}..{MAX_JOINTS}"
+                    )
+                if self._fixed_body is not None and param.value != self.sim.num_joints:
+                    # The node's own report of a new body passes (equal); a chain cannot be built in a spec or model.
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f"num_joints follows the body of {self._fixed_body} ({self.sim.num_joints} joints now) "
+                        f"and cannot be set while {self._fixed_body} is",
                     )
             elif param.name == "episode_steps":
                 if param.type_ != Parameter.Type.INTEGER or not 0 <= param.value <= _MAX_EPISODE_STEPS:
@@ -285,7 +402,8 @@ class SwimmerSimNode(Node):
                 if param.type_ != Parameter.Type.DOUBLE or not (math.isfinite(param.value) and param.value > 0):
                     return SetParametersResult(successful=False, reason="effort_timeout must be a finite double > 0")
             elif param.name == "joint_prefix":
-                reason = prefix_error(param.value) if param.type_ == Parameter.Type.STRING else "must be a string"
+                is_text = param.type_ == Parameter.Type.STRING
+                reason = prefix_error(param.value, self._longest_name) if is_text else "must be a string"
                 if reason is not None:
                     return SetParametersResult(successful=False, reason=f"joint_prefix {reason}")
         return SetParametersResult(successful=True)
@@ -301,6 +419,7 @@ class SwimmerSimNode(Node):
             elif param.name == "joint_prefix":
                 self._prefix = param.value
                 self._names = self.sim.joint_names(self._prefix)
+                self._sent.clear()  # orders under the old names: a state published again gets one of the new
             elif param.name == "real_time_factor":
                 self._rtf = self._pacer.real_time_factor = param.value
                 self._restart_pacing()
@@ -417,12 +536,49 @@ class SwimmerSimNode(Node):
             self.counts.ignored(EFFORTS, "stale")
             return
         try:
-            self.sim.command(msg.data, now)
+            efforts = self._in_tree_order(msg, answers)
+        except EffortNamesError as err:
+            self._reject("names", err)
+            return
+        except JointMapError as err:
+            self._reject(err.code, err)
+            return
+        except EffortError as err:
+            self._reject("order", err)
+            return
+        try:
+            self.sim.command(efforts, now)
         except EffortError as err:
             self._reject("efforts", err)
             return
         if self._lockstep and self._gate.answer():
             self._lockstep_step(now)
+
+    def _in_tree_order(self, msg: Float64MultiArray, answers: int | None):
+        """The command's efforts in the body's tree order: by the names its layout gives, else by the order
+        of the state it answers (with shuffling; without, the order published is the tree's: as they are)."""
+        names = effort_names([d.label for d in msg.layout.dim], len(msg.data))
+        if names is None:
+            if not self._shuffle:
+                return msg.data
+            names = self._latest_names if answers is None else self._sent.get(answers)
+            if names is None:
+                raise EffortError(
+                    f"answers the state at {answers} ns, whose joint order is no longer known "
+                    f"(kept for the last {REMEMBERED_ORDERS} states); name the joints"
+                )
+            if len(names) != len(msg.data):
+                return msg.data  # SwimmerSim.command refuses it with the counts
+        return self._names_map().order(names).to_tree(np.asarray(msg.data, dtype=np.float64))
+
+    def _names_map(self) -> JointMap:
+        """The body's joints by their published names (``protocol.joint_map``), rebuilt when the names change
+        (only names place joints: another tree with the same names maps the same)."""
+        names = tuple(self._names)
+        if self._joint_map is None or self._joint_map[0] != names:
+            tree = KinematicTree(names, self.sim.tree.parents, self._prefix + (self.sim.tree.root_link or ""))
+            self._joint_map = (names, JointMap(UrdfRobot(tree, frozenset())))
+        return self._joint_map[1]
 
     def _reject(self, reason: str, err: Exception) -> None:
         self.counts.rejected(EFFORTS, reason, str(err))
@@ -436,29 +592,42 @@ class SwimmerSimNode(Node):
         if self.sim.episode != self._announced:
             self._announce(stamp_ns)
         stamp = _time(stamp_ns)
-        torso = self.sim.torso()
-        self._viz.describe(self.sim.num_joints, self._prefix)  # a changed chain's URDF before its first state
+        root = self.sim.odometry()
+        self._viz.describe(self.sim, self._prefix)  # a changed body's URDF before its first state
 
         self._clock_pub.publish(Clock(clock=stamp))
 
         odom = Odometry()
         odom.header.stamp = stamp
         odom.header.frame_id = "odom"
-        odom.child_frame_id = f"{self._prefix}torso"
-        odom.pose.pose.position.x = torso.x
-        odom.pose.pose.position.y = torso.y
-        q = odom.pose.pose.orientation
-        q.x, q.y, q.z, q.w = quaternion_from_yaw(torso.yaw)
-        odom.twist.twist.linear.x, odom.twist.twist.linear.y = world_to_body(torso.yaw, torso.vx, torso.vy)
-        odom.twist.twist.angular.z = torso.yaw_rate
+        odom.child_frame_id = self._prefix + root.frame
+        pose, twist = odom.pose.pose, odom.twist.twist
+        pose.position.x, pose.position.y, pose.position.z = root.position
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = root.orientation
+        twist.linear.x, twist.linear.y, twist.linear.z = root.linear
+        twist.angular.x, twist.angular.y, twist.angular.z = root.angular
         self._odom_pub.publish(odom)
 
         state = JointState()
         state.header.stamp = stamp
-        state.name = self._names
-        state.position = _doubles(self.sim.joint_positions)
-        state.velocity = _doubles(self.sim.joint_velocities)
-        state.effort = _doubles(self.sim.applied)
+        positions, velocities, efforts = self.sim.joint_positions, self.sim.joint_velocities, self.sim.applied
+        if self._shuffle:
+            names = self._sent.get(stamp_ns)
+            if names is None:  # a state published again keeps its order: an answer to either is the same
+                order = self._order_rng.permutation(len(self._names))
+                names = tuple(self._names[i] for i in order)
+                self._sent[stamp_ns] = names
+                if len(self._sent) > REMEMBERED_ORDERS:
+                    self._sent.popitem(last=False)
+            order = self._names_map().order(names)
+            positions, velocities, efforts = (order.to_message(v) for v in (positions, velocities, efforts))
+            self._latest_names = names
+            state.name = list(names)
+        else:
+            state.name = self._names
+        state.position = _doubles(positions)
+        state.velocity = _doubles(velocities)
+        state.effort = _doubles(efforts)
         self._state_pub.publish(state)
         self._viz.markers(self.sim, self._prefix, stamp)
 

@@ -1,26 +1,39 @@
-"""A swimmer simulation stepped one control period at a time, for a ROS node (or anything) to wrap.
+"""A simulated robot stepped one control period at a time, for a ROS node (or anything) to wrap.
 
 ``SwimmerSim`` owns a ``MorphSwimmerEnv`` (same physics, reset noise and
-frame skip as training) and adds what a robot-facing simulator needs:
-efforts held between commands and validated on arrival, an effort timeout
-(zero effort when commands stop), episodes, a chain rebuilt in place, a sim
-clock that never goes backwards, and the torso's pose and twist.
+frame skip as training), or runs your own robot (``robot``: an
+``env.mjcf_robot.MjcfRobot``, any MJCF of actuated hinges), and adds what a
+robot-facing simulator needs: efforts held between commands and validated on
+arrival, an effort timeout (zero effort when commands stop), episodes, a
+chain rebuilt in place, a sim clock that never goes backwards, and the root's
+pose and twist (``odometry``; the swimmer's planar torso also as ``torso``).
+
+Bodies: ``num_joints`` an int (a fixed chain) or a range ``(lo, hi)`` (a
+chain length drawn at every reset), or ``bodies`` a spec of ``env.bodies``
+(trees included: one body drawn at every reset, ``MorphSwimmerEnv(bodies=...)``'s
+draw), or ``robot`` (its model, every episode). Joints are in the body's tree
+order (``tree``: depth-first pre-order, torso to tail for a chain), named as
+in its MJCF.
 
 Episodes are the env's: the first begins with ``env.reset(seed=seed)``, every
-later one with ``env.reset()`` (the chain length redrawn from ``num_joints``
-when it is a range, the reset noise drawn from the same generator). So a run
-is replayed exactly by a fresh ``MorphSwimmerEnv(num_joints)`` reset the same
-way at the same boundaries and stepped with the same efforts. An episode
+later one with ``env.reset()`` (the chain length or body redrawn when there
+is a choice, the reset noise drawn from the same generator). So a run is
+replayed exactly by a fresh ``MorphSwimmerEnv(num_joints)`` (or
+``MorphSwimmerEnv(bodies=spec)``) reset the same way at the same boundaries
+and stepped with the same efforts; a robot's run by a fresh ``MjcfRobot`` of
+the same model, likewise. An episode
 ends after ``episode_steps`` steps (0: never), on ``reset()``, on
 ``rebuild(n)`` (that episode has n joints, as ``env.reset(options=
-{"num_joints": n})``) or when the physics diverges. The clock counts on
+{"num_joints": n})``; chains only: a sim of ``bodies`` or of a robot refuses
+it, its body is drawn or given) or when the physics diverges. The clock counts on
 across episodes: every state is one control period after the one before, the
 first state of an episode included (a diverged state, never shown, is
 replaced by the next episode's first).
 
 Effort units are the motors' normalised commands (the env's action, ctrl
-range [-1, 1]; joint torque = 150 x effort). Values outside the range are
-clipped, as MuJoCo would.
+range [-1, 1]; a swimmer's joint torque = 150 x effort; a robot's ctrl by
+``mjcf_robot``'s rule). Values outside the range are clipped, as MuJoCo
+would.
 """
 
 from __future__ import annotations
@@ -31,9 +44,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from morph_core.env.bodies import BodyMix
+from morph_core.env.mjcf_robot import MjcfRobot, RootState
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.env.urdf import robot_urdf, swimmer_urdf
+from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.policy.tree import KinematicTree
 from morph_core.protocol.episode_start import EpisodeCause
 
 
@@ -59,7 +77,8 @@ class TorsoState:
 
 class SwimmerSim:
     """One swimmer; ``num_joints`` an int (a fixed chain) or an inclusive range ``(lo, hi)`` drawn from
-    at every reset.
+    at every reset; or ``bodies`` (a spec or ``BodyMix``: a body drawn at every reset; ``num_joints`` is
+    then unused); or your own ``robot`` (a ``MjcfRobot``).
 
     ``now`` arguments are the caller's clock in seconds (a node passes wall
     time: the effort timeout is about a controller going quiet, not about sim
@@ -72,10 +91,22 @@ class SwimmerSim:
         seed: int | None = 0,
         effort_timeout: float | None = 0.25,
         episode_steps: int = 0,
+        bodies: str | BodyMix | None = None,
+        robot: MjcfRobot | None = None,
     ):
-        self._env = MorphSwimmerEnv(num_joints=num_joints, observation_mode="graph")
-        fixed = isinstance(num_joints, numbers.Integral)
-        self._fixed: int | None = self._env.joint_range[0] if fixed else None
+        if bodies is not None and robot is not None:
+            raise ValueError("a sim runs swimmers of a body spec or a robot model, not both")
+        self.robot = robot
+        """the robot model run, or None for a swimmer"""
+        if robot is not None:
+            self._env = robot
+            self._physics = robot.advance
+            self._fixed: int | None = None
+        else:
+            self._env = MorphSwimmerEnv(num_joints=num_joints, observation_mode="graph", bodies=bodies)
+            self._physics = self._swim
+            fixed = bodies is None and isinstance(num_joints, numbers.Integral)
+            self._fixed = self._env.joint_range[0] if fixed else None
         self.effort_timeout = effort_timeout
         self.episode_steps = check_episode_steps(episode_steps)
         """steps per episode before the next reset; 0 = episodes end only on request"""
@@ -101,19 +132,29 @@ class SwimmerSim:
         self._env.reset(seed=seed)
         self._clear_efforts()
 
-    # -- chain and episodes -------------------------------------------------------
+    # -- body and episodes --------------------------------------------------------
     @property
     def num_joints(self) -> int:
         return self._env.num_joints
 
     @property
+    def tree(self) -> KinematicTree:
+        """The current body's tree: its joints in the order every per-joint array here has, MJCF names."""
+        return self._env.tree
+
+    @property
     def joint_range(self) -> tuple[int, int]:
-        """Chain lengths the next reset may draw (lo == hi: a fixed chain)."""
+        """Joint counts the next reset may draw (lo == hi: a fixed chain, or a robot)."""
         return (self._fixed, self._fixed) if self._fixed is not None else self._env.joint_range
 
     @property
+    def bodies(self) -> BodyMix | None:
+        """The body spec drawn from, None for chains given by ``num_joints`` and for a robot."""
+        return None if self.robot is not None else self._env.bodies
+
+    @property
     def dt(self) -> float:
-        """Control period [s] (0.04: 4 physics steps of 0.01)."""
+        """Control period [s] (a swimmer's 0.04: 4 physics steps of 0.01; a robot's as near it as its steps go)."""
         return self._env.dt
 
     @property
@@ -133,7 +174,7 @@ class SwimmerSim:
 
     def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
         """Begin a new episode, one control period after the current state: a fresh swimmer (its
-        length redrawn when ``num_joints`` is a range); efforts drop to zero."""
+        length or body redrawn when there is a choice); efforts drop to zero."""
         if self._fixed is not None:
             self._env.reset(options={"num_joints": self._fixed})  # draws the same as env.reset() would
         else:
@@ -142,7 +183,12 @@ class SwimmerSim:
 
     def rebuild(self, num_joints: int) -> None:
         """Begin a new episode with a chain of ``num_joints`` joints. A fixed chain keeps that length from
-        now on; with a range, later resets draw from the range again."""
+        now on; with a range, later resets draw from the range again. A sim of a body spec or of a robot
+        refuses (ValueError): its bodies are the spec's or the model's."""
+        if self.robot is not None:
+            raise ValueError(f"the robot model {self.robot.name!r} has {self.num_joints} joints; it cannot be rebuilt")
+        if self._env.bodies is not None:
+            raise ValueError(f"the bodies are drawn from {str(self._env.bodies)!r}; a chain cannot be rebuilt in it")
         n = check_num_joints(num_joints)
         if self._fixed is not None:
             self._fixed = n
@@ -165,7 +211,7 @@ class SwimmerSim:
 
     # -- efforts ----------------------------------------------------------------
     def command(self, efforts: Sequence[float], now: float) -> np.ndarray:
-        """Hold ``efforts`` (one per joint, chain order) from now on; returns them clipped.
+        """Hold ``efforts`` (one per joint, tree order) from now on; returns them clipped.
 
         Raises ``EffortError`` (and counts it) for a wrong length or NaN/inf; the
         previous command stays in force.
@@ -193,7 +239,7 @@ class SwimmerSim:
         physics diverged, in which case a new episode began (``EpisodeCause.DIVERGED``)."""
         self.timed_out = self.commands_stale(now)
         a = np.zeros(self.num_joints) if self.timed_out else self._effort
-        _, _, unstable, _, _ = self._env.step(a)
+        unstable = self._physics(a)
         self.applied = a.copy()
         self.steps += 1
         if unstable:
@@ -214,20 +260,27 @@ class SwimmerSim:
             return True
         return not self.step(now)
 
+    def _swim(self, a: np.ndarray) -> bool:
+        # The env's step without its observation and info (same physics, bit for bit).
+        return self._env.advance(a)[1]
+
     # -- state ------------------------------------------------------------------
     def joint_names(self, prefix: str = "") -> list[str]:
-        """The MJCF joint names, torso to tail, with ``prefix`` in front."""
-        return [f"{prefix}motor{k}_rot" for k in range(1, self.num_joints + 1)]
+        """The MJCF joint names in tree order (a chain's torso to tail), with ``prefix`` in front."""
+        return [prefix + name for name in self.tree.names]
 
     @property
     def joint_positions(self) -> np.ndarray:
-        return self._env.data.qpos[3:].copy()
+        return self.robot.joint_positions if self.robot is not None else self._env.data.qpos[3:].copy()
 
     @property
     def joint_velocities(self) -> np.ndarray:
-        return self._env.data.qvel[3:].copy()
+        return self.robot.joint_velocities if self.robot is not None else self._env.data.qvel[3:].copy()
 
     def torso(self) -> TorsoState:
+        """The swimmer's planar torso frame (a robot has none: ``odometry``)."""
+        if self.robot is not None:
+            raise TypeError("a robot model has no swimmer torso; its root's pose is odometry()")
         qpos, qvel = self._env.data.qpos, self._env.data.qvel
         return TorsoState(
             x=float(qpos[0]),
@@ -237,6 +290,26 @@ class SwimmerSim:
             vy=float(qvel[1]),
             yaw_rate=float(qvel[2]),
         )
+
+    def odometry(self) -> RootState:
+        """The root link's pose (world frame) and twist (its own frame), as ``odom`` carries them: a
+        swimmer's torso in the plane (z = 0, yaw about z), a robot's root in 3-D."""
+        if self.robot is not None:
+            return self.robot.root_state()
+        t = self.torso()
+        return RootState(
+            frame="torso",
+            position=(t.x, t.y, 0.0),
+            orientation=quaternion_from_yaw(t.yaw),
+            linear=(*world_to_body(t.yaw, t.vx, t.vy), 0.0),
+            angular=(0.0, 0.0, t.yaw_rate),
+        )
+
+    def urdf(self, prefix: str = "") -> str:
+        """The current body's URDF (``env.urdf``), link and joint names behind ``prefix``."""
+        if self.robot is not None:
+            return robot_urdf(self.robot.model, prefix)
+        return swimmer_urdf(self.tree, prefix)
 
 
 def check_episode_steps(n) -> int:
