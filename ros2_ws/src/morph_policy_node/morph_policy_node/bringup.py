@@ -13,8 +13,10 @@ The body: a chain of ``--joints``, or a swimmer drawn from ``--bodies`` (a body
 spec of ``morph_core.env.bodies``, e.g. ``y:2x2``: the sim's ``topology``;
 one body for the whole run, the sim draws again only at a reset), or your own
 robot, ``--model-file`` (an MJCF of actuated hinges: the sim's ``model_file``,
-docs/your_robot.md). The shipped model was trained on chains: a tree or a
-robot is driven zero-shot, or by the ``--checkpoint`` given.
+docs/your_robot.md). Without ``--checkpoint``, a chain or a robot is driven by
+the shipped chain model, and bodies with a tree among them by the shipped
+tree-trained model (``models/swimmer_trees_gnn.safetensors``, trained on
+chains and random trees: ``models/README.md``); a robot is driven zero-shot.
 """
 
 from __future__ import annotations
@@ -120,6 +122,20 @@ def run(
     }
 
 
+TREE_MODEL = "swimmer_trees_gnn.safetensors"
+"""the shipped tree-trained policy, beside the chain one"""
+
+
+def _has_trees(spec: str) -> bool:
+    """Whether a body spec can draw a tree; a bad spec is the sim node's to refuse, with its reason."""
+    from morph_core.env.bodies import parse_bodies
+
+    try:
+        return not parse_bodies(spec).chains_only
+    except ValueError:
+        return False
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     body = ap.add_mutually_exclusive_group()
@@ -127,14 +143,21 @@ def main(argv=None) -> int:
     body.add_argument("--bodies", default=None, help="body spec of the swimmer (the sim's topology), e.g. y:2x2")
     body.add_argument("--model-file", default=None, help="MJCF of your own robot (the sim's model_file)")
     ap.add_argument("--sim-seconds", type=float, default=30.0, help="sim time to run")
-    ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
+    ap.add_argument(
+        "--checkpoint", default=None, help="policy .safetensors (default: the shipped model; trees: the tree one)"
+    )
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
     args = ap.parse_args(argv)
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
-    if args.checkpoint is None and not SHIPPED_MODEL.is_file():
-        print(f"bringup: no shipped policy at {SHIPPED_MODEL}: give --checkpoint", flush=True)
-        return 2
+    if args.checkpoint is None:
+        shipped = SHIPPED_MODEL
+        if args.bodies and _has_trees(args.bodies):
+            shipped = SHIPPED_MODEL.with_name(TREE_MODEL)
+            args.checkpoint = str(shipped)
+        if not shipped.is_file():
+            print(f"bringup: no shipped policy at {shipped}: give --checkpoint", flush=True)
+            return 2
     try:
         r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout, args.bodies, args.model_file)
     except RuntimeError as err:  # the node said why above (a bad --bodies or --model-file, say)
