@@ -8,6 +8,8 @@ the node's global features are zero), to 1e-9: the node's efforts are the policy
 
 from __future__ import annotations
 
+import subprocess
+
 import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -438,3 +440,17 @@ def test_urdf_helper_writes_what_the_reader_reads():
     robot = read_urdf(urdf([-1, 0, 0], ["p", "q", "r"], fixed=["f"], uncommanded=["r"]))
     assert robot.tree.names == ("p", "q") and robot.tree.parents.tolist() == [-1, 0]
     assert robot.unactuated == {"f", "r"}
+
+
+@pytest.mark.timeout(120)
+def test_an_unknown_effort_order_stops_the_node_at_start_up_with_one_line(launch, untrained_checkpoint):
+    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), effort_order="alphabetical")
+    try:
+        code = proc.proc.wait(timeout=STARTUP)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"still running:\n{proc.log()}") from None
+    log = proc.log()
+    lines = [line for line in log.splitlines() if "cannot start" in line]
+    assert code == 1 and "Traceback" not in log, log
+    assert len(lines) == 1 and "effort_order must be one of state, description" in lines[0], log
+    assert "'alphabetical'" in lines[0]
