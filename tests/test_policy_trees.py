@@ -220,7 +220,7 @@ def test_a_tree_description_published_before_the_start_is_read_by_name(policies,
         assert node.diag.latest["robot_description"].rejected_total == 0
         assert node.diag.latest["joint_states"].rejected_total == 0
         assert "robot_description: 6 actuated joints, a tree" in node.proc.log()
-        assert "no robot_description received" not in node.proc.log()
+        assert "no robot_description yet" not in node.proc.log()
 
 
 @pytest.mark.timeout(240)
@@ -254,7 +254,7 @@ def test_a_chain_description_answers_as_the_fallback_and_leaves_unactuated_joint
     # The fallback takes an out-of-order state as the chain it lists.
     listed = fallback.ask([names[j] for j in perm], pos[perm], vel[perm])
     np.testing.assert_allclose(listed.data, expected(pos[perm], vel[perm]), rtol=0, atol=1e-9)
-    assert fallback.proc.log().count("no robot_description received: joints taken as a chain in message order") == 1
+    assert fallback.proc.log().count("no robot_description yet: joints taken as a chain in message order") == 1
 
     # What does not fit the description is rejected with the reason, nothing answered.
     described.refused([*names, "wheel"], [0.0] * 6, [0.0] * 6, "rejected", "unknown_joint")

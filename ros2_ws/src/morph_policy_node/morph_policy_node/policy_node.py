@@ -342,7 +342,7 @@ class MorphPolicyNode(Node):
         self._unwrap = YawUnwrapper()
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
-        self._names: tuple[str, ...] = ()  # joints of the last robot answered, in the efforts' order
+        self._names: tuple[str, ...] = ()  # joints of the last robot seen, in the efforts' order (the zeros')
         self._robot: tuple[int, tuple[str, ...]] | None = None  # (description generation, tree joints) answered
         self._said_fallback = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
@@ -565,7 +565,7 @@ class MorphPolicyNode(Node):
         if generation == 0 and not self._said_fallback:
             self._said_fallback = True
             self.get_logger().info(
-                f"no {DESCRIPTION} received: joints taken as a chain in message order (joint 0 next to the torso)"
+                f"no {DESCRIPTION} yet: joints taken as a chain in message order (joint 0 next to the torso)"
             )
         if self._odom is None:
             glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
