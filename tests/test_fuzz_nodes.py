@@ -5,7 +5,10 @@ prints the figures in ``docs/robustness.md``). The test is the node's peer: it s
 messages, then a good one, and waits for the good one's answer before the next round (so a best-effort
 reader never overflows and every count is exact). Checked: the node stays up, answers every good message
 and no malformed one, reports on ``/diagnostics`` exactly how many it received, rejected and ignored per
-input, keeps its RSS flat (before/after, from /proc) and throttles its warnings.
+input, keeps its RSS flat (before/after, from /proc) and throttles its warnings. The policy node reads its
+states on a latched robot_description (published before it starts); its malformed input includes descriptions
+that are no robot and states that do not fit the description, and the good description is sent again now and
+then (ignored: nothing changes).
 """
 
 from __future__ import annotations
@@ -23,9 +26,9 @@ import numpy as np
 import pytest
 import safetensors.numpy
 from nav_msgs.msg import Odometry
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_version
@@ -39,6 +42,7 @@ HUGE = 100_000
 RSS_GROWTH_LIMIT_KB = 20_000
 """RSS may grow this much from after the warm-up to the end (allocator slack); a leak per message is far more"""
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _fuzz_measured(probe, proc, fuzz) -> tuple[int, int, float]:
@@ -132,6 +136,33 @@ def _weights(version: int, checkpoint: Path, key, damage: str = "") -> UInt8Mult
     return msg
 
 
+def _urdf(parents, names) -> str:
+    """A URDF of revolute joints ``names`` with ``parents`` (-1: off the base link)."""
+    links = "".join(f'<link name="{n}_link"/>' for n in ["base", *names])
+    joints = "".join(
+        f'<joint name="{n}" type="revolute"><parent link="{"base" if p < 0 else names[p]}_link"/>'
+        f'<child link="{n}_link"/></joint>'
+        for n, p in zip(names, parents, strict=True)
+    )
+    return f'<robot name="r">{links}{joints}</robot>'
+
+
+DESCRIPTION = _urdf([-1, 0, 1], NAMES)  # the good states' robot: the chain of NAMES
+
+
+def _bad_descriptions() -> list[tuple[str, String]]:
+    """One description of each kind that is no robot (small ones: the 10 MB case is in test_policy_trees)."""
+    cycle = _urdf([-1, 0], ["c0", "c1"]).replace('<child link="c0_link"/>', '<child link="base_link"/>')
+    return [
+        ("not_xml", String(data="<robot name='r'><link name=")),
+        ("cycle", String(data=cycle)),
+        ("two_roots", String(data='<robot name="r"><link name="a"/><link name="b"/></robot>')),
+        ("duplicate_names", String(data=_urdf([-1, 0], ["d", "e"]).replace('name="e"', 'name="d"'))),
+        ("65_joints", String(data=_urdf(list(range(-1, 64)), [f"m{k}" for k in range(65)]))),
+        ("prismatic", String(data=DESCRIPTION.replace('"j2" type="revolute"', '"j2" type="prismatic"'))),
+    ]
+
+
 def _bad_joint_states(k: int, sec: int, nanosec: int) -> list[tuple[str, JointState]]:
     """One malformed state of each kind (all stamped with the round's own unused stamp)."""
     huge = np.zeros(HUGE)
@@ -147,6 +178,8 @@ def _bad_joint_states(k: int, sec: int, nanosec: int) -> list[tuple[str, JointSt
         ("duplicate_names", _state(sec, nanosec, names=["j0", "j1", "j0"])),
         ("non_ascii_name", _state(sec, nanosec, names=["j0", "gelenk_ä", "j2"])),
         ("bad_stamp", _state(sec, 2_000_000_000 + k)),
+        ("unknown_joint", _state(sec, nanosec, names=["j0", "j1", "wheel"])),  # not in robot_description
+        ("missing_joint", _state(sec, nanosec, names=["j2", "j0"])),
     ]
 
 
@@ -192,14 +225,17 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
         for topic, kind in (("joint_states", JointState), ("odom", Odometry), ("episode_start", Int64MultiArray),
                             ("policy_weights", UInt8MultiArray))
     }  # fmt: skip
+    pubs["robot_description"] = probe.node.create_publisher(String, "robot_description", LATCHED)
+    pubs["robot_description"].publish(String(data=DESCRIPTION))  # before the node starts: it is latched
     proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), deterministic=False, input_timeout=60.0,
                   trusted_keys=trainer_key.trusted)  # fmt: skip
     probe.spin_until(
         lambda: all(p.get_subscription_count() > 0 for p in pubs.values()) and diag.latest is not None,
         STARTUP, "the policy node's subscriptions and diagnostics",
     )  # fmt: skip
+    probe.spin_until(lambda: diag.latest["robot_description"].received == 1, 20.0, "the latched description")
 
-    sent: Counter[str] = Counter()  # per input
+    sent: Counter[str] = Counter({"robot_description": 1})  # per input
     bad: Counter[str] = Counter()  # per input
     kinds: Counter[str] = Counter()  # per kind of malformed message
     big: Counter[str] = Counter()  # per input: messages of 800 kB or more (fragmented on the wire)
@@ -257,20 +293,28 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
         while malformed < until:
             for _ in range(rng.randint(1, 4)):  # at most 4 per topic a round: the reader keeps 5
                 sec, nanosec = fresh_stamp()
-                topic = rng.choices(["joint_states", "odom", "episode_start", "policy_weights"], [6, 2, 1, 1])[0]
+                topics = ["joint_states", "odom", "episode_start", "policy_weights", "robot_description"]
+                topic = rng.choices(topics, [6, 2, 1, 1, 1])[0]
                 if topic == "joint_states":
                     kind, msg = rng.choice(_bad_joint_states(malformed, sec, nanosec))
                 elif topic == "odom":
                     kind, msg = rng.choice(_bad_odometry(sec, nanosec))
                 elif topic == "episode_start":
                     kind, msg = rng.choice(_bad_episode_starts())
+                elif topic == "robot_description":
+                    kind, msg = rng.choice(_bad_descriptions())
+                    # Reliable but keep last 1: one replaced before the node took it never reaches it.
+                    at_risk[topic] += 1
                 else:
                     kind = rng.choice(["truncated", "nan", "shape", "label", "json"])
                     msg = _weights(10**6 + malformed, untrained_checkpoint, trainer_key, damage=kind)
                 send(topic, msg, kind)
                 malformed += 1
-                if topic == "policy_weights":
-                    break  # one weights message a round: that reader keeps only the newest
+                if topic in ("policy_weights", "robot_description"):
+                    break  # one such message a round: those readers keep only the newest
+            if rng.random() < 0.05:  # the good description again: ignored, the graph unchanged
+                at_risk["robot_description"] += 1
+                send("robot_description", String(data=DESCRIPTION))
             if rng.random() < 0.02:  # now and then a good policy, which must be adopted
                 at_risk["policy_weights"] += topic == "policy_weights"  # a malformed one just before it
                 at_risk["policy_weights"] += burst_has_big[0]  # itself, behind a fragmented message
@@ -308,13 +352,22 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
     # Every good state and odometry arrived (each was answered), and every good policy but those missed (a good
     # one that arrives is adopted): what else was lost was malformed.
     lost_bad = {**lost, "policy_weights": lost["policy_weights"] - len(missed)}
-    for topic in sent:
+    for topic in set(sent) - {"robot_description"}:
         assert counts[topic].rejected_total == bad[topic] - lost_bad[topic], (topic, counts[topic], bad[topic])
+    # Descriptions: the good one again (ignored) may be lost as well as a bad one; every one that arrived after
+    # the first was refused or ignored, and every bad one that arrived was refused.
+    described = counts["robot_description"]
+    assert described.received - 1 == described.rejected_total + described.ignored_total, described
+    assert bad["robot_description"] - lost["robot_description"] <= described.rejected_total, described
+    assert described.rejected_total <= bad["robot_description"], described
     assert "stamp" in counts["joint_states"].rejected and "joint_state" in counts["joint_states"].rejected
-    # Warnings throttled: rclpy throttles per call site (5 s; weights 1 s).
+    assert {"unknown_joint", "missing_joint"} <= set(counts["joint_states"].rejected)
+    assert set(counts["robot_description"].rejected) == {"description"}
+    assert set(counts["robot_description"].ignored) <= {"unchanged"}
+    # Warnings throttled: rclpy throttles per call site (5 s; weights and descriptions 1 s).
     log = proc.log()
     warned = _warning_lines(log)
-    assert warned <= 3 * (elapsed / 5.0 + 2) + (elapsed / 1.0 + 2), f"{warned} warning lines in {elapsed:.0f} s"
+    assert warned <= 3 * (elapsed / 5.0 + 2) + 2 * (elapsed / 1.0 + 2), f"{warned} warning lines in {elapsed:.0f} s"
     assert "Traceback" not in log
     growth = rss_after - rss_before
     print(

@@ -17,6 +17,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from morph_core.msgs.effort_names import names_label
 from morph_core.msgs.stamps import SILENCE_TAG
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint
@@ -92,11 +93,14 @@ def test_an_untrained_policy_runs_only_when_asked_and_marks_every_effort(probe, 
     proc, pub, efforts = _policy_with_publisher(probe, launch, checkpoint="", allow_untrained=True, input_timeout=0.3)
     good = _state(["a", "b", "c"], [0.2, -0.1, 0.3], [0.0] * 3)
     reply = _answer(probe, pub, efforts, good, 3)
-    assert [d.label for d in reply.layout.dim][1:] == [UNTRAINED_LABEL]
+    # The joints' names (msgs.effort_names), then the mark.
+    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b", "c")), UNTRAINED_LABEL]
     assert reply.layout.dim[0].label.startswith("joints@")  # still the answer tag a sim reads
     n = len(efforts)
     probe.spin_until(lambda: any(not any(e.data) for e in efforts[n:]), 10.0, "zero efforts after silence")
     assert all(e.layout.dim and e.layout.dim[-1].label == UNTRAINED_LABEL for e in efforts)  # the zeros too
+    zeros = next(e for e in efforts[n:] if not any(e.data))
+    assert [d.label for d in zeros.layout.dim] == [SILENCE_TAG, names_label(("a", "b", "c")), UNTRAINED_LABEL]
     assert "UNTRAINED" in proc.log()
 
 
@@ -104,7 +108,7 @@ def test_an_untrained_policy_runs_only_when_asked_and_marks_every_effort(probe, 
 def test_a_trained_policy_is_not_marked(probe, launch, untrained_checkpoint):
     _, pub, efforts = _policy_with_publisher(probe, launch, checkpoint=str(untrained_checkpoint))
     reply = _answer(probe, pub, efforts, _state(["a", "b"], [0.1, 0.2], [0.0, 0.0]), 2)
-    assert [d.label for d in reply.layout.dim] == [reply.layout.dim[0].label]
+    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b"))]  # the joints' names only
     assert UNTRAINED_LABEL not in {d.label for e in efforts for d in e.layout.dim}
 
 

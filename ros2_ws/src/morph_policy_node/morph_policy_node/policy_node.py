@@ -1,12 +1,34 @@
 """The morphology-agnostic GNN policy as a ROS 2 node: JointState (+ Odometry) in, efforts out.
 
-Each ``joint_states`` message is its own robot description: the joint graph
-is built from it (joint order = message order, joint 0 next to the torso),
-so any chain length works with no restart and no parameter change. The
-latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
+The joint graph comes from ``robot_description`` (std_msgs/String, a URDF,
+as ``robot_state_publisher`` or the sim publishes it): its actuated hinges
+(revolute and continuous joints; with ``<ros2_control>`` blocks, those with a
+command interface) form the kinematic tree, joints in depth-first order
+(``morph_core.policy.tree.read_urdf``). Every ``joint_states`` message is laid
+onto that tree by joint name (``morph_core.protocol.joint_map``), so a driver
+may list its joints in any order and add joints the policy does not drive
+(fixed joints, hinges without a command interface), which it leaves alone.
+A state that names a joint the description does not have (``unknown_joint``)
+or lacks one of its actuated joints (``missing_joint``) is rejected with the
+reason, nothing published for it. A new description at runtime (a robot
+swapped, a chain grown) replaces the graph between two messages; a state of
+the robot before it, still in flight (it fits the previous description and
+not the new one), is ignored and counted as ``previous_description``, apart
+from malformed input; the yaw unwrapping restarts with the new robot. A
+description that is no robot (not XML, over 10 MB, a cycle, two roots,
+duplicate names, more than 64 actuated joints...) is rejected with its
+reason and the current graph is kept; the same text again changes nothing
+(``morph_core.protocol.robot_description``).
+
+Without any description the node keeps the fallback of a chain robot: each
+state's joints form a chain in message order, joint 0 next to the torso, so
+any chain length works with no description, no restart and no parameter
+change (it says so once, at the first state it answers).
+
+The latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
 for how they are turned back into the training features (yaw unwrapped,
 body-frame twist rotated to the world frame; the unwrapping restarts with
-each new chain and with each episode announced on ``episode_start``, see
+each new robot and with each episode announced on ``episode_start``, see
 ``morph_core.protocol.episode_tracker``). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
 publishes both at once; a state must not be paired with the previous
@@ -14,17 +36,36 @@ odometry, or a lockstep loop would not be deterministic; the rule is
 ``morph_core.protocol.pairing``).
 
 Outputs
-- ``effort_commands`` (std_msgs/Float64MultiArray): one effort per joint, in
-  the message's joint order, clipped to [-1, 1]; ``layout.dim[0]`` is
-  labelled ``joints@<sec>.<nanosec>`` with the stamp of the state answered.
+- ``effort_commands`` (std_msgs/Float64MultiArray): one effort per actuated
+  joint, clipped to [-1, 1]; ``layout.dim[0]`` is labelled
+  ``joints@<sec>.<nanosec>`` with the stamp of the state answered, and
+  ``layout.dim[1]`` (size 1, stride 1) ``names=<JSON list>`` names the joints
+  in the data's order (``morph_core.msgs.effort_names``). The order is
+  ``effort_order``'s: ``state`` (default) that of the names in the state
+  answered, its unactuated joints left out (with no description: the
+  message's order, as before); ``description`` the description's actuated
+  joints in its depth-first order, whatever the state's order.
 - ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
-  a trainer needs, stamped with the state's stamp; layout in ``morph_core.msgs.policy_info``.
+  a trainer needs, stamped with the state's stamp; ``joint_names`` lists the
+  joints in the order of its arrays, the efforts' order; layout in
+  ``morph_core.msgs.policy_info``.
+
+Wiring to ros2_control. With the default order, a controller or bridge that
+reads the names dimension maps each effort to its joint by name (a command
+without it is in the order of the state it answers). With
+``effort_order:=description`` the efforts always come in the same order, the
+one a ``JointGroupEffortController`` (``effort_controllers``) expects when its
+``joints:`` list is the URDF's actuated joints in the description's
+depth-first order (parent before child, a link's child joints in document
+order; the node logs the count when it reads the description, and the names
+dimension lists them); remap ``effort_commands`` to the controller's
+``~/commands``.
 
 No state answered for ``input_timeout`` -> zero efforts at 25 Hz for the last
-chain seen, labelled ``silence`` (``msgs.stamps.SILENCE_TAG``: they answer no
-state, so a lockstep sim never steps on them). Malformed messages are
-rejected, counted and logged (throttled);
-so is a state for which the policy's output is not finite (nothing is
+robot seen (named as its efforts are), labelled ``silence``
+(``msgs.stamps.SILENCE_TAG``: they answer no state, so a lockstep sim never
+steps on them). Malformed messages are rejected, counted and logged
+(throttled); so is a state for which the policy's output is not finite (nothing is
 published for it, so the zero efforts follow); the node keeps answering good
 ones. What each input received, rejected and ignored, by reason, goes out on
 ``/diagnostics`` every second (``morph_ros_util.diagnostics``); each case and
@@ -61,8 +102,11 @@ For a live trainer the node also hands over its whole message stream on
 ``stream_chunks`` (``morph_core.msgs.stream_chunk``), every
 ``stream_chunk_period`` seconds or 60 KB: each ``episode_start``,
 ``joint_states`` and ``odom`` it received and each ``effort_commands`` and
-``policy_info`` it sent, serialized as on the wire, in its order. A trainer
-reading them wakes once per chunk instead of four times per step. Messages
+``policy_info`` it sent, serialized as on the wire, in its order, and each
+``robot_description`` it received (the current one first when a reader
+matches later) once the chunk layout lists that topic
+(``msgs.stream_chunk.TOPICS``). A trainer reading them wakes once per chunk
+instead of four times per step. Messages
 are serialized after the answer to their state has gone out, and only
 while a reader is matched.
 
@@ -74,8 +118,13 @@ returns by a peer's fragmented sample and a GAP (see docs). That holds for
 ``policy_weights`` too (best effort, keep last 1): the trainer's writer is
 reliable and transient local for tools that record it, and it re-publishes
 the latest weights every second, which is how a node that starts late gets
-them (a best-effort reader is sent no history). Outputs are reliable,
-volatile, keep last 10.
+them (a best-effort reader is sent no history). ``robot_description`` is
+the exception: reliable, transient local, keep last 1, so a description
+published before the node started still arrives (nobody re-publishes a
+latched URDF). That reader is exposed to the wedge like the parameter
+services are, and bounded the same way (``morph_ros_util.node_runner``
+ends a node stuck for 2 s; its supervisor restarts it); a description is
+normally one datagram. Outputs are reliable, volatile, keep last 10.
 """
 
 from __future__ import annotations
@@ -95,9 +144,10 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from morph_core.msgs.effort_names import names_label
 from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
@@ -110,16 +160,26 @@ from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
 from morph_core.msgs.policy_weights import policy_version_frame_id
 from morph_core.msgs.stamps import SILENCE_TAG, StampError, answer_tag, check_stamp, to_ns
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from morph_core.msgs.stream_chunk import TOPICS as CHUNK_TOPICS
 from morph_core.msgs.stream_chunk import ChunkWriter
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.input_counts import InputCounts
+from morph_core.protocol.joint_map import JointMapError, JointOrder
 from morph_core.protocol.pairing import StatePairing
 from morph_core.protocol.policy_updates import CheckpointTrust, PolicyUpdates, checkpoint_trust
+from morph_core.protocol.robot_description import PREVIOUS_DESCRIPTION, RobotDescriptions
 from morph_core.protocol.trust import load_trusted_keys
-from morph_policy_node.policy_choice import UNTRAINED_LABEL, PolicyOutputError, answer, choose_policy
+from morph_policy_node.policy_choice import (
+    UNTRAINED_LABEL,
+    EffortOrderError,
+    PolicyOutputError,
+    answer,
+    choose_policy,
+    effort_order,
+)
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
 
@@ -128,12 +188,20 @@ _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is sile
 _LOG_THROTTLE = 5.0
 _WEIGHTS_LOG_THROTTLE = 1.0
 STATES, ODOM, EPISODES, WEIGHTS = "joint_states", "odom", "episode_start", WEIGHTS_TOPIC  # inputs, as counted
+DESCRIPTION = "robot_description"  # an input too
+_DESCRIPTION_LOG_THROTTLE = 1.0  # a bad description is rare and says why the robot is not driven: show each
 KEYS = "trusted_keys"  # the key files, counted as an input: each loaded or rejected with its reason
 # Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
 # no publisher can make this reader wait on repairs.
 EPISODE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 # The newest weights only; best effort for the same reason as every input (the trainer re-publishes).
 WEIGHTS_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+# The latched URDF: reliable + transient local, so a description published before this node started still
+# arrives (a best-effort reader is sent no history). Exposed to the Fast DDS wedge (docs/design.md) like the
+# services, bounded by node_runner's exit; a description is normally one datagram.
+DESCRIPTION_QOS = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)
 # Chunks are never fragmented (msgs.stream_chunk), so a reliable reader of them is safe from the wedge.
 CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
@@ -222,13 +290,23 @@ class MorphPolicyNode(Node):
                 read_only=True,
             ),
         )
+        self.declare_parameter(
+            "effort_order",
+            "state",
+            ParameterDescriptor(
+                description="efforts in the order of the state's joint names ('state') or in robot_description's "
+                "depth-first order of its actuated joints ('description', for a JointGroupEffortController)",
+                read_only=True,
+            ),
+        )
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         p = self.get_parameter
         self._allow_untrained = p("allow_untrained").value
         self._seed = p("seed").value
-        self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS, KEYS])  # on /diagnostics every second
+        self._effort_order = effort_order(p("effort_order").value)  # EffortOrderError: main()
+        self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS, KEYS, DESCRIPTION])  # on /diagnostics each second
         self._candidate: tuple[PolicyWeights, CheckpointTrust] | None = None  # checked, set after validation
         self._updates = PolicyUpdates(pushed_policy, None, self._trusted_keys(), p("accept_unsigned_weights").value)
         self._use(*self._checked(p("checkpoint").value))  # CheckpointError: main()
@@ -243,6 +321,9 @@ class MorphPolicyNode(Node):
         self.create_subscription(Int64MultiArray, "episode_start", self._on_episode_start, EPISODE_QOS)
         self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
+        self._descriptions = RobotDescriptions()  # the fallback (a chain in message order) until one arrives
+        self._description_msg: String | None = None  # the current one, for a stream reader that matches later
+        self.create_subscription(String, DESCRIPTION, self._on_description, DESCRIPTION_QOS)
         if p("accept_weights").value and self._updates.enabled:
             self.create_subscription(UInt8MultiArray, WEIGHTS_TOPIC, self._on_weights, WEIGHTS_QOS)
         self._say_how_updates_are_taken(p("accept_weights").value)
@@ -261,7 +342,9 @@ class MorphPolicyNode(Node):
         self._unwrap = YawUnwrapper()
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
-        self._names: list[str] = []  # joints of the last chain answered
+        self._names: tuple[str, ...] = ()  # joints of the last robot seen, in the efforts' order (the zeros')
+        self._robot: tuple[int, tuple[str, ...]] | None = None  # (description generation, tree joints) answered
+        self._said_fallback = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
         self._silent = False
 
@@ -401,6 +484,32 @@ class MorphPolicyNode(Node):
         if ready is not None:
             self._act(*ready)
 
+    def _on_description(self, msg: String) -> None:
+        self.counts.received(DESCRIPTION)
+        if DESCRIPTION in CHUNK_TOPICS:  # streamed once the chunk layout carries it (msgs.stream_chunk)
+            self._note(DESCRIPTION, msg)
+        offer = self._descriptions.offer(msg.data)
+        if offer.outcome == "unchanged":
+            self.counts.ignored(DESCRIPTION, offer.code)
+        elif offer.outcome == "rejected":
+            self.rejected += 1
+            self.counts.rejected(DESCRIPTION, offer.code, offer.reason)
+            kept = "the chain fallback kept" if self._descriptions.is_fallback else "the current graph kept"
+            self.get_logger().warn(
+                f"rejected robot_description ({self._descriptions.rejected} so far), {kept}: {offer.reason}",
+                throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE,
+            )
+        else:
+            self._description_msg = msg
+            robot = self._descriptions.map.robot
+            tree = robot.tree
+            shape = "a chain" if tree.is_chain else f"a tree (topology {tree.topology_hash})"
+            self.get_logger().info(
+                f"robot_description: {tree.num_joints} actuated joints, {shape}, below link {tree.root_link!r}; "
+                f"{len(robot.unactuated)} other joints left alone; states are read on it by joint name from now on",
+                throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE,  # a robot swapped 100 times a second
+            )
+
     def _on_joint_states(self, msg: JointState) -> None:
         self.counts.received(STATES)
         self._note(STATES, msg)
@@ -410,7 +519,18 @@ class MorphPolicyNode(Node):
         except (JointStateError, StampError) as err:
             self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
-        for ready in self._pairing.state(stamp_ns, (msg, list(msg.name), pos, vel), time.monotonic()):
+        try:
+            order = self._descriptions.order(tuple(msg.name))
+        except JointMapError as err:
+            if err.code != PREVIOUS_DESCRIPTION:
+                self._reject(STATES, err, err.code)
+                return
+            self.counts.ignored(STATES, err.code)  # the robot before a swap: not malformed, not answered
+            self.get_logger().info(f"ignored joint_states: {err}", throttle_duration_sec=_LOG_THROTTLE)
+            return
+        robot = (self._descriptions.generation, order)
+        state = (msg, robot, order.to_tree(pos), order.to_tree(vel))  # the policy reads the tree's order
+        for ready in self._pairing.state(stamp_ns, state, time.monotonic()):
             self._act(*ready)
 
     def _on_watchdog(self) -> None:
@@ -425,47 +545,67 @@ class MorphPolicyNode(Node):
             if not self._silent:
                 self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
-            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG)  # answers no state
+            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG, self._names)  # answers no state
 
     # -- acting -----------------------------------------------------------------
-    def _act(self, msg: JointState, names: list[str], pos: np.ndarray, vel: np.ndarray) -> None:
+    def _act(self, msg: JointState, robot: tuple[int, JointOrder], pos: np.ndarray, vel: np.ndarray) -> None:
+        """Answer one state; ``robot`` is (the description generation it was read under, its joint order), and
+        ``pos`` / ``vel`` are in the tree's order."""
         stamp = msg.header.stamp
         adopted = self._updates.adopted
         self._weights, self._policy = self._updates.current()  # new weights between two answers only
         if self._updates.adopted != adopted:
             self.get_logger().info(f"running weights version {self._updates.version} ({self._weights.source})")
+        generation, order = robot
+        tree = order.tree
         new_episode = self._episodes.state(to_ns(stamp.sec, stamp.nanosec))
-        if names != self._names or new_episode:
-            self._names = names
-            self._unwrap.reset()  # a new robot, or a new episode: its yaw starts afresh
+        if (generation, tree.names) != self._robot or new_episode:
+            self._robot = (generation, tree.names)
+            self._unwrap.reset()  # a new robot (description or chain), or a new episode: its yaw starts afresh
+        if generation == 0 and not self._said_fallback:
+            self._said_fallback = True
+            self.get_logger().info(
+                f"no {DESCRIPTION} yet: joints taken as a chain in message order (joint 0 next to the torso)"
+            )
         if self._odom is None:
             glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
         else:
             quat, body, wz = self._odom
             glob = global_features(quat, body, wz, self._unwrap)
+        by_tree = self._effort_order == "description"
+        names = tree.names if by_tree else order.message_names  # the efforts' order
+        self._names = names  # the watchdog's zeros are for the robot seen last, answered or not
         try:
-            out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng)
+            out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng, tree.parents)
         except PolicyOutputError as err:
             self._reject(STATES, err, "policy_output")  # nothing goes out: the watchdog's zero efforts follow
             return
         self._silent = False
         self._last_answer = time.monotonic()
+        efforts, action, mean = out.efforts, out.action, out.mean  # the tree's order
+        if not by_tree:  # back in the order the state named them
+            efforts = order.to_message(efforts)
+            action, mean = (None, None) if mean is None else (order.to_message(action), order.to_message(mean))
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
-        self._publish_efforts(out.efforts, answer_tag(stamp.sec, stamp.nanosec))
-        if out.mean is not None:
-            self._publish_info(msg, names, out.action, out.mean)
+        self._publish_efforts(efforts, answer_tag(stamp.sec, stamp.nanosec), names)
+        if mean is not None:
+            self._publish_info(msg, names, action, mean)
         self._serialize_noted()  # after the answer: the loop waits on it, not on this
 
-    def _publish_efforts(self, efforts: np.ndarray, tag: str) -> None:
+    def _publish_efforts(self, efforts: np.ndarray, tag: str, names: tuple[str, ...]) -> None:
         n = len(efforts)
         msg = Float64MultiArray(data=array.array("d", np.asarray(efforts, dtype=np.float64).tobytes()))
-        msg.layout.dim = [MultiArrayDimension(label=tag, size=n, stride=n)]
+        # The answer's tag, then the joints the efforts are for, in the data's order (msgs.effort_names).
+        msg.layout.dim = [
+            MultiArrayDimension(label=tag, size=n, stride=n),
+            MultiArrayDimension(label=names_label(names), size=1, stride=1),
+        ]
         if not self._weights.trained:
             msg.layout.dim.append(MultiArrayDimension(label=UNTRAINED_LABEL, size=1, stride=1))
         self._effort_pub.publish(msg)
         self._note("effort_commands", msg)
 
-    def _publish_info(self, msg: JointState, names: list[str], action: np.ndarray, mean: np.ndarray) -> None:
+    def _publish_info(self, msg: JointState, names: tuple[str, ...], action: np.ndarray, mean: np.ndarray) -> None:
         fields = pack_policy_info(action, mean, self._policy.log_std)
         point = JointTrajectoryPoint()
         for field, values in fields.items():
@@ -473,7 +613,7 @@ class MorphPolicyNode(Node):
         info = JointTrajectory()
         info.header.stamp = msg.header.stamp
         info.header.frame_id = policy_version_frame_id(self._updates.version)
-        info.joint_names = names
+        info.joint_names = list(names)
         info.points = [point]
         self._info_pub.publish(info)
         self._note("policy_info", info)
@@ -501,12 +641,17 @@ class MorphPolicyNode(Node):
         chunk = self._chunks.take()
         if chunk is not None:
             self._chunk_pub.publish(UInt8MultiArray(data=chunk))
-        self._streaming = self._chunk_pub.get_subscription_count() > 0
+        streaming = self._chunk_pub.get_subscription_count() > 0
+        if streaming and not self._streaming and self._description_msg is not None and DESCRIPTION in CHUNK_TOPICS:
+            # A reader that matches after the description arrived gets it first all the same (it is latched).
+            self._unserialized.append((DESCRIPTION, time.time_ns(), self._description_msg))
+        self._streaming = streaming
 
 
 def main(args=None) -> NoReturn:
-    # A checkpoint that cannot be loaded (or none without allow_untrained) is one line and exit 1.
-    node_runner.run(MorphPolicyNode, "morph_policy", args, startup_errors=(CheckpointError,))
+    # A checkpoint that cannot be loaded (or none without allow_untrained), or an unknown effort_order, is one
+    # line and exit 1.
+    node_runner.run(MorphPolicyNode, "morph_policy", args, startup_errors=(CheckpointError, EffortOrderError))
 
 
 if __name__ == "__main__":
