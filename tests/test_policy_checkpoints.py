@@ -17,9 +17,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from morph_core.msgs.effort_names import names_label
+from morph_core.msgs.effort_names import names_label, tree_label
 from morph_core.msgs.stamps import SILENCE_TAG
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import load_checkpoint
 from morph_policy_node.policy_choice import UNTRAINED_LABEL
 
@@ -94,13 +95,14 @@ def test_an_untrained_policy_runs_only_when_asked_and_marks_every_effort(probe, 
     good = _state(["a", "b", "c"], [0.2, -0.1, 0.3], [0.0] * 3)
     reply = _answer(probe, pub, efforts, good, 3)
     # The joints' names (msgs.effort_names), then the mark.
-    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b", "c")), UNTRAINED_LABEL]
+    chain = tree_label(KinematicTree.chain(3, ("a", "b", "c")).layout_hash)  # no description: a chain
+    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b", "c")), chain, UNTRAINED_LABEL]
     assert reply.layout.dim[0].label.startswith("joints@")  # still the answer tag a sim reads
     n = len(efforts)
     probe.spin_until(lambda: any(not any(e.data) for e in efforts[n:]), 10.0, "zero efforts after silence")
     assert all(e.layout.dim and e.layout.dim[-1].label == UNTRAINED_LABEL for e in efforts)  # the zeros too
     zeros = next(e for e in efforts[n:] if not any(e.data))
-    assert [d.label for d in zeros.layout.dim] == [SILENCE_TAG, names_label(("a", "b", "c")), UNTRAINED_LABEL]
+    assert [d.label for d in zeros.layout.dim] == [SILENCE_TAG, names_label(("a", "b", "c")), chain, UNTRAINED_LABEL]
     assert "UNTRAINED" in proc.log()
 
 

@@ -45,6 +45,10 @@ Outputs
   answered, its unactuated joints left out (with no description: the
   message's order, as before); ``description`` the description's actuated
   joints in its depth-first order, whatever the state's order.
+  ``layout.dim[2]`` (size 1, stride 1) ``tree=<16 hex digits>`` is the joint
+  layout the efforts were computed on (``KinematicTree.layout_hash``): a sim
+  refuses efforts computed on another tree, as happens when a new body's
+  first state arrives before its description.
 - ``policy_info`` (trajectory_msgs/JointTrajectory, only when sampling): what
   a trainer needs, stamped with the state's stamp; ``joint_names`` lists the
   joints in the order of its arrays, the efforts' order; layout in
@@ -147,7 +151,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from morph_core.msgs.effort_names import names_label
+from morph_core.msgs.effort_names import names_label, tree_label
 from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
@@ -343,6 +347,7 @@ class MorphPolicyNode(Node):
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
         self._names: tuple[str, ...] = ()  # joints of the last robot seen, in the efforts' order (the zeros')
+        self._layout = ""  # that robot's KinematicTree.layout_hash (the zeros are for its joint layout)
         self._robot: tuple[int, tuple[str, ...]] | None = None  # (description generation, tree joints) answered
         self._said_fallback = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
@@ -545,7 +550,7 @@ class MorphPolicyNode(Node):
             if not self._silent:
                 self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
-            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG, self._names)  # answers no state
+            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG, self._names, self._layout)  # answers none
 
     # -- acting -----------------------------------------------------------------
     def _act(self, msg: JointState, robot: tuple[int, JointOrder], pos: np.ndarray, vel: np.ndarray) -> None:
@@ -574,7 +579,7 @@ class MorphPolicyNode(Node):
             glob = global_features(quat, body, wz, self._unwrap)
         by_tree = self._effort_order == "description"
         names = tree.names if by_tree else order.message_names  # the efforts' order
-        self._names = names  # the watchdog's zeros are for the robot seen last, answered or not
+        self._names, self._layout = names, tree.layout_hash  # the watchdog's zeros: the robot seen last
         try:
             out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng, tree.parents)
         except PolicyOutputError as err:
@@ -587,18 +592,20 @@ class MorphPolicyNode(Node):
             efforts = order.to_message(efforts)
             action, mean = (None, None) if mean is None else (order.to_message(action), order.to_message(mean))
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
-        self._publish_efforts(efforts, answer_tag(stamp.sec, stamp.nanosec), names)
+        self._publish_efforts(efforts, answer_tag(stamp.sec, stamp.nanosec), names, tree.layout_hash)
         if mean is not None:
             self._publish_info(msg, names, action, mean)
         self._serialize_noted()  # after the answer: the loop waits on it, not on this
 
-    def _publish_efforts(self, efforts: np.ndarray, tag: str, names: tuple[str, ...]) -> None:
+    def _publish_efforts(self, efforts: np.ndarray, tag: str, names: tuple[str, ...], layout: str) -> None:
         n = len(efforts)
         msg = Float64MultiArray(data=array.array("d", np.asarray(efforts, dtype=np.float64).tobytes()))
-        # The answer's tag, then the joints the efforts are for, in the data's order (msgs.effort_names).
+        # The answer's tag, the joints the efforts are for in the data's order, and the joint layout they were
+        # computed on (msgs.effort_names: a sim refuses efforts computed on another tree).
         msg.layout.dim = [
             MultiArrayDimension(label=tag, size=n, stride=n),
             MultiArrayDimension(label=names_label(names), size=1, stride=1),
+            MultiArrayDimension(label=tree_label(layout), size=1, stride=1),
         ]
         if not self._weights.trained:
             msg.layout.dim.append(MultiArrayDimension(label=UNTRAINED_LABEL, size=1, stride=1))

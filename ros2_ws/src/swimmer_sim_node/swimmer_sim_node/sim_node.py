@@ -49,7 +49,12 @@ Wire conventions
   order of the state it answers (the tagged one; untagged, the latest
   published; the order of the last ``REMEMBERED_ORDERS`` states is kept, an
   answer to an older one is rejected: ``order``). Without shuffling that is
-  the tree order: without names, exactly as before names existed.
+  the tree order: without names, exactly as before names existed. A command
+  whose ``tree=`` dimension gives another joint layout than the body's
+  (``KinematicTree.layout_hash``: the controller computed it on another
+  tree, e.g. a new body's first state answered before its description
+  reached the controller) is rejected: ``wrong_tree``; in lockstep the state
+  is published again after ``effort_timeout`` and answered on the right tree.
 - ``~/reset`` (std_srvs/Trigger): end the episode now; the next one's first
   state is published (and announced) at once; the response names it.
 - ``robot_description`` (std_msgs/String, latched URDF) and ``markers``
@@ -143,7 +148,7 @@ from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
-from morph_core.msgs.effort_names import EffortNamesError, effort_names
+from morph_core.msgs.effort_names import EffortNamesError, effort_names, effort_tree
 from morph_core.msgs.joint_state import MAX_NAME_CHARS
 from morph_core.msgs.stamps import SILENCE_TAG, StampError, from_ns, parse_answer_tag
 from morph_core.policy.tree import KinematicTree, UrdfRobot
@@ -347,7 +352,7 @@ class SwimmerSimNode(Node):
         self._order_rng = np.random.default_rng([SHUFFLE_STREAM, p("seed").value])
         self._sent: OrderedDict[int, tuple[str, ...]] = OrderedDict()  # stamp -> the names as published
         self._latest_names: tuple[str, ...] = tuple(self._names)
-        self._joint_map: tuple[tuple[str, ...], JointMap] | None = None
+        self._joint_map: tuple[tuple[tuple[str, ...], bytes], JointMap] | None = None
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -536,6 +541,20 @@ class SwimmerSimNode(Node):
             self.counts.ignored(EFFORTS, "stale")
             return
         try:
+            layout = effort_tree([d.label for d in msg.layout.dim])
+        except EffortNamesError as err:
+            self._reject("names", err)
+            return
+        body = self._names_map().robot.tree
+        if layout is not None and layout != body.layout_hash:
+            # Computed on another joint layout: typically a new body's first state answered before its
+            # robot_description reached the controller (names alone cannot tell two trees apart).
+            self._reject("wrong_tree", EffortError(
+                f"computed on joint layout {layout}, not this body's {body.layout_hash}: the controller reads "
+                "another robot_description than this body's"
+            ))  # fmt: skip
+            return
+        try:
             efforts = self._in_tree_order(msg, answers)
         except EffortNamesError as err:
             self._reject("names", err)
@@ -572,11 +591,11 @@ class SwimmerSimNode(Node):
         return self._names_map().order(names).to_tree(np.asarray(msg.data, dtype=np.float64))
 
     def _names_map(self) -> JointMap:
-        """The body's joints by their published names (``protocol.joint_map``), rebuilt when the names change
-        (only names place joints: another tree with the same names maps the same)."""
-        names = tuple(self._names)
+        """The body's joints by their published names (``protocol.joint_map``), rebuilt when the names or the
+        tree change (two trees may have the same names: the map's tree gives the layout answers are checked on)."""
+        names = (tuple(self._names), self.sim.tree.parents.tobytes())
         if self._joint_map is None or self._joint_map[0] != names:
-            tree = KinematicTree(names, self.sim.tree.parents, self._prefix + (self.sim.tree.root_link or ""))
+            tree = KinematicTree(names[0], self.sim.tree.parents, self._prefix + (self.sim.tree.root_link or ""))
             self._joint_map = (names, JointMap(UrdfRobot(tree, frozenset())))
         return self._joint_map[1]
 

@@ -8,15 +8,27 @@ efforts to its joints by those names; a command without one is in the order
 of the state it answers (the convention before names were sent, and that of
 any controller that does not name them). JSON, so that any joint name
 (printable ASCII, commas and quotes included) goes through unchanged.
+
+A dimension labelled ``tree=<16 hex digits>`` (size 1, stride 1) says on
+which joint layout the efforts were computed: ``KinematicTree.layout_hash``
+of the tree the policy read the state onto (its joint names in order and
+their parents). A simulator whose body has another layout refuses the
+command: names alone cannot tell two trees of equal joint names apart (a
+swimmer's star and Y of six joints are both ``motor1_rot..motor6_rot``), and
+a policy may answer a new body's first state before that body's description
+has reached it (DDS orders no messages across topics).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from functools import lru_cache
 
 NAMES_PREFIX = "names="
+TREE_PREFIX = "tree="
+_TREE = re.compile(r"tree=[0-9a-f]{16}")
 
 
 class EffortNamesError(ValueError):
@@ -50,3 +62,19 @@ def effort_names(labels: Sequence[str], count: int) -> tuple[str, ...] | None:
     if len(names) != count:
         raise EffortNamesError(f"names dimension names {len(names)} joints for {count} efforts")
     return tuple(names)
+
+
+def tree_label(layout_hash: str) -> str:
+    """The label of the dimension giving the joint layout the efforts were computed on."""
+    return TREE_PREFIX + layout_hash
+
+
+def effort_tree(labels: Sequence[str]) -> str | None:
+    """The ``layout_hash`` a command's layout gives, or None when it gives none; ``EffortNamesError`` for a
+    tree dimension that does not parse, or for two of them."""
+    found = [label for label in labels[1:] if label.startswith(TREE_PREFIX)]
+    if not found:
+        return None
+    if len(found) > 1 or _TREE.fullmatch(found[0]) is None:
+        raise EffortNamesError(f"tree dimension {found[-1][:40]!r} is not one tree=<16 hex digits>")
+    return found[0][len(TREE_PREFIX) :]

@@ -45,6 +45,7 @@ MAX_DESCRIPTION_BYTES = 10_000_000
 URDF_HINGE_TYPES = ("revolute", "continuous")
 """URDF joint types taken as actuated hinges; ``fixed`` joints merge, every other type is refused"""
 _HASH_PREFIX = b"morph-control kinematic tree v1\0"
+_LAYOUT_PREFIX = b"morph-control joint layout v1\0"
 
 
 class TreeError(ValueError):
@@ -106,6 +107,14 @@ class KinematicTree:
         the policy, and hashes differently.
         """
         return hashlib.sha256(_HASH_PREFIX + self.parents.astype("<i8").tobytes()).hexdigest()[:16]
+
+    @property
+    def layout_hash(self) -> str:
+        """16 hex digits of SHA-256 over the joint names in order and the parent array: equal for two trees
+        that put the same joints in the same places (what a policy's answer depends on), whatever the root's
+        name."""
+        names = "\0".join(self.names).encode()
+        return hashlib.sha256(_LAYOUT_PREFIX + self.parents.astype("<i8").tobytes() + names).hexdigest()[:16]
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, KinematicTree):
