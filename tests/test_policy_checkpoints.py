@@ -110,7 +110,8 @@ def test_an_untrained_policy_runs_only_when_asked_and_marks_every_effort(probe, 
 def test_a_trained_policy_is_not_marked(probe, launch, untrained_checkpoint):
     _, pub, efforts = _policy_with_publisher(probe, launch, checkpoint=str(untrained_checkpoint))
     reply = _answer(probe, pub, efforts, _state(["a", "b"], [0.1, 0.2], [0.0, 0.0]), 2)
-    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b"))]  # the joints' names only
+    layout = tree_label(KinematicTree.chain(2, ("a", "b")).layout_hash)
+    assert [d.label for d in reply.layout.dim][1:] == [names_label(("a", "b")), layout]  # the joints alone
     assert UNTRAINED_LABEL not in {d.label for e in efforts for d in e.layout.dim}
 
 

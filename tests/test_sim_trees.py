@@ -29,7 +29,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.msgs.effort_names import names_label
+from morph_core.msgs.effort_names import names_label, tree_label
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.tree import KinematicTree, read_urdf
 from morph_core.protocol.episode_start import unpack_episode_start
@@ -61,13 +61,15 @@ def _starts(announcements) -> dict:
     return {r.stamp_ns: r for r in records}
 
 
-def _command(values, tag: str | None = None, names=None) -> Float64MultiArray:
+def _command(values, tag: str | None = None, names=None, layout: KinematicTree | None = None) -> Float64MultiArray:
     msg = Float64MultiArray(data=[float(v) for v in values])
     n = len(values)
     if tag is not None or names is not None:  # the names come after dim[0], the answer tag ('' for none)
         msg.layout.dim.append(MultiArrayDimension(label=tag or "", size=n, stride=n))
     if names is not None:
         msg.layout.dim.append(MultiArrayDimension(label=names_label(tuple(names)), size=1, stride=1))
+    if layout is not None:  # the joint layout the efforts were computed on
+        msg.layout.dim.append(MultiArrayDimension(label=tree_label(layout.layout_hash), size=1, stride=1))
     return msg
 
 
@@ -210,11 +212,14 @@ def test_efforts_naming_joints_the_body_lacks_are_rejected_and_counted(probe, la
         "unknown_joint": _command([0.1, 0.2, 0.3], names=["motor1_rot", "motor2_rot", "fin"]),
         "missing_joint": _command([0.1, 0.2], names=["motor1_rot", "motor3_rot"]),
         "names": _command([0.1, 0.2, 0.3], names=["motor1_rot", "motor1_rot", "motor2_rot"]),
+        # computed on a star of these three joints, not on this chain
+        "wrong_tree": _command([0.1, 0.2, 0.3], names=names, layout=KinematicTree.from_parents([-1, -1, -1], names)),
     }
     for msg in bad.values():
         pub.publish(msg)
     good = dict(zip(names, [0.5, -0.25, 0.75], strict=True))
-    pub.publish(_command(list(good.values())[::-1], names=names[::-1]))
+    chain = KinematicTree.chain(3)  # the body's own layout: taken
+    pub.publish(_command(list(good.values())[::-1], names=names[::-1], layout=chain))
     probe.spin_until(
         lambda: dict(zip(states[-1].name, states[-1].effort, strict=True)) == good, 20.0, "the good command applied"
     )

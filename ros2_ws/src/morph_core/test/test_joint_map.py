@@ -14,7 +14,14 @@ import string
 import numpy as np
 import pytest
 
-from morph_core.msgs.effort_names import NAMES_PREFIX, EffortNamesError, effort_names, names_label
+from morph_core.msgs.effort_names import (
+    NAMES_PREFIX,
+    EffortNamesError,
+    effort_names,
+    effort_tree,
+    names_label,
+    tree_label,
+)
 from morph_core.msgs.joint_state import JointStateError, validate_joint_state
 from morph_core.policy.tree import MAX_JOINTS, KinematicTree, UrdfRobot
 from morph_core.protocol.joint_map import JointMap, JointMapError
@@ -226,3 +233,39 @@ def test_fuzzed_labels_give_names_none_or_a_reason():
             seen.add("names")
             assert len(got) == count == len(set(got)) and all(isinstance(n, str) for n in got)
     assert seen == {"error", "none", "names"}
+
+
+def test_the_layout_hash_tells_equal_named_trees_and_orders_apart():
+    names = tuple(f"motor{k}_rot" for k in range(1, 7))
+    y = KinematicTree.from_parents([-1, 0, 1, 2, 1, 4], names, "torso")
+    star = KinematicTree.from_parents([-1, 0, -1, 2, -1, 4], names, "torso")
+    assert y.layout_hash != star.layout_hash  # same names, other places
+    renamed_root = KinematicTree.from_parents(y.parents, names, "base")
+    assert renamed_root.layout_hash == y.layout_hash  # the root's name is no joint's place
+    swapped = KinematicTree.from_parents(y.parents, (names[1], names[0], *names[2:]), "torso")
+    assert swapped.layout_hash != y.layout_hash  # the same shape, two joints exchanged
+    assert star.topology_hash != y.topology_hash and KinematicTree.chain(6).topology_hash == KinematicTree.chain(
+        6, [f"j{k}" for k in range(6)]
+    ).topology_hash  # fmt: skip
+
+
+def test_the_tree_dimension_round_trips_and_bad_ones_say_why():
+    layout = KinematicTree.chain(3).layout_hash
+    assert effort_tree(["joints@1.000000000", names_label(("a",)), tree_label(layout)]) == layout
+    assert effort_tree(["joints@1.000000000", names_label(("a",))]) is None
+    assert effort_tree([tree_label(layout)]) is None  # dim[0] is the answer tag, never read as a tree
+    for labels in (["t", "tree=xyz"], ["t", "tree=" + "A" * 16], ["t", tree_label(layout), tree_label(layout)]):
+        with pytest.raises(EffortNamesError, match="tree dimension"):
+            effort_tree(labels)
+
+
+def test_fuzzed_tree_labels_give_a_layout_none_or_a_reason():
+    rng = random.Random(3)
+    for _ in range(2000):
+        label = "tree=" + "".join(rng.choice(string.hexdigits + string.printable) for _ in range(rng.randint(0, 20)))
+        try:
+            got = effort_tree(["x", label])
+        except EffortNamesError as err:
+            assert "tree dimension" in str(err)
+        else:
+            assert got is not None and len(got) == 16 and set(got) <= set("0123456789abcdef")
