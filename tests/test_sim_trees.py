@@ -29,7 +29,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.msgs.effort_names import names_label, tree_label
+from morph_core.msgs.effort_names import effort_tree, names_label, tree_label
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.tree import KinematicTree, read_urdf
 from morph_core.protocol.episode_start import unpack_episode_start
@@ -285,8 +285,8 @@ def _doc_ant(assignment: str) -> str:
 @pytest.mark.timeout(120)
 def test_your_robot_doc_commands_run(probe, launch):
     """docs/your_robot.md's first commands, as written: the sim on ant.xml and the policy node with no
-    configuration (the shipped model; today's policy node takes the joints as a chain in message order).
-    The robot's states come, and the policy's efforts, eight per state, are applied."""
+    configuration (the shipped model). The robot's states come, the policy node reads the ant's tree off its
+    robot_description, and its efforts, eight per state computed on that tree, are applied."""
     states = probe.collect(JointState, "joint_states")
     efforts = probe.collect(Float64MultiArray, "effort_commands")
     assignment, *node_lines = _doc_commands(0)
@@ -304,6 +304,8 @@ def test_your_robot_doc_commands_run(probe, launch):
     assert {len(e.data) for e in efforts} == {8} and {tuple(s.name) for s in states} == {load_robot(ANT_XML).tree.names}
     values = np.array([e.data for e in efforts])
     assert np.isfinite(values).all() and np.abs(values).max() <= 1.0 and np.abs(values).max() > 0
+    assert "robot_description: 8 actuated joints, a tree" in procs[1].log()
+    assert effort_tree([d.label for d in efforts[-1].layout.dim]) == load_robot(ANT_XML).tree.layout_hash
     probe.spin_until(
         lambda: any(tuple(e.data) in {tuple(s.effort) for s in states} for e in efforts),
         STARTUP,
