@@ -15,6 +15,7 @@ import torch
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.records import (
     EffortRecord,
     EpisodeStartRecord,
@@ -22,6 +23,7 @@ from morph_core.msgs.records import (
     OdometryRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import TransitionConfig, assemble
@@ -106,18 +108,22 @@ def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, poli
     assert got.num_episodes == 3
 
 
-def test_a_bag_exports_chains_of_message_order_unless_tree_of_says_otherwise(tmp_path, sampled_records):
+def test_a_bag_exports_chains_of_message_order_unless_a_robot_is_given(tmp_path, sampled_records):
     bag = write_bag(tmp_path / "run", sampled_records)
     out = tmp_path / "t.npz"
     assert main(["export", str(bag), "--out", str(out)]) == 0
     got = TransitionBatch.from_npz(out)
     assert got.is_chains and got.parents[-1].tolist() == [-1, 0, 1, 2, 3, 4]
-    # The seam robot_description will fill: a tree per state's joint names (here a star under joint 0).
-    trees = summarize_bag(bag, TransitionConfig(), tree_of=lambda names: [-1] + [0] * (len(names) - 1)).batch
-    assert trees.parents[0].tolist() == [-1, 0, 0, -1, -1, -1] and trees.parents[-1].tolist() == [-1, 0, 0, 0, 0, 0]
+    # A robot known otherwise than from the bag (a URDF): its tree, here a star under joint 0, for the states whose
+    # joints it has; the 3-joint states lack three of its six joints.
+    star = JointMap.from_urdf(swimmer_urdf([-1, 0, 0, 0, 0, 0]))
+    summary = summarize_bag(bag, TransitionConfig(), joint_map=star)
+    trees = summary.batch
+    assert summary.skips.missing_joint == 20 and trees.num_joints.tolist() == [6] * 15
+    assert (trees.parents == [-1, 0, 0, 0, 0, 0]).all()
     for k, v in got.arrays().items():
-        if k != "parents":
-            np.testing.assert_array_equal(trees.arrays()[k], v, err_msg=k)
+        if k not in ("parents", "episode"):
+            np.testing.assert_array_equal(trees.arrays()[k], v[20:], err_msg=k)
 
 
 def test_without_policy_info_export_says_so_and_can_refuse(tmp_path, policy, capsys):

@@ -12,7 +12,9 @@ import torch
 
 from morph_core.algo.train import TrainConfig
 from morph_core.env.sim import SwimmerSim
+from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.policy_weights import unpack_policy_weights
+from morph_core.msgs.records import DescriptionRecord
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
@@ -253,15 +255,16 @@ def test_steps_carry_their_tree_into_the_update_and_an_episode_is_one_tree(tmp_p
     loop = LoopbackRecording(SwimmerSim(6, seed=0, effort_timeout=None), SamplingController(GraphActorCritic(), 2))
     loop.run(70)
     loop.finish()
-    tree = np.array([-1, 0, 0, 1, 1, 2])
+    tree = np.array([-1, 0, 1, 1, 0, 4])  # in pre-order, as a URDF lists it
 
-    def episode(tree_of=None):
-        asm = TransitionAssembler(tree_of=tree_of)
-        steps = asm.push_many(loop.records) + asm.flush()
+    def episode(description=()):
+        asm = TransitionAssembler()
+        steps = asm.push_many([*description, *loop.records]) + asm.flush()
         assert len(steps) == 70 and steps[-1].truncated
         return steps
 
-    chains, trees = episode(), episode(lambda names: tree)
+    # The same states read on the chain of their message order, and on a tree their description names.
+    chains, trees = episode(), episode([DescriptionRecord(0, swimmer_urdf(tree))])
     assert all(np.array_equal(t.parents, np.arange(6) - 1) for t in chains)  # message order: a chain
     assert all(np.array_equal(t.parents, tree) for t in trees)
 

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import (
     SkipCounts,
     StreamStats,
     TransitionAssembler,
     TransitionConfig,
-    TreeOf,
 )
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 from trainer.bag_io import BagError, BagReader
@@ -77,13 +77,13 @@ class BagSummary:
 
 
 def summarize_bag(
-    path: str | Path, config: TransitionConfig, namespace: str | None = None, tree_of: TreeOf | None = None
+    path: str | Path, config: TransitionConfig, namespace: str | None = None, joint_map: JointMap | None = None
 ) -> BagSummary:
     """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
-    ``tree_of``: the tree a state's joint names form (``protocol.transitions.TreeOf``); default a chain in the
-    message's order."""
+    ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
+    default a chain in each state's message order."""
     reader = BagReader(path, namespace=namespace)
-    asm = TransitionAssembler(config, tree_of)
+    asm = TransitionAssembler(config, joint_map)
     transitions = asm.push_many(reader.records()) + asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats

@@ -25,10 +25,11 @@ objective still holds, only the drop cannot be applied. Steps without
 policy_info (no behaviour log-prob) cannot enter PPO: the episode keeps only
 its part after the last such step.
 
-Each step carries its robot's tree (``Transition.parents``, the assembler's
-``tree_of``: a chain in the ``joint_states`` message's order unless told
-otherwise); the values, GAE bootstraps and the update read each sample with
-its own tree (``train_from_data.Samples``). An episode is one robot: one whose
+Each step carries its robot's tree (``Transition.parents``: the tree of the
+pair's ``robot_description``, its joints bound by name, or without one a chain
+in the ``joint_states`` message's order; ``protocol.transitions``); the values,
+GAE bootstraps and the update read each sample with its own tree
+(``train_from_data.Samples``). An episode is one robot: one whose
 steps disagree on their joints or tree is dropped (``dropped_no_info``).
 
 The run directory is the simulator trainer's: config.json, progress.csv
