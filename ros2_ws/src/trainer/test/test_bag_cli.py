@@ -15,8 +15,10 @@ import torch
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
 from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -60,8 +62,11 @@ def message(r):
 def write_bag(path, records, storage="mcap", with_clock=True):
     """A bag as rosbag2 would record the nodes (plus /clock, which the reader skips)."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    topics = dict(TOPICS)
+    if any(isinstance(r, DescriptionRecord) for r in records):
+        topics["robot_description"] = "std_msgs/msg/String"
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        conns = {name: w.add_connection(f"{NS}/{name}", ty, typestore=TS) for name, ty in TOPICS.items()}
+        conns = {name: w.add_connection(f"{NS}/{name}", ty, typestore=TS) for name, ty in topics.items()}
         clock = w.add_connection("/clock", "rosgraph_msgs/msg/Clock", typestore=TS)
         for r in records:
             name, msg = message(r)
@@ -165,10 +170,44 @@ def test_info_counts_topics_episodes_chains_and_skips(tmp_path, sampled_records,
     assert info["skipped_steps"]["no_odometry"] == 2 and sum(info["skipped_steps"].values()) == 2
     assert info["unused_messages"]["orphan_effort"] == 1 and sum(info["unused_messages"].values()) == 1
 
+    assert info["robot_description"] == {"messages": 0, "bodies": []}
+    assert info["steps_per_body"] == {"chain-3": 18, "chain-6": 15}
+
     assert main(["info", str(bag)]) == 0
     text = capsys.readouterr().out
     assert "skipped steps: no_odometry 2" in text and "unused messages: orphan_effort 1" in text
     assert "steps: 33 (3 joints: 18, 6 joints: 15)" in text and "usable for PPO: 33" in text
+    assert "no robot_description: joints taken as chains in message order" in text
+    assert "bodies: chain-3 18, chain-6 15" in text
+
+
+def test_info_names_the_described_robots_and_export_reads_their_trees(tmp_path, policy, sampled_records, capsys):
+    """Branched swimmers, joints listed in another order at every state, efforts naming theirs."""
+    trees = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)))
+    records = record_episodes(SamplingController(policy, seed=3), ((trees[0], 12), (trees[1], 10)), describe=True,
+                              shuffle_seed=2, name_efforts=True)  # fmt: skip
+    bag = write_bag(tmp_path / "trees", records)
+    assert main(["info", str(bag), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)["total"]
+    assert info["robot_description"] == {"messages": 2, "bodies": ["star-2x2", "y-1x2"]}
+    assert info["steps_per_body"] == {"star-2x2": 12, "y-1x2": 10} and info["steps"] == 22
+    assert not any(info["skipped_steps"].values()) and not any(info["unused_messages"].values())
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    assert "robot_description: 2 (star-2x2, y-1x2)" in text and "bodies: star-2x2 12, y-1x2 10" in text
+    assert "no robot_description" not in text
+
+    chains = write_bag(tmp_path / "chains", sampled_records)
+    out = tmp_path / "both.npz"
+    assert main(["export", str(bag), str(chains), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "no robot_description" in text and "robot_description: 2 (star-2x2, y-1x2)" in text
+    assert "wrote 57 steps (4 episodes, 3..6 joints: star-2x2 12, y-1x2 10, chain-3 20, chain-6 15 steps" in text
+    got = TransitionBatch.from_npz(out)
+    expected = TransitionBatch.concatenate([assemble(records).batch, assemble(sampled_records).batch])
+    for k, v in expected.arrays().items():
+        np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
+    assert got.parents[0, :4].tolist() == trees[0].parents.tolist() and not got.is_chains
 
 
 def test_options_reach_the_assembly(tmp_path, sampled_records, capsys):

@@ -1,7 +1,9 @@
 """``morph-bag``: what recorded bags hold for learning, and their transitions as arrays.
 
-    morph-bag info BAG...                   topics and message counts, episodes, chain lengths,
-                                            steps usable for PPO, skipped steps and unused messages by reason
+    morph-bag info BAG...                   topics and message counts, the robot's description (or that
+                                            there is none: chains), episodes, steps per chain length and
+                                            per body, steps usable for PPO, skipped steps and unused
+                                            messages by reason
     morph-bag export BAG... --out FILE.npz  the transitions, one row per step
                                             (layout: ``morph_core.protocol.transition_batch``)
 
@@ -10,9 +12,12 @@ sqlite3), read by ``trainer.bag_io``. Each bag is its own stream: an episode
 never spans two bags. Records become transitions as
 ``morph_core.protocol.transitions`` describes (pairing by stamp, episode
 boundaries, nothing guessed: every step left out is counted under its
-reason). The options after the command tune that (``--control-period``,
-``--settle-states``, ...); ``--namespace`` picks the robot when a bag holds
-several.
+reason). The robot is the bag's ``robot_description`` (the sim latches its
+URDF before each body's first state, and ``morph-record`` records it): its
+tree, the joints bound by name. A bag without one holds chains, each state's
+joints in the message's order, and ``info`` says so. The options after the
+command tune the assembly (``--control-period``, ``--settle-states``, ...);
+``--namespace`` picks the robot when a bag holds several.
 """
 
 from __future__ import annotations
@@ -24,8 +29,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
+from morph_core.algo.train_from_data import describe_bodies
+from morph_core.env.bodies import body_label
+from morph_core.msgs.records import DescriptionRecord
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import (
@@ -36,6 +42,9 @@ from morph_core.protocol.transitions import (
 )
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
 from trainer.bag_io import BagError, BagReader
+from trainer.bag_messages import DESCRIPTION_TOPIC
+
+NO_DESCRIPTION = "no robot_description: joints taken as chains in message order"
 
 
 @dataclass
@@ -52,6 +61,12 @@ class BagSummary:
     stats: StreamStats = field(default_factory=StreamStats)
     steps_per_chain: Counter = field(default_factory=Counter)
     """transitions per number of joints"""
+    descriptions: int = 0
+    """robot_description messages read"""
+    described: list[str] = field(default_factory=list)
+    """the bodies (``env.bodies.body_label``) the descriptions that read as a robot described, in order"""
+    steps_per_body: Counter = field(default_factory=Counter)
+    """transitions per body label"""
     ppo_steps: int = 0
     """transitions with their behaviour log-prob (policy_info)"""
     batch: TransitionBatch = field(default_factory=TransitionBatch.empty)
@@ -71,6 +86,8 @@ class BagSummary:
             "steps_without_policy_info": self.stats.without_policy_info,
             "steps_applied_unverified": self.stats.applied_unverified,
             "steps_per_chain": {str(n): c for n, c in sorted(self.steps_per_chain.items())},
+            "robot_description": {"messages": self.descriptions, "bodies": list(self.described)},
+            "steps_per_body": dict(self.steps_per_body),
             "skipped_steps": {r: getattr(self.skips, r) for r in SkipCounts.STEP_REASONS},
             "unused_messages": {r: getattr(self.skips, r) for r in SkipCounts.MESSAGE_REASONS},
         }
@@ -84,7 +101,12 @@ def summarize_bag(
     default a chain in each state's message order."""
     reader = BagReader(path, namespace=namespace)
     asm = TransitionAssembler(config, joint_map)
-    transitions = asm.push_many(reader.records()) + asm.flush()
+    transitions, described = [], {}
+    for record in reader.records():
+        transitions += asm.push(record)
+        if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
+            described.setdefault(body_label(asm.joint_map.robot.tree))
+    transitions += asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
     logical = reader.logical_names(reader.namespaces[0])
@@ -104,6 +126,9 @@ def summarize_bag(
         skips=asm.skips,
         stats=asm.stats,
         steps_per_chain=Counter(batch.num_joints.tolist()),
+        descriptions=stats.counts[DESCRIPTION_TOPIC],
+        described=list(described),
+        steps_per_body=Counter(batch.steps_per_body()),
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
     )
@@ -121,6 +146,9 @@ def total(summaries: list[BagSummary]) -> BagSummary:
         out.skips.merge(s.skips)
         out.stats.merge(s.stats)
         out.steps_per_chain.update(s.steps_per_chain)
+        out.descriptions += s.descriptions
+        out.described += [label for label in s.described if label not in out.described]
+        out.steps_per_body.update(s.steps_per_body)
         out.ppo_steps += s.ppo_steps
     out.topics = [(name, ty, n) for name, (ty, n) in sorted(topics.items())]
     out.batch = TransitionBatch.concatenate([s.batch for s in summaries])
@@ -134,6 +162,11 @@ def format_summary(s: BagSummary) -> str:
     lines += [f"    {t:<{width}}  {n:>8}  {ty}" for t, ty, n in s.topics] or ["    none"]
     if s.rejected:
         lines.append("  undecodable messages: " + _counts({f"{t} ({r})": n for (t, r), n in s.rejected.items()}))
+    if s.descriptions:
+        bodies = ", ".join(s.described) or "none that reads as a robot"
+        lines.append(f"  robot_description: {s.descriptions} ({bodies})")
+    else:
+        lines.append(f"  {NO_DESCRIPTION}")
     st = s.stats
     boundaries = {c.replace("_", " "): getattr(st, f"boundaries_{c}") for c in StreamStats.BOUNDARY_CAUSES}
     lines.append(
@@ -142,6 +175,8 @@ def format_summary(s: BagSummary) -> str:
     lines.append(f"  episodes: {st.episodes} (runs of consecutive steps)")
     chains = ", ".join(f"{n} joints: {c}" for n, c in sorted(s.steps_per_chain.items()))
     lines.append(f"  steps: {st.transitions}" + (f" ({chains})" if chains else ""))
+    if s.steps_per_body:
+        lines.append("  bodies: " + ", ".join(f"{label} {n}" for label, n in s.steps_per_body.items()))
     lines.append(
         f"  usable for PPO: {s.ppo_steps}"
         + (f" ({st.without_policy_info} without policy_info: no behaviour log-prob)" if st.without_policy_info else "")
@@ -214,9 +249,8 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     batch.to_npz(args.out)
     print(
-        f"wrote {len(batch)} steps ({batch.num_episodes} episodes, chains of "
-        f"{int(np.min(batch.num_joints))}..{batch.max_joints} joints, {int(batch.has_policy_info.sum())} "
-        f"with policy_info) to {args.out}"
+        f"wrote {len(batch)} steps ({batch.num_episodes} episodes, {describe_bodies(batch)}, "
+        f"{int(batch.has_policy_info.sum())} with policy_info) to {args.out}"
     )
     return 0
 

@@ -313,7 +313,7 @@ class LiveLearner:
             "prepare_s": prepare_s,
             "update_s": update_s,
             "learning_rate": self.learner.optimizer.param_groups[0]["lr"],
-            **EpisodeReturns.of(data).row(cfg.dims),
+            **EpisodeReturns.of(data).row(cfg.dims, trees=not cfg.body_mix.chains_only),  # as live_log_columns
             **stats.row(cfg.dims),
             "explained_variance": explained_variance(batch.values, batch.returns),
             "log_std": float(self.policy.log_std.detach()),

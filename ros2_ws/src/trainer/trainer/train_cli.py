@@ -27,11 +27,9 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from morph_core.algo.checkpoint import TrainingStateError
 from morph_core.algo.train import TrainConfig, load_run_config, train
-from morph_core.algo.train_from_data import passes_cut, train_from_data
+from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
@@ -167,8 +165,8 @@ def _train_from_bags(args) -> None:
               "controller acted): they enter the advantages, not the updates", file=sys.stderr)  # fmt: skip
     updates = args.iterations or passes_cut(len(data) - missing, cfg.batch_size)
     print(
-        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, chains of {int(np.min(data.num_joints))}.."
-        f"{data.max_joints} joints) from {len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
+        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, {describe_bodies(data)}) from "
+        f"{len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
         f"update(s) of up to {cfg.batch_size} samples into {args.out}",
         flush=True,
     )

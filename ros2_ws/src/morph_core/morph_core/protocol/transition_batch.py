@@ -203,6 +203,24 @@ class TransitionBatch:
     def num_episodes(self) -> int:
         return len(np.unique(self.episode))
 
+    def body_labels(self) -> list[str]:
+        """Each row's body as logs name it (``env.bodies.body_label`` of its tree: ``chain-N``, a named
+        shape such as ``star-2x2``, else ``tree-`` and its topology hash)."""
+        from morph_core.env.bodies import body_label, swimmer_tree  # labels only: the env's families
+
+        if not len(self):
+            return []
+        shapes, inverse = np.unique(np.c_[self.num_joints, self.parents], axis=0, return_inverse=True)
+        labels = [body_label(swimmer_tree(row[1 : 1 + row[0]])) for row in shapes]
+        return [labels[i] for i in inverse.reshape(-1)]
+
+    def steps_per_body(self) -> dict[str, int]:
+        """Rows per body label, in the order the bodies first appear."""
+        out: dict[str, int] = {}
+        for label in self.body_labels():
+            out[label] = out.get(label, 0) + 1
+        return out
+
     @property
     def ppo_ready(self) -> bool:
         """Whether every step carries its behaviour log-prob."""
