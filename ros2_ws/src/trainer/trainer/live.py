@@ -283,7 +283,7 @@ class LiveTrainer(Node):
                 pair.chunks_lost += sequence - pair.chunk_sequence - 1
             pair.chunk_sequence = sequence  # lower: a restarted policy node counts from 0 again
             for entry in entries:
-                if entry.topic not in decoders:  # a topic a newer chunk layout carries, which this trainer does not read
+                if entry.topic not in decoders:  # a topic of a newer chunk layout, which this trainer does not read
                     pair.decode_errors[f"unread_{entry.topic}"] += 1
                     continue
                 try:

@@ -264,7 +264,9 @@ class LoopbackRecording:
 
     # -- messages ---------------------------------------------------------------
     def _body(self) -> int | KinematicTree:
-        return self.sim.tree if isinstance(self.sim, TreeSwimmerSim) else self.sim.num_joints
+        """The sim's body: its tree (a ``TreeSwimmerSim``, or any sim that says), else its chain length."""
+        tree = getattr(self.sim, "tree", None)
+        return self.sim.num_joints if tree is None else tree
 
     def _answer(self) -> tuple[np.ndarray, dict | None]:
         """The controller's answer to the current state (in the order of the tree it reads the state on), from
@@ -293,7 +295,7 @@ class LoopbackRecording:
         stamp, torso = self.stamp_ns, self.sim.torso()
         out: list[Record] = []
         if self.describe and body_parents(self._body()) != self._described:
-            text = swimmer_urdf(self._body(), self.prefix)
+            text = swimmer_urdf(self._body(), self.prefix)  # as the sim node publishes it
             out.append(DescriptionRecord(self._log(), text))
             self._joint_map = JointMap.from_urdf(text)  # the policy node reads the states on it from now on
             self._described = body_parents(self._body())
