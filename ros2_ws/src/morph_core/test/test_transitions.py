@@ -21,7 +21,7 @@ from morph_core.env.reward import applied_action
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import chain_batch
+from morph_core.msgs.joint_state import chain_batch, quaternion_from_yaw, yaw_from_quaternion
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -726,6 +726,33 @@ def test_a_description_that_changes_the_tree_splits_the_episode(policy):
         assert np.bincount(result.batch.episode).tolist() == [30] and result.stats.descriptions == len(late)
         for k, v in assemble(loop.records).batch.arrays().items():
             np.testing.assert_array_equal(result.batch.arrays()[k], v, err_msg=k)
+
+
+def test_a_new_description_restarts_the_yaw_unwrapping_as_the_policy_node_does(policy):
+    """The policy node takes a new description for a new robot (its graph) and restarts its unwrapping at the first
+    state it reads on it, even when the tree is the one the states already formed: so does the assembler."""
+    loop = record(SamplingController(policy, seed=2), episodes=((4, 30),))
+    stamps = state_stamps(loop)
+    yaw15 = next(yaw_from_quaternion(*r.orientation_xyzw) for r in loop.records
+                 if isinstance(r, OdometryRecord) and r.stamp_ns == stamps[15])  # fmt: skip
+    turn = math.pi + 0.02 - yaw15  # the swimmer turned round: past +pi at state 15, where the description comes
+
+    def turned(r):
+        if isinstance(r, OdometryRecord):
+            return dataclasses.replace(
+                r, orientation_xyzw=quaternion_from_yaw(yaw_from_quaternion(*r.orientation_xyzw) + turn)
+            )
+        return r
+
+    records = [turned(r) for r in loop.records]
+    states = [i for i, r in enumerate(records) if isinstance(r, JointStateRecord)]
+    plain = assemble(records).batch
+    late = assemble_with(records[: states[15]] + [description(4)] + records[states[15] :]).batch
+    assert np.bincount(late.episode).tolist() == [30]  # the same tree: no boundary
+    np.testing.assert_array_equal(late.global_feats[:15], plain.global_feats[:15])
+    np.testing.assert_allclose(late.global_feats[15:, 0], plain.global_feats[15:, 0] - 2 * math.pi, atol=1e-12)
+    np.testing.assert_allclose(late.global_feats[15:, 1:], plain.global_feats[15:, 1:], rtol=0, atol=1e-12)
+    assert late.next_global[14, 0] == pytest.approx(plain.next_global[14, 0] - 2 * math.pi)
 
 
 def assemble_with(records, joint_map=None):

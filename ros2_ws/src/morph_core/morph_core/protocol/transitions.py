@@ -11,7 +11,8 @@ next state s' one control period later:
 - observation: joint positions and velocities of s, and (yaw, yaw rate, vx,
   vy) rebuilt from the odometry carrying s's stamp exactly as the policy node
   does (``msgs.joint_state.global_features``, yaw unwrapped along the stream,
-  unwrapping restarted at each announced episode and each new robot);
+  unwrapping restarted at each announced episode, each new robot and the
+  first state after a new description);
 - action: the sampled action of the ``policy_info`` stamped s (the behaviour
   log-prob comes with it), else the effort command answering s (then
   ``has_policy_info`` is False and the log-prob NaN: PPO cannot use the
@@ -334,6 +335,8 @@ class _Slot:
     """why they do not: the skip reason"""
     described: bool = False
     """the state was bound to a robot description (not to the fallback's chain of its names)"""
+    newly_described: bool = False
+    """the first state after a description was adopted: the policy node restarts its yaw unwrapping there"""
 
 
 class TransitionAssembler:
@@ -345,6 +348,7 @@ class TransitionAssembler:
         chain in the message's order."""
         self.config = config or TransitionConfig()
         self.joint_map = JointMap() if joint_map is None else joint_map
+        self._newly_described = False
         """the robot the states are bound to as they arrive: the latest description's (kept across ``flush``)"""
         self._description: str | bytes | None = None  # the text ``joint_map`` was read from
         self._answer_maps: dict[KinematicTree, JointMap] = {}
@@ -367,6 +371,7 @@ class TransitionAssembler:
         self._latest_state: int | None = None  # stamp, for untagged efforts
         self._judged: OrderedDict[int, None] = OrderedDict()
         self._unwrap = YawUnwrapper()
+        self._restart_unwrap = False  # at the next state observed (a description was adopted before it)
         self._held: dict | None = None  # the latest transition's fields but ``truncated``: known at the next judgement
         self._ready: list[Transition] = []
 
@@ -455,6 +460,7 @@ class TransitionAssembler:
         self.stats.descriptions += 1
         self._description = record.text
         self.joint_map = joint_map
+        self._newly_described = True  # the next state to arrive is the first the policy node reads on it
 
     def _on_state(self, record: JointStateRecord) -> None:
         stamp, latest = record.stamp_ns, self._latest_state
@@ -507,6 +513,7 @@ class TransitionAssembler:
         self._slots[record.stamp_ns] = slot
         self._stateless.pop(record.stamp_ns, None)
         self._set_state(slot, record)
+        slot.newly_described, self._newly_described = self._newly_described, False
         self._sequence.append(record.stamp_ns)
         self._states_seen += 1
         self.stats.states += 1
@@ -634,6 +641,9 @@ class TransitionAssembler:
         if slot.observed:
             return slot.obs
         slot.observed = True
+        # A new description is a new robot to the policy node (its graph, even one of the same tree): it restarts
+        # its unwrapping at the first state it reads on it, which is the first it answers.
+        self._restart_unwrap |= slot.newly_described
         s, odom = slot.state, slot.odom
         if slot.conflict or slot.later_odom is not None:  # two odometries, one state
             slot.obs_error = "duplicate_stamp"
@@ -654,6 +664,9 @@ class TransitionAssembler:
             elif not _finite(odom.x, odom.y, odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z):
                 slot.obs_error = "non_finite"
             else:
+                if self._restart_unwrap:
+                    self._unwrap.reset()
+                    self._restart_unwrap = False
                 try:
                     glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
                 except JointStateError:  # a zero quaternion
