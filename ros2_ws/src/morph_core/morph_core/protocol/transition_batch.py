@@ -12,8 +12,10 @@ does).
 The robot's graph is ``parents`` (``policy.index_plan``): joints in
 topological order, each row's parent joint of each joint, -1 when the joint
 hangs off the torso and at padding; a chain of N joints is [-1, 0, ..., N-2].
-A file written before the key existed holds chains (the joint order of the
-``joint_states`` message was the chain), and reads as such. Parents that are
+From recorded topics it is the tree of the robot's ``robot_description``
+(``protocol.transitions``), or without one a chain in the ``joint_states``
+message's order. A file written before the key existed holds chains, and
+reads as such. Parents that are
 not int64 [T, J], not -1 at padding, a parent not earlier than its joint, or
 two trees in one episode are refused (``TransitionBatchError``, naming the row
 and, from ``from_npz``, the file).
@@ -23,7 +25,7 @@ Keys of the ``.npz`` (T rows, J = longest chain, 0 if T = 0):
     episode          int64   [T]     run of consecutive transitions (0, 1, ... in stream order)
     stamp_ns         int64   [T]     the state's stamp
     num_joints       int64   [T]
-    joint_pos        float64 [T, J]  joint angles, torso to tail
+    joint_pos        float64 [T, J]  joint angles, in the robot's tree order (a chain's: torso to tail)
     joint_vel        float64 [T, J]
     global           float64 [T, 4]  yaw (unwrapped), yaw rate, vx, vy (world frame), as the policy sees them
     action           float64 [T, J]  the sampled action (policy_info), else the effort command
