@@ -28,7 +28,7 @@ from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
-from morph_core.protocol.transitions import TransitionConfig, assemble
+from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
 from trainer.bag_cli import main, summarize_bag
 from trainer.bag_messages import header, record_message, stamp
 
@@ -240,3 +240,24 @@ def test_runs_as_a_module(tmp_path, sampled_records):
     )
     assert done.returncode == 0, done.stderr
     assert f"{NS}/joint_states" in done.stdout and "usable for PPO: 35" in done.stdout
+
+
+def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_path, policy, capsys):
+    """A recorder whose description reader matched after its state reader: the latched URDF comes a few states
+    late. Those states were published while it was the robot's, and are read on it (not as chains)."""
+    tree = swimmer_tree(y_parents(1, 2))
+    records = record_episodes(SamplingController(policy, seed=4), ((tree, 25),), describe=True, shuffle_seed=5,
+                              name_efforts=True)  # fmt: skip
+    states = [i for i, r in enumerate(records) if isinstance(r, JointStateRecord)]
+    (first,) = [i for i, r in enumerate(records) if isinstance(r, DescriptionRecord)]
+    late = records[:first] + records[first + 1 : states[6]] + [records[first]] + records[states[6] :]
+    late = [dataclasses.replace(r, log_ns=1000 * (i + 1)) for i, r in enumerate(late)]
+    on_time = summarize_bag(write_bag(tmp_path / "on_time", records), TransitionConfig()).batch
+    summary = summarize_bag(write_bag(tmp_path / "late", late), TransitionConfig())
+    assert summary.skips == SkipCounts() and summary.stats.boundaries == 0 and len(summary.batch) == 25
+    for k, v in on_time.arrays().items():
+        np.testing.assert_array_equal(summary.batch.arrays()[k], v, err_msg=k)
+    # Read as the stream alone says (no bag to look ahead in): the first states are chains in their message order,
+    # each in an order of its own, so hardly a step among them.
+    alone = assemble(late).batch
+    assert len(alone) < 25 and (alone.parents[-1, :5] == tree.parents).all()

@@ -14,8 +14,11 @@ never spans two bags. Records become transitions as
 boundaries, nothing guessed: every step left out is counted under its
 reason). The robot is the bag's ``robot_description`` (the sim latches its
 URDF before each body's first state, and ``morph-record`` records it): its
-tree, the joints bound by name. A bag without one holds chains, each state's
-joints in the message's order, and ``info`` says so. The options after the
+tree, the joints bound by name. States recorded before the bag's first
+description (a recorder whose description reader matched after its state
+reader) are read on that first one, the URDF in force when they were
+published (``bag_io.first_description``). A bag without one holds chains,
+each state's joints in the message's order, and ``info`` says so. The options after the
 command tune the assembly (``--control-period``, ``--settle-states``, ...);
 ``--namespace`` picks the robot when a bag holds several.
 """
@@ -41,7 +44,7 @@ from morph_core.protocol.transitions import (
     TransitionConfig,
 )
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.bag_io import BagError, BagReader
+from trainer.bag_io import BagError, BagReader, first_description
 from trainer.bag_messages import DESCRIPTION_TOPIC
 
 NO_DESCRIPTION = "no robot_description: joints taken as chains in message order"
@@ -98,9 +101,9 @@ def summarize_bag(
 ) -> BagSummary:
     """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
     ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
-    default a chain in each state's message order."""
+    default ``bag_robot``'s."""
     reader = BagReader(path, namespace=namespace)
-    asm = TransitionAssembler(config, joint_map)
+    asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
     transitions, described = [], {}
     for record in reader.records():
         transitions += asm.push(record)
@@ -132,6 +135,18 @@ def summarize_bag(
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
     )
+
+
+def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
+    """The robot of a bag's first states: its first robot_description, if it reads as one (else None: the
+    assembler's fallback, chains in message order, until a description in the stream says otherwise)."""
+    first = first_description(path, namespace)
+    if first is None:
+        return None
+    try:
+        return JointMap.from_urdf(first.text)
+    except ValueError:  # no robot: the stream counts it (bad_description) when it reaches it
+        return None
 
 
 def total(summaries: list[BagSummary]) -> BagSummary:

@@ -592,3 +592,19 @@ def read_bag(paths, **options) -> tuple[list[Record], ReadStats]:
     """All records of ``paths`` (see ``BagReader``) and the reading statistics."""
     reader = BagReader(paths, **options)
     return reader.read(), reader.stats
+
+
+def first_description(path: str | Path, namespace: str | None = None) -> DescriptionRecord | None:
+    """A bag's first ``robot_description`` (read up to it, no further), or None when the bag has none.
+
+    The robot of the states recorded before it: the sim latches its current URDF, so a recorder receives it
+    when its description reader matches the sim's writer, which may be after its state reader did (discovery
+    matches endpoint by endpoint). Those first states were published while that URDF was the current one."""
+    reader = BagReader(path, namespace=namespace)
+    if full_topic_name(reader.namespaces[0], DESCRIPTION_TOPIC) not in reader.topics:
+        return None
+    records = reader.records()
+    try:
+        return next((r for r in records if isinstance(r, DescriptionRecord)), None)
+    finally:
+        records.close()  # the storage files, now

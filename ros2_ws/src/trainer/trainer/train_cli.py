@@ -36,6 +36,7 @@ from morph_core.protocol.transition_batch import MissingPolicyInfoError, Transit
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
+from trainer.bag_cli import bag_robot
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
 
@@ -123,7 +124,7 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     batches, warnings, skips = [], [], SkipCounts()
     for bag in bags:
         reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        asm = TransitionAssembler()
+        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
         batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
         warnings += reader.stats.warnings
         skips.merge(asm.skips)
