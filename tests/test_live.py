@@ -27,7 +27,7 @@ from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.episode_start import unpack_episode_start
 from morph_core.protocol.transitions import TransitionAssembler
-from trainer.live import ANNOUNCEMENTS, CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, WEIGHTS_QOS, WEIGHTS_TOPIC, chunk_message
+from trainer.live import CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, STREAM_TOPICS, WEIGHTS_QOS, WEIGHTS_TOPIC, chunk_message
 from trainer.live_learner import LIVE_LEARNING_RATE
 
 STARTUP = 120.0
@@ -206,7 +206,7 @@ def test_a_policy_node_streams_its_messages_in_chunks(probe, namespace, tmp_path
     assert all(len(c.data) <= MAX_CHUNK_BYTES for c in chunks)
     entries = [e for _, es in unpacked for e in es]
     assert {e.topic for e in entries} >= set(DATA_TOPICS)
-    decoders = {**DATA_TOPICS, "episode_start": ANNOUNCEMENTS}
+    decoders = STREAM_TOPICS
     # Decoded as the trainer decodes chunks, and as rclpy decodes the topics: the same records.
     records = [decoders[e.topic][1](chunk_message(e), e.log_ns) for e in entries]
     by_rclpy = [decoders[e.topic][1](deserialize_message(e.data, decoders[e.topic][0]), e.log_ns) for e in entries]
@@ -425,3 +425,77 @@ def test_weights_adopted_by_two_policy_nodes_late_joiner_and_bad_weights_kept_ou
         for pair in procs:
             for p in pair.values():
                 p.stop()
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
+def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, untrained_checkpoint, trainer_key,
+                                                                       listen):  # fmt: skip
+    """The live trainer's own input handlers (no pair running: the messages are the ones a tree sim and a policy
+    node publish, from protocol.loopback, serialized as on the wire): robot_description taken from its topic or
+    from the chunks, every state read on its tree by name, whatever order it lists the joints in."""
+    import array
+
+    import rclpy
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    from rclpy.serialization import deserialize_message
+
+    from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
+    from morph_core.msgs.stream_chunk import ChunkWriter
+    from morph_core.policy.actor_critic import GraphActorCritic
+    from morph_core.protocol.loopback import SamplingController, record_episodes
+    from morph_core.protocol.transition_batch import TransitionBatch
+    from morph_core.protocol.transitions import SkipCounts, assemble
+    from trainer.bag_messages import TYPESTORE, record_message
+    from trainer.live import LiveTrainer
+    from trainer.live_learner import LiveOptions, live_train_config
+
+    trees = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)))
+    policy = GraphActorCritic.load(untrained_checkpoint)
+    records = record_episodes(SamplingController(policy, 2), ((trees[0], 30), (trees[1], 25)), describe=True,
+                              shuffle_seed=3, name_efforts=True)  # fmt: skip
+    wire = []  # (topic, log_ns, CDR)
+    for r in records:
+        topic, msg = record_message(r)
+        wire.append((topic, r.log_ns, bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))))
+    cfg = live_train_config(num_envs=1, num_steps=128, minibatch_size=64, compile=False, tensorboard=False,
+                            progress_bar=False)  # fmt: skip
+    options = LiveOptions(("/p",), tmp_path / "run", stream_chunks=listen == "stream_chunks")
+    rclpy.init()
+    node = None
+    try:
+        node = LiveTrainer(cfg, options, trainer_key.signer)
+        pair = node.pairs["/p"]
+        if listen == "stream_chunks":
+            writer, chunks = ChunkWriter(), []
+            for topic, log_ns, data in wire:
+                chunks.append(writer.add(topic, log_ns, data))
+            chunks.append(writer.take())
+            on_chunk = node._chunk_handler(pair)
+            for chunk in filter(None, chunks):
+                on_chunk(UInt8MultiArray(data=array.array("B", chunk)))
+        else:
+            # Latched as the sim publishes it, and subscribed before the states (taken first when both wait).
+            subs = [sub.topic_name for sub in node.subscriptions]
+            assert subs.index("/p/robot_description") < subs.index("/p/joint_states")
+            qos = next(sub.qos_profile for sub in node.subscriptions if sub.topic_name == "/p/robot_description")
+            assert (qos.durability, qos.reliability, qos.depth) == (DurabilityPolicy.TRANSIENT_LOCAL,
+                                                                    ReliabilityPolicy.RELIABLE, 1)  # fmt: skip
+            for topic, log_ns, data in wire:
+                msg_type, decode = STREAM_TOPICS[topic]
+                node._take(pair, decode, deserialize_message(data, msg_type), log_ns)
+        assert not pair.decode_errors and pair.assembler.stats.descriptions == 2
+        with node._lock:
+            transitions = pair.episode + pair.assembler.flush()
+        assert pair.assembler.skips == SkipCounts()
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    got = TransitionBatch.from_transitions(transitions)
+    assert np.bincount(got.episode).tolist() == [30, 25]
+    for k, v in assemble(records).batch.arrays().items():
+        np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
+    for t in transitions:
+        assert t.names == trees[t.episode].names and t.parents.tolist() == trees[t.episode].parents.tolist()

@@ -18,9 +18,22 @@ from ruamel.yaml import YAML
 from std_msgs.msg import Header
 from trajectory_msgs.msg import JointTrajectory
 
-from morph_core.msgs.records import EffortRecord, EpisodeStartRecord, JointStateRecord, PolicyInfoRecord
+from morph_core.env.urdf import swimmer_urdf
+from morph_core.msgs.records import (
+    DescriptionRecord,
+    EffortRecord,
+    EpisodeStartRecord,
+    JointStateRecord,
+    PolicyInfoRecord,
+)
+from morph_core.policy.tree import read_urdf
+from morph_core.protocol.transitions import TransitionConfig
+from trainer.bag_cli import main as bag_main
+from trainer.bag_cli import summarize_bag
 from trainer.bag_io import BagError, BagReader
+from trainer.bag_messages import DESCRIPTION_TOPIC
 from trainer.bag_writer import jazzy_metadata_problems
+from trainer.record import KNOWN_TYPES
 
 STARTUP = 60.0
 STEP_NS = 40_000_000
@@ -230,3 +243,48 @@ def test_announcements_heard_before_any_sim_starts(probe, launch, tmp_path, name
 
     probe.spin_until(recorder_latched, STARTUP, "the recorder reading the announcements, transient local")
     assert not probe.node.get_publishers_info_by_topic(topic)  # with no publisher in sight
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("subscribed", ["in_advance", "on_discovery"])
+def test_a_late_recorder_records_the_latched_robot_description(
+    probe, launch, untrained_checkpoint, tmp_path, namespace, subscribed, capsys
+):
+    """The sim latches its URDF once, before its first state: a recorder started long after still records it,
+    subscribed in advance (a topic of known type) or once it saw the sim's publisher (with the offered QoS)."""
+    infos = probe.collect(JointTrajectory, "policy_info", qos_profile_sensor_data)
+    _start_loop(launch, untrained_checkpoint, joints=5)
+    probe.spin_until(lambda: len(infos) >= 50, STARTUP, "the loop running (50 policy_info)")
+    bag = tmp_path / "bag"
+    params = {"output": str(bag)}
+    if subscribed == "on_discovery":
+        params["topic_types"] = [t for t in KNOWN_TYPES if not t.startswith(f"{DESCRIPTION_TOPIC}=")]
+    recorder = launch("morph-record", **params)
+
+    def recorder_reads(topic: str) -> bool:
+        return any(i.node_name == "morph_record" for i in probe.node.get_subscriptions_info_by_topic(topic))
+
+    loop_topics = [f"{namespace}/{t}" for t in (DESCRIPTION_TOPIC, "joint_states", "policy_info")]
+    probe.spin_until(lambda: all(map(recorder_reads, loop_topics)), STARTUP, "the recorder on the loop")
+    n = len(infos) + 100
+    probe.spin_until(lambda: len(infos) >= n, STARTUP, "100 more policy_info")
+    assert recorder.stop() == 0, recorder.log()
+
+    info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert jazzy_metadata_problems(info) == []
+    topics = {t["topic_metadata"]["name"]: t for t in info["topics_with_message_count"]}
+    described = topics[f"{namespace}/{DESCRIPTION_TOPIC}"]
+    assert described["topic_metadata"]["type"] == "std_msgs/msg/String" and described["message_count"] == 1
+    offered = described["topic_metadata"]["offered_qos_profiles"]
+    assert [(q["reliability"], q["durability"]) for q in offered] == [("reliable", "transient_local")]
+
+    records = BagReader(bag, namespace=namespace).read()
+    (description,) = [r for r in records if isinstance(r, DescriptionRecord)]
+    assert description.text == swimmer_urdf(5)  # the sim's chain, as it published it at its start
+    assert read_urdf(description.text).tree.names == tuple(f"motor{k}_rot" for k in range(1, 6))
+    summary = summarize_bag(bag, TransitionConfig(), namespace)
+    assert summary.descriptions == 1 and summary.described == ["chain-5"] and summary.stats.descriptions == 1
+    assert summary.stats.transitions >= 50 and summary.skips.unknown_joint == summary.skips.missing_joint == 0
+    assert summary.stats.boundaries_new_chain == 0  # the chain it describes is the one the states formed
+    assert bag_main(["info", str(bag), "--namespace", namespace]) == 0
+    assert "robot_description: 1 (chain-5)" in capsys.readouterr().out

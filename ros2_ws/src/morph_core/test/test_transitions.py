@@ -16,11 +16,14 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
 from morph_core.env.reward import applied_action
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.msgs.joint_state import chain_batch
+from morph_core.env.urdf import swimmer_urdf
+from morph_core.msgs.joint_state import chain_batch, quaternion_from_yaw, yaw_from_quaternion
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -28,12 +31,14 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.tree import KinematicTree, TreeError
+from morph_core.policy.chains import ChainBatch
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import (
     GaussianController,
     LoopbackRecording,
     MeanController,
     SamplingController,
+    TreeSwimmerSim,
 )
 from morph_core.protocol.transition_batch import (
     EXPORT_KEYS,
@@ -660,43 +665,98 @@ def test_fuzzed_parents_give_the_documented_error_or_exactly_the_file(sampled, t
     assert outcomes["read"] > 10 and outcomes["refused"] > 100, outcomes
 
 
-def test_the_assembler_takes_each_state_tree_from_tree_of(sampled):
-    star = {3: [-1, 0, 0], 5: [-1, 0, 0, 1, -1]}
-    names_seen = []
+# -- the robot's tree, from its robot_description ------------------------------------------------------
+STAR3 = [-1, 0, 0]
+TREE5 = [-1, 0, 1, 0, -1]  # pre-order: a joint's subtree right after it
 
-    def tree_of(names):
-        names_seen.append(names)
-        return KinematicTree.from_parents(star[len(names)], names)
 
-    asm = TransitionAssembler(tree_of=tree_of)
-    transitions = asm.push_many(sampled.records) + asm.flush()
-    assert len(names_seen) == asm.stats.states  # asked once per state
+def description(body, log_ns=0, prefix=""):
+    """The sim's robot_description of a body (a chain length, a parent array or a tree)."""
+    return DescriptionRecord(log_ns, swimmer_urdf(body, prefix))
+
+
+def first_state_index(records, num_joints=None):
+    return next(
+        i
+        for i, r in enumerate(records)
+        if isinstance(r, JointStateRecord) and (num_joints is None or len(r.names) == num_joints)
+    )
+
+
+def test_each_state_is_read_on_the_tree_of_the_latest_description(sampled):
+    """Descriptions of trees whose joints are the chain's, in the chain's order: the same steps, another graph."""
+    records = list(sampled.records)
+    announced = [i for i, r in enumerate(records) if isinstance(r, EpisodeStartRecord)][1]  # the 5-joint episode
+    records.insert(announced, description(TREE5, records[announced].log_ns))
+    records.insert(0, description(STAR3))
+    asm = TransitionAssembler()
+    transitions = asm.push_many(records) + asm.flush()
+    assert asm.skips == SkipCounts() and asm.stats.descriptions == 2
+    assert not asm.joint_map.is_fallback and asm.joint_map.robot.tree.parents.tolist() == TREE5
     batch = TransitionBatch.from_transitions(transitions)
     chains = assemble(sampled.records).batch
     for k, v in chains.arrays().items():  # the same steps, only the graph differs
         if k != "parents":
             np.testing.assert_array_equal(batch.arrays()[k], v, err_msg=k)
-    assert batch.parents[0].tolist() == [-1, 0, 0, -1, -1] and batch.parents[-1].tolist() == star[5]
-    assert all(t.parents.tolist() == star[len(t.joint_pos)] for t in transitions)
+    assert batch.parents[0].tolist() == [-1, 0, 0, -1, -1] and batch.parents[-1].tolist() == TREE5
+    assert all(t.parents.tolist() == {3: STAR3, 5: TREE5}[len(t.joint_pos)] for t in transitions)
+    # Known otherwise (a URDF file beside a bag recorded without the topic): the same from the first state on.
+    given = TransitionAssembler(joint_map=JointMap.from_urdf(swimmer_urdf(STAR3)))
+    star = given.push_many(sampled.records[: first_state_index(sampled.records, 5)]) + given.flush()
+    assert len(star) == 30 and all(t.parents.tolist() == STAR3 for t in star)
 
 
-def test_a_tree_change_under_the_same_names_splits_the_episode(policy):
+def test_a_description_that_changes_the_tree_splits_the_episode(policy):
     loop = record(SamplingController(policy, seed=2), episodes=((4, 30),))
-    calls = []
-
-    def tree_of(names):  # the robot's description changes as the 16th state arrives; its joints keep their names
-        calls.append(names)
-        return np.array([-1, 0, 1, 2] if len(calls) <= 15 else [-1, 0, 0, 2])
-
-    result = assemble_with(loop.records, tree_of)
+    states = [i for i, r in enumerate(loop.records) if isinstance(r, JointStateRecord)]
+    # The robot's description changes as the 16th state arrives; its joints keep their names.
+    records = [description(4)] + loop.records[: states[15]] + [description([-1, 0, 0, 2])] + loop.records[states[15] :]
+    result = assemble_with(records)
     assert np.bincount(result.batch.episode).tolist() == [14, 15]
     assert result.stats.boundaries_new_chain == 1 and result.skips == SkipCounts()
     assert (result.batch.parents[:14] == [-1, 0, 1, 2]).all() and (result.batch.parents[14:] == [-1, 0, 0, 2]).all()
     assert result.batch.truncated[[13, 28]].all()
 
+    # The same description again (a latched publisher re-sending it), or one of the chain the states formed
+    # without a description (a recorder that started after the sim: the latched URDF comes after the first
+    # states): the tree does not change, nor does the episode.
+    for late in ([description(4)] * 2, [description(4)]):
+        records = loop.records[: states[15]] + late + loop.records[states[15] :]
+        result = assemble_with(records)
+        assert np.bincount(result.batch.episode).tolist() == [30] and result.stats.descriptions == len(late)
+        for k, v in assemble(loop.records).batch.arrays().items():
+            np.testing.assert_array_equal(result.batch.arrays()[k], v, err_msg=k)
 
-def assemble_with(records, tree_of):
-    asm = TransitionAssembler(tree_of=tree_of)
+
+def test_a_new_description_restarts_the_yaw_unwrapping_as_the_policy_node_does(policy):
+    """The policy node takes a new description for a new robot (its graph) and restarts its unwrapping at the first
+    state it reads on it, even when the tree is the one the states already formed: so does the assembler."""
+    loop = record(SamplingController(policy, seed=2), episodes=((4, 30),))
+    stamps = state_stamps(loop)
+    yaw15 = next(yaw_from_quaternion(*r.orientation_xyzw) for r in loop.records
+                 if isinstance(r, OdometryRecord) and r.stamp_ns == stamps[15])  # fmt: skip
+    turn = math.pi + 0.02 - yaw15  # the swimmer turned round: past +pi at state 15, where the description comes
+
+    def turned(r):
+        if isinstance(r, OdometryRecord):
+            return dataclasses.replace(
+                r, orientation_xyzw=quaternion_from_yaw(yaw_from_quaternion(*r.orientation_xyzw) + turn)
+            )
+        return r
+
+    records = [turned(r) for r in loop.records]
+    states = [i for i, r in enumerate(records) if isinstance(r, JointStateRecord)]
+    plain = assemble(records).batch
+    late = assemble_with(records[: states[15]] + [description(4)] + records[states[15] :]).batch
+    assert np.bincount(late.episode).tolist() == [30]  # the same tree: no boundary
+    np.testing.assert_array_equal(late.global_feats[:15], plain.global_feats[:15])
+    np.testing.assert_allclose(late.global_feats[15:, 0], plain.global_feats[15:, 0] - 2 * math.pi, atol=1e-12)
+    np.testing.assert_allclose(late.global_feats[15:, 1:], plain.global_feats[15:, 1:], rtol=0, atol=1e-12)
+    assert late.next_global[14, 0] == pytest.approx(plain.next_global[14, 0] - 2 * math.pi)
+
+
+def assemble_with(records, joint_map=None):
+    asm = TransitionAssembler(joint_map=joint_map)
     transitions = asm.push_many(records) + asm.flush()
 
     class Result:
@@ -707,17 +767,184 @@ def assemble_with(records, tree_of):
 
 
 @pytest.mark.parametrize(
-    "tree_of",
+    "text",
     [
-        lambda names: (_ for _ in ()).throw(TreeError("no robot_description yet")),
-        lambda names: KinematicTree.chain(len(names), [f"j{k}" for k in range(len(names))]),  # other names
-        lambda names: KinematicTree.from_parents(range(-1, len(names) - 1), tuple(reversed(names))),
-        lambda names: np.arange(len(names)),  # joint 0 its own parent
-        lambda names: np.array([-1.0] * len(names)),
-        lambda names: [-1] * (len(names) + 1),
+        "not a URDF",
+        "<robot name='r'><link name='a'/></robot>",  # no actuated joint
+        swimmer_urdf(3).replace('type="revolute"', 'type="prismatic"', 1),
+        swimmer_urdf(3).replace('name="motor2_rot"', 'name="motor1_rot"'),
+        b"\xff\xfe<robot/>",
     ],
 )
-def test_a_state_whose_tree_cannot_be_told_is_malformed(policy, tree_of):
+def test_a_description_that_is_no_robot_is_counted_and_the_last_good_one_kept(policy, text):
     loop = record(SamplingController(policy, seed=2), episodes=((3, 5),))
-    result = assemble_with(loop.records, tree_of)
-    assert len(result.batch) == 0 and result.skips.malformed == 5 and result.stats.states == 6
+    chains = assemble(loop.records).batch
+    for before in ([], [description(STAR3)]):
+        result = assemble_with(before + [DescriptionRecord(0, text)] + loop.records)
+        assert result.skips.bad_description == 1 and result.skips.steps_skipped == 0
+        assert result.stats.descriptions == len(before)
+        assert len(result.batch) == 5 and (result.batch.parents == (STAR3 if before else [-1, 0, 1])).all()
+        np.testing.assert_array_equal(result.batch.action, chains.action)
+
+
+@pytest.mark.parametrize(
+    ("body", "prefix", "reason"),
+    [
+        (3, "other_", "unknown_joint"),  # the description names other joints
+        (STAR3 + [0], "", "missing_joint"),  # the states lack one of its joints
+    ],
+)
+def test_a_state_that_does_not_fit_the_description_is_skipped_by_reason(policy, body, prefix, reason):
+    loop = record(SamplingController(policy, seed=2), episodes=((3, 5),))
+    result = assemble_with([description(body, prefix=prefix)] + loop.records)
+    assert len(result.batch) == 0 and result.stats.states == 6
+    assert result.skips.as_dict()[reason] == 5 and result.skips.steps_skipped == 5
+
+
+TREES = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)), swimmer_tree(TREE5))
+
+
+def record_trees(controller, bodies=((TREES[0], 20), (TREES[1], 15), (TREES[2], 12)), **options):
+    loop = LoopbackRecording(TreeSwimmerSim(bodies[0][0], seed=SEED, effort_timeout=None), controller, **options)
+    for i, (body, steps) in enumerate(bodies):
+        if i:
+            loop.new_episode(body)
+        loop.run(steps)
+    loop.finish()
+    return loop, [body for body, _ in bodies]
+
+
+def replay_trees(loop, bodies):
+    """stamp -> (observation, action stepped with, reward, next observation), from a fresh env with the sim's
+    seed, rebuilt as the recording rebuilt it."""
+    env = MorphSwimmerEnv(num_joints=bodies[0].num_joints)
+    env.reset(seed=SEED)
+    obs, _ = env.reset(options={"tree": bodies[0]})
+    episode, out = 0, {}
+    for truth in loop.truth:
+        if truth.episode != episode:
+            episode = truth.episode
+            obs, _ = env.reset(options={"tree": bodies[episode]})
+        if truth.action is None:
+            continue
+        nxt, reward, _, _, _ = env.step(applied_action(truth.action))
+        out[truth.stamp_ns] = (obs, truth.action, reward, nxt)
+        obs = nxt
+    return out
+
+
+@pytest.mark.parametrize("name_efforts", [True, False])
+def test_shuffled_states_of_trees_give_the_replayed_transitions_in_the_trees_order(policy, name_efforts):
+    loop, bodies = record_trees(
+        SamplingController(policy, seed=3), describe=True, shuffle_seed=4, name_efforts=name_efforts
+    )
+    states = [r for r in loop.records if isinstance(r, JointStateRecord)]
+    efforts = [r for r in loop.records if isinstance(r, EffortRecord)]
+    assert sum(r.names != tuple(sorted(r.names)) for r in states) > 40  # listed in an order of their own
+    assert all((e.names is not None) == name_efforts for e in efforts)
+    asm = TransitionAssembler()
+    transitions = asm.push_many(loop.records) + asm.flush()
+    assert asm.skips == SkipCounts() and asm.stats.descriptions == 3
+    assert asm.stats.boundaries_announced == 2 and asm.stats.boundaries == 2
+    batch = TransitionBatch.from_transitions(transitions)
+    assert np.bincount(batch.episode).tolist() == [20, 15, 12]
+    for t in transitions:  # one run per episode, each of its own body
+        assert t.names == bodies[t.episode].names and t.parents.tolist() == bodies[t.episode].parents.tolist()
+    reference = replay_trees(loop, bodies)
+    assert set(reference) == set(batch.stamp_ns.tolist())
+    for stamp, row in rows(batch).items():
+        obs, action, reward, nxt = reference[stamp]
+        np.testing.assert_array_equal(row["joint_pos"], obs["joint_pos"])
+        np.testing.assert_array_equal(row["joint_vel"], obs["joint_vel"])
+        np.testing.assert_allclose(row["global"], obs["global"], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(row["action"], action)
+        np.testing.assert_array_equal(row["parents"][: row["num_joints"]], obs["parents"])
+        assert row["reward"] == pytest.approx(reward, abs=1e-9)
+        np.testing.assert_array_equal(row["next_joint_pos"], nxt["joint_pos"])
+    # The behaviour log-prob is the policy's on the tree, for the action in the tree's order.
+    for i in range(0, len(batch), 5):
+        n = batch.num_joints[i]
+        rows_i = slice(i, i + 1)
+        pos, vel, glob = batch.joint_pos[rows_i, :n], batch.joint_vel[rows_i, :n], batch.global_feats[rows_i]
+        tree_batch = ChainBatch.from_padded(pos, vel, glob, [n], parents=batch.parents[rows_i, :n])
+        lp = policy.log_prob(tree_batch, torch.as_tensor(batch.action[rows_i, :n], dtype=torch.float32))
+        assert lp.item() == pytest.approx(batch.log_prob[i], abs=2e-4)
+
+
+def test_the_deterministic_policy_answer_of_shuffled_states_is_read_by_name(policy):
+    """No policy_info: the action is the effort command, unnamed ones in the order of the state they answer."""
+    loop, bodies = record_trees(MeanController(policy), describe=True, shuffle_seed=5)
+    result = assemble_with(loop.records)
+    assert result.skips == SkipCounts() and result.stats.without_policy_info == len(result.batch) == 47
+    reference = replay_trees(loop, bodies)
+    for stamp, row in rows(result.batch).items():
+        np.testing.assert_array_equal(row["action"], np.clip(reference[stamp][1], -1.0, 1.0))
+
+
+def with_a_fixed_joint(records):
+    """The records as from a robot whose description has one more joint, fixed, which every state carries
+    (as joint_state_broadcaster publishes every joint it has)."""
+    fixed = (
+        '<link name="camera"/><joint name="camera_mount" type="fixed">'
+        '<parent link="torso"/><child link="camera"/></joint>'
+    )
+    out = []
+    for r in records:
+        if isinstance(r, DescriptionRecord):
+            r = dataclasses.replace(r, text=r.text.replace("</robot>", fixed + "</robot>"))
+        elif isinstance(r, JointStateRecord):
+            k = 1 + r.stamp_ns // PERIOD_NS % len(r.names)  # somewhere among the others
+            names = r.names[:k] + ("camera_mount",) + r.names[k:]
+            pos, vel, eff = (np.insert(x, k, 0.0) for x in (r.position, r.velocity, r.effort))
+            r = dataclasses.replace(r, names=names, position=pos, velocity=vel, effort=eff)
+        out.append(r)
+    return out
+
+
+def test_joints_the_robot_does_not_actuate_are_left_alone(policy):
+    loop, _ = record_trees(SamplingController(policy, seed=3), describe=True, shuffle_seed=6, name_efforts=True)
+    clean = assemble(loop.records).batch
+    result = assemble_with(with_a_fixed_joint(loop.records))
+    assert result.skips == SkipCounts()
+    for k, v in clean.arrays().items():
+        np.testing.assert_array_equal(result.batch.arrays()[k], v, err_msg=k)
+    # Unnamed efforts, one per joint of the state: the fixed joint's entry is left out too.
+    loop, _ = record_trees(MeanController(policy), describe=True, shuffle_seed=6)
+    states = {r.stamp_ns: r for r in with_a_fixed_joint(loop.records) if isinstance(r, JointStateRecord)}
+
+    def widen(r):
+        if isinstance(r, EffortRecord):
+            state = states[r.answers_ns]
+            at = {name: r.effort[i] for i, name in enumerate(n for n in state.names if n != "camera_mount")}
+            return dataclasses.replace(r, effort=np.array([at.get(name, 0.0) for name in state.names]))
+        return r
+
+    result = assemble_with([widen(r) for r in with_a_fixed_joint(loop.records)])
+    assert result.skips == SkipCounts() and len(result.batch) == 47
+
+
+def test_answers_naming_other_joints_are_names_mismatches(policy):
+    loop, _ = record_trees(SamplingController(policy, seed=3), describe=True, shuffle_seed=7, name_efforts=True)
+    stamp = [r.stamp_ns for r in loop.records if isinstance(r, JointStateRecord)][5]
+
+    def rename(r):
+        if (
+            isinstance(r, (EffortRecord, PolicyInfoRecord))
+            and getattr(r, "answers_ns", getattr(r, "stamp_ns", None)) == stamp
+        ):
+            return dataclasses.replace(r, names=("motor1_rot",) * len(r.names))
+        return r
+
+    result = assemble_with([rename(r) for r in loop.records])
+    assert result.skips.names_mismatch == 1 and result.skips.steps_skipped == 1
+
+    # An effort command naming the tree's joints in another order than the state's: laid out by its names.
+    def reverse(r):
+        if isinstance(r, EffortRecord):
+            return dataclasses.replace(r, names=r.names[::-1], effort=r.effort[::-1])
+        return r
+
+    clean = assemble(loop.records).batch
+    result = assemble_with([reverse(r) for r in loop.records if not isinstance(r, PolicyInfoRecord)])
+    assert result.skips == SkipCounts() and len(result.batch) == len(clean)
+    np.testing.assert_array_equal(result.batch.action, np.clip(clean.action, -1.0, 1.0))

@@ -15,16 +15,20 @@ import torch
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
+from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
     OdometryRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
-from morph_core.protocol.transitions import TransitionConfig, assemble
+from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
 from trainer.bag_cli import main, summarize_bag
 from trainer.bag_messages import header, record_message, stamp
 
@@ -58,8 +62,11 @@ def message(r):
 def write_bag(path, records, storage="mcap", with_clock=True):
     """A bag as rosbag2 would record the nodes (plus /clock, which the reader skips)."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    topics = dict(TOPICS)
+    if any(isinstance(r, DescriptionRecord) for r in records):
+        topics["robot_description"] = "std_msgs/msg/String"
     with Writer(path, version=9, storage_plugin=plugin) as w:
-        conns = {name: w.add_connection(f"{NS}/{name}", ty, typestore=TS) for name, ty in TOPICS.items()}
+        conns = {name: w.add_connection(f"{NS}/{name}", ty, typestore=TS) for name, ty in topics.items()}
         clock = w.add_connection("/clock", "rosgraph_msgs/msg/Clock", typestore=TS)
         for r in records:
             name, msg = message(r)
@@ -106,18 +113,22 @@ def test_several_bags_export_as_separate_streams(tmp_path, sampled_records, poli
     assert got.num_episodes == 3
 
 
-def test_a_bag_exports_chains_of_message_order_unless_tree_of_says_otherwise(tmp_path, sampled_records):
+def test_a_bag_exports_chains_of_message_order_unless_a_robot_is_given(tmp_path, sampled_records):
     bag = write_bag(tmp_path / "run", sampled_records)
     out = tmp_path / "t.npz"
     assert main(["export", str(bag), "--out", str(out)]) == 0
     got = TransitionBatch.from_npz(out)
     assert got.is_chains and got.parents[-1].tolist() == [-1, 0, 1, 2, 3, 4]
-    # The seam robot_description will fill: a tree per state's joint names (here a star under joint 0).
-    trees = summarize_bag(bag, TransitionConfig(), tree_of=lambda names: [-1] + [0] * (len(names) - 1)).batch
-    assert trees.parents[0].tolist() == [-1, 0, 0, -1, -1, -1] and trees.parents[-1].tolist() == [-1, 0, 0, 0, 0, 0]
+    # A robot known otherwise than from the bag (a URDF): its tree, here a star under joint 0, for the states whose
+    # joints it has; the 3-joint states lack three of its six joints.
+    star = JointMap.from_urdf(swimmer_urdf([-1, 0, 0, 0, 0, 0]))
+    summary = summarize_bag(bag, TransitionConfig(), joint_map=star)
+    trees = summary.batch
+    assert summary.skips.missing_joint == 20 and trees.num_joints.tolist() == [6] * 15
+    assert (trees.parents == [-1, 0, 0, 0, 0, 0]).all()
     for k, v in got.arrays().items():
-        if k != "parents":
-            np.testing.assert_array_equal(trees.arrays()[k], v, err_msg=k)
+        if k not in ("parents", "episode"):
+            np.testing.assert_array_equal(trees.arrays()[k], v[20:], err_msg=k)
 
 
 def test_without_policy_info_export_says_so_and_can_refuse(tmp_path, policy, capsys):
@@ -159,10 +170,44 @@ def test_info_counts_topics_episodes_chains_and_skips(tmp_path, sampled_records,
     assert info["skipped_steps"]["no_odometry"] == 2 and sum(info["skipped_steps"].values()) == 2
     assert info["unused_messages"]["orphan_effort"] == 1 and sum(info["unused_messages"].values()) == 1
 
+    assert info["robot_description"] == {"messages": 0, "bodies": []}
+    assert info["steps_per_body"] == {"chain-3": 18, "chain-6": 15}
+
     assert main(["info", str(bag)]) == 0
     text = capsys.readouterr().out
     assert "skipped steps: no_odometry 2" in text and "unused messages: orphan_effort 1" in text
     assert "steps: 33 (3 joints: 18, 6 joints: 15)" in text and "usable for PPO: 33" in text
+    assert "no robot_description: joints taken as chains in message order" in text
+    assert "bodies: chain-3 18, chain-6 15" in text
+
+
+def test_info_names_the_described_robots_and_export_reads_their_trees(tmp_path, policy, sampled_records, capsys):
+    """Branched swimmers, joints listed in another order at every state, efforts naming theirs."""
+    trees = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)))
+    records = record_episodes(SamplingController(policy, seed=3), ((trees[0], 12), (trees[1], 10)), describe=True,
+                              shuffle_seed=2, name_efforts=True)  # fmt: skip
+    bag = write_bag(tmp_path / "trees", records)
+    assert main(["info", str(bag), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)["total"]
+    assert info["robot_description"] == {"messages": 2, "bodies": ["star-2x2", "y-1x2"]}
+    assert info["steps_per_body"] == {"star-2x2": 12, "y-1x2": 10} and info["steps"] == 22
+    assert not any(info["skipped_steps"].values()) and not any(info["unused_messages"].values())
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    assert "robot_description: 2 (star-2x2, y-1x2)" in text and "bodies: star-2x2 12, y-1x2 10" in text
+    assert "no robot_description" not in text
+
+    chains = write_bag(tmp_path / "chains", sampled_records)
+    out = tmp_path / "both.npz"
+    assert main(["export", str(bag), str(chains), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "no robot_description" in text and "robot_description: 2 (star-2x2, y-1x2)" in text
+    assert "wrote 57 steps (4 episodes, 3..6 joints: star-2x2 12, y-1x2 10, chain-3 20, chain-6 15 steps" in text
+    got = TransitionBatch.from_npz(out)
+    expected = TransitionBatch.concatenate([assemble(records).batch, assemble(sampled_records).batch])
+    for k, v in expected.arrays().items():
+        np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
+    assert got.parents[0, :4].tolist() == trees[0].parents.tolist() and not got.is_chains
 
 
 def test_options_reach_the_assembly(tmp_path, sampled_records, capsys):
@@ -195,3 +240,24 @@ def test_runs_as_a_module(tmp_path, sampled_records):
     )
     assert done.returncode == 0, done.stderr
     assert f"{NS}/joint_states" in done.stdout and "usable for PPO: 35" in done.stdout
+
+
+def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_path, policy, capsys):
+    """A recorder whose description reader matched after its state reader: the latched URDF comes a few states
+    late. Those states were published while it was the robot's, and are read on it (not as chains)."""
+    tree = swimmer_tree(y_parents(1, 2))
+    records = record_episodes(SamplingController(policy, seed=4), ((tree, 25),), describe=True, shuffle_seed=5,
+                              name_efforts=True)  # fmt: skip
+    states = [i for i, r in enumerate(records) if isinstance(r, JointStateRecord)]
+    (first,) = [i for i, r in enumerate(records) if isinstance(r, DescriptionRecord)]
+    late = records[:first] + records[first + 1 : states[6]] + [records[first]] + records[states[6] :]
+    late = [dataclasses.replace(r, log_ns=1000 * (i + 1)) for i, r in enumerate(late)]
+    on_time = summarize_bag(write_bag(tmp_path / "on_time", records), TransitionConfig()).batch
+    summary = summarize_bag(write_bag(tmp_path / "late", late), TransitionConfig())
+    assert summary.skips == SkipCounts() and summary.stats.boundaries == 0 and len(summary.batch) == 25
+    for k, v in on_time.arrays().items():
+        np.testing.assert_array_equal(summary.batch.arrays()[k], v, err_msg=k)
+    # Read as the stream alone says (no bag to look ahead in): the first states are chains in their message order,
+    # each in an order of its own, so hardly a step among them.
+    alone = assemble(late).batch
+    assert len(alone) < 25 and (alone.parents[-1, :5] == tree.parents).all()

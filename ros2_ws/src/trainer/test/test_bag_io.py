@@ -3,6 +3,7 @@ serialized with the Jazzy type store) read back into records; every bad input ge
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -17,8 +18,10 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from ruamel.yaml import YAML
 
+from morph_core.env.bodies import swimmer_tree
 from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -26,7 +29,9 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.msgs.stamps import answer_tag, from_ns
+from morph_core.protocol.loopback import GaussianController, record_episodes
 from trainer.bag_io import BagError, BagReader, read_bag
+from trainer.bag_messages import TOPIC_TYPES, record_message
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions, jazzy_metadata_problems
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -447,3 +452,62 @@ def test_killed_writer_keeps_what_was_flushed(tmp_path, storage):
     assert any("no metadata.yaml" in w for w in stats.warnings)
     if storage == "sqlite3":
         assert os.path.exists(str(bag / "bag_0.db3") + "-wal")  # the committed data lives in the WAL
+
+
+# -- the robot's description, and efforts that name their joints ------------------------------------
+def _same_record(a, b) -> bool:
+    """Equal fields, arrays bit for bit (an announcement's cause aside: the loopback does not say it)."""
+    if type(a) is not type(b):
+        return False
+    pairs = [(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.name != "cause"]
+    return all(np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y for x, y in pairs)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_descriptions_and_named_efforts_read_back_as_recorded(tmp_path, storage):
+    """A tree swimmer's loop with its robot_description, joints shuffled per state and efforts naming theirs:
+    written as the nodes publish it (bag_messages), every record comes back the same."""
+    records = record_episodes(
+        GaussianController(seed=2),
+        ((swimmer_tree([-1, 0, 0, 2]), 8), (swimmer_tree([-1, -1, 1]), 6)),
+        describe=True,
+        shuffle_seed=1,
+        name_efforts=True,
+    )
+    untagged = EffortRecord(records[-1].log_ns + 1, None, np.zeros(3), ("motor3_rot", "motor1_rot", "motor2_rot"))
+    records.append(untagged)
+    assert sum(isinstance(r, DescriptionRecord) for r in records) == 2
+    path = tmp_path / "bag"
+    with BagWriter(path, WriterOptions(storage=storage)) as w:
+        ids = {name: w.add_topic(BagTopic(f"{NS}/{name}", ty)) for name, ty in TOPIC_TYPES.items()}
+        for r in records:
+            name, msg = record_message(r)
+            w.write(ids[name], r.log_ns, ser(msg))
+    back, stats = read_bag(path)
+    assert not stats.rejected and stats.counts["robot_description"] == 2
+    assert len(back) == len(records) and all(_same_record(a, b) for a, b in zip(back, records, strict=True))
+    assert back[-1].names == untagged.names and back[-1].answers_ns is None
+
+
+def test_a_bad_names_dimension_rejects_the_effort_and_a_description_of_another_type_the_bag(tmp_path):
+    def named(label, data=(0.1, 0.2, 0.3)):
+        dims = [T["std_msgs/msg/MultiArrayDimension"](label=x, size=s, stride=s) for x, s in ((answer_tag(0, 0), 3),
+                                                                                            (label, 1))]  # fmt: skip
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+        return T["std_msgs/msg/Float64MultiArray"](layout=layout, data=np.array(data))
+
+    msgs = [
+        (f"{NS}/joint_states", 1, joint_state(0)),
+        (f"{NS}/effort_commands", 2, named('names=["j0","j1","j2"]')),
+        (f"{NS}/effort_commands", 3, named("names=[j0,j1,j2]")),  # not JSON
+        (f"{NS}/effort_commands", 4, named('names=["j0","j1"]')),  # two names for three efforts
+        (f"{NS}/effort_commands", 5, named('names=["j0","j0","j1"]')),
+    ]
+    records, stats = read_bag(write_with_rosbags(tmp_path / "bag", msgs))
+    assert [r.names for r in by_type(records, EffortRecord)] == [("j0", "j1", "j2")]
+    assert stats.rejected == {("effort_commands", "bad names dimension"): 3}
+    assert "is not JSON" in stats.examples[("effort_commands", "bad names dimension")]
+    wrong = {**TYPES, f"{NS}/robot_description": "std_msgs/msg/Header"}
+    bag = write_with_rosbags(tmp_path / "wrong", msgs[:1], types=wrong)
+    with pytest.raises(BagError, match="topic /robot/robot_description has type std_msgs/msg/Header"):
+        read_bag(bag)

@@ -11,13 +11,16 @@ import pytest
 import torch
 
 from morph_core.algo.train import TrainConfig
+from morph_core.env.bodies import comb_parents, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
+from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.policy_weights import unpack_policy_weights
+from morph_core.msgs.records import DescriptionRecord
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.weights import load_checkpoint
-from morph_core.protocol.loopback import LoopbackRecording, SamplingController
+from morph_core.protocol.loopback import LoopbackRecording, SamplingController, record_episodes
 from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
-from morph_core.protocol.transitions import TransitionAssembler
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
 from trainer.live_learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
@@ -253,15 +256,16 @@ def test_steps_carry_their_tree_into_the_update_and_an_episode_is_one_tree(tmp_p
     loop = LoopbackRecording(SwimmerSim(6, seed=0, effort_timeout=None), SamplingController(GraphActorCritic(), 2))
     loop.run(70)
     loop.finish()
-    tree = np.array([-1, 0, 0, 1, 1, 2])
+    tree = np.array([-1, 0, 1, 1, 0, 4])  # in pre-order, as a URDF lists it
 
-    def episode(tree_of=None):
-        asm = TransitionAssembler(tree_of=tree_of)
-        steps = asm.push_many(loop.records) + asm.flush()
+    def episode(description=()):
+        asm = TransitionAssembler()
+        steps = asm.push_many([*description, *loop.records]) + asm.flush()
         assert len(steps) == 70 and steps[-1].truncated
         return steps
 
-    chains, trees = episode(), episode(lambda names: tree)
+    # The same states read on the chain of their message order, and on a tree their description names.
+    chains, trees = episode(), episode([DescriptionRecord(0, swimmer_urdf(tree))])
     assert all(np.array_equal(t.parents, np.arange(6) - 1) for t in chains)  # message order: a chain
     assert all(np.array_equal(t.parents, tree) for t in trees)
 
@@ -279,3 +283,32 @@ def test_steps_carry_their_tree_into_the_update_and_an_episode_is_one_tree(tmp_p
     # Two trees in one episode (its steps disagree on the robot): not one episode, dropped.
     learner = LiveLearner(SMALL, tmp_path / "mixed")
     assert learner.add_episode(chains[:35] + trees[35:], [0] * 70) == 0 and learner.dropped_no_info == 70
+
+
+def test_the_learner_learns_on_branched_swimmers_as_the_trainer_assembles_them(tmp_path):
+    """Real tree swimmers: the sim's robot_description, the joints in another order at every state, efforts naming
+    theirs; the assembler reads each step on its tree and the update takes them with it."""
+    torch.set_num_threads(1)
+    torch.manual_seed(4)
+    trees = (swimmer_tree(star_parents(2, 2)), swimmer_tree(comb_parents(3)))
+    policy = GraphActorCritic()
+    records = record_episodes(SamplingController(policy, 6), ((trees[0], 40), (trees[1], 40)), describe=True,
+                              shuffle_seed=1, name_efforts=True)  # fmt: skip
+    asm = TransitionAssembler()
+    steps = asm.push_many(records) + asm.flush()
+    assert asm.skips == SkipCounts() and [sum(t.episode == e for t in steps) for e in (0, 1)] == [40, 40]
+    learner = LiveLearner(SMALL, tmp_path)
+    learner.policy.load_state_dict(policy.state_dict())  # the policy that sampled: on-policy
+    for e, tree in enumerate(trees):
+        episode = [t for t in steps if t.episode == e]
+        assert all(t.parents.tolist() == tree.parents.tolist() and t.names == tree.names for t in episode)
+        assert learner.add_episode(episode, [0] * 40) == 40
+    pool, versions = learner.take_pool()  # one batch per episode, each on its tree
+    assert [len(b) for b in pool] == [40, 40] and not any(b.is_chains for b in pool)
+    for batch, tree in zip(pool, trees, strict=True):
+        np.testing.assert_array_equal(batch.parents, np.tile(tree.parents, (40, 1)))
+    before = [p.detach().clone() for p in learner.policy.parameters()]
+    row = learner.update((pool, versions))
+    assert row["version"] == 1 and row["batch_size"] == 80 and np.isfinite(row["approx_kl"])
+    assert row["is_weight_mean"] == pytest.approx(1.0, abs=1e-5)  # each step's log-prob on its own tree
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))

@@ -19,14 +19,16 @@ from rosbags.typesys import Stores, get_typestore
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train_from_data import run_state
+from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
 from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
+from morph_core.protocol.transitions import SkipCounts
 from trainer.bag_messages import record_message
 from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
-from trainer.train_cli import main
+from trainer.train_cli import main, read_bags
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -238,3 +240,39 @@ def test_a_few_lost_policy_infos_are_warned_about_and_left_out_of_the_updates(tm
     assert "morph-train: warning: 3 of 150 steps have no policy_info" in captured.err
     (row,) = _rows(run)
     assert (row["data_steps"], row["usable_steps"], row["batch_size"]) == ("150", "147", "147")
+
+
+# -- branched swimmers ----------------------------------------------------------------------------------
+TREES = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)), swimmer_tree([-1, 0, 1, 0, -1]))
+
+
+def test_ppo_from_a_bag_of_branched_swimmers_reads_each_step_on_its_tree(tmp_path, init, capsys):
+    """Joints listed in another order at every state, efforts naming theirs, the robot_description before each
+    body: the bag trains on the described trees and its log shows them."""
+    records = record_episodes(
+        SamplingController(GraphActorCritic.load(init), seed=5),
+        tuple(zip(TREES, (40, 30, 30), strict=True)),
+        describe=True,
+        shuffle_seed=3,
+        name_efforts=True,
+    )
+    bag = write_bag(tmp_path / "bag", records, types={"robot_description": "std_msgs/msg/String"})
+    data, warnings, skips = read_bags([bag])
+    assert not warnings and skips == SkipCounts() and len(data) == 100
+    for episode, tree in enumerate(TREES):  # every step on its body's tree, its joints in the tree's order
+        rows = data.parents[data.episode == episode, : tree.num_joints]
+        assert (rows == tree.parents).all()
+    run = tmp_path / "run"
+    assert main(["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", *SMALL]) == 0
+    out = capsys.readouterr().out
+    assert "100 steps (3 episodes, 4..5 joints: star-2x2 40, y-1x2 30, tree-" in out and " 30 steps) from 1 bag" in out
+    before = GraphActorCritic.load(init).state_dict()
+    tensors, counters = _weights(run)
+    assert counters["iteration"] == 2
+    assert [k for k in before if not torch.equal(before[k], tensors[f"policy.{k}"])], "the policy did not change"
+    rows = _rows(run)
+    assert len(rows) == 2 and all(np.isfinite(float(r["approx_kl"])) for r in rows)
+    assert rows[0]["return_chains"] == "" and np.isfinite(float(rows[0]["return_trees"]))
+    assert float(rows[0]["return_trees"]) == pytest.approx(float(rows[0]["return_mean"]))
+    # On-policy first update: the policy's log-prob of each step on its tree is the one recorded.
+    assert float(rows[0]["stale_frac"]) == 0.0 and float(rows[0]["is_weight_mean"]) == pytest.approx(1.0, abs=1e-5)

@@ -1,7 +1,9 @@
 """``morph-bag``: what recorded bags hold for learning, and their transitions as arrays.
 
-    morph-bag info BAG...                   topics and message counts, episodes, chain lengths,
-                                            steps usable for PPO, skipped steps and unused messages by reason
+    morph-bag info BAG...                   topics and message counts, the robot's description (or that
+                                            there is none: chains), episodes, steps per chain length and
+                                            per body, steps usable for PPO, skipped steps and unused
+                                            messages by reason
     morph-bag export BAG... --out FILE.npz  the transitions, one row per step
                                             (layout: ``morph_core.protocol.transition_batch``)
 
@@ -10,9 +12,15 @@ sqlite3), read by ``trainer.bag_io``. Each bag is its own stream: an episode
 never spans two bags. Records become transitions as
 ``morph_core.protocol.transitions`` describes (pairing by stamp, episode
 boundaries, nothing guessed: every step left out is counted under its
-reason). The options after the command tune that (``--control-period``,
-``--settle-states``, ...); ``--namespace`` picks the robot when a bag holds
-several.
+reason). The robot is the bag's ``robot_description`` (the sim latches its
+URDF before each body's first state, and ``morph-record`` records it): its
+tree, the joints bound by name. States recorded before the bag's first
+description (a recorder whose description reader matched after its state
+reader) are read on that first one, the URDF in force when they were
+published (``bag_io.first_description``). A bag without one holds chains,
+each state's joints in the message's order, and ``info`` says so. The options after the
+command tune the assembly (``--control-period``, ``--settle-states``, ...);
+``--namespace`` picks the robot when a bag holds several.
 """
 
 from __future__ import annotations
@@ -24,18 +32,22 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
+from morph_core.algo.train_from_data import describe_bodies
+from morph_core.env.bodies import body_label
+from morph_core.msgs.records import DescriptionRecord
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import (
     SkipCounts,
     StreamStats,
     TransitionAssembler,
     TransitionConfig,
-    TreeOf,
 )
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
-from trainer.bag_io import BagError, BagReader
+from trainer.bag_io import BagError, BagReader, first_description
+from trainer.bag_messages import DESCRIPTION_TOPIC
+
+NO_DESCRIPTION = "no robot_description: joints taken as chains in message order"
 
 
 @dataclass
@@ -52,6 +64,12 @@ class BagSummary:
     stats: StreamStats = field(default_factory=StreamStats)
     steps_per_chain: Counter = field(default_factory=Counter)
     """transitions per number of joints"""
+    descriptions: int = 0
+    """robot_description messages read"""
+    described: list[str] = field(default_factory=list)
+    """the bodies (``env.bodies.body_label``) the descriptions that read as a robot described, in order"""
+    steps_per_body: Counter = field(default_factory=Counter)
+    """transitions per body label"""
     ppo_steps: int = 0
     """transitions with their behaviour log-prob (policy_info)"""
     batch: TransitionBatch = field(default_factory=TransitionBatch.empty)
@@ -71,20 +89,27 @@ class BagSummary:
             "steps_without_policy_info": self.stats.without_policy_info,
             "steps_applied_unverified": self.stats.applied_unverified,
             "steps_per_chain": {str(n): c for n, c in sorted(self.steps_per_chain.items())},
+            "robot_description": {"messages": self.descriptions, "bodies": list(self.described)},
+            "steps_per_body": dict(self.steps_per_body),
             "skipped_steps": {r: getattr(self.skips, r) for r in SkipCounts.STEP_REASONS},
             "unused_messages": {r: getattr(self.skips, r) for r in SkipCounts.MESSAGE_REASONS},
         }
 
 
 def summarize_bag(
-    path: str | Path, config: TransitionConfig, namespace: str | None = None, tree_of: TreeOf | None = None
+    path: str | Path, config: TransitionConfig, namespace: str | None = None, joint_map: JointMap | None = None
 ) -> BagSummary:
     """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
-    ``tree_of``: the tree a state's joint names form (``protocol.transitions.TreeOf``); default a chain in the
-    message's order."""
+    ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
+    default ``bag_robot``'s."""
     reader = BagReader(path, namespace=namespace)
-    asm = TransitionAssembler(config, tree_of)
-    transitions = asm.push_many(reader.records()) + asm.flush()
+    asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
+    transitions, described = [], {}
+    for record in reader.records():
+        transitions += asm.push(record)
+        if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
+            described.setdefault(body_label(asm.joint_map.robot.tree))
+    transitions += asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
     logical = reader.logical_names(reader.namespaces[0])
@@ -104,9 +129,24 @@ def summarize_bag(
         skips=asm.skips,
         stats=asm.stats,
         steps_per_chain=Counter(batch.num_joints.tolist()),
+        descriptions=stats.counts[DESCRIPTION_TOPIC],
+        described=list(described),
+        steps_per_body=Counter(batch.steps_per_body()),
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
     )
+
+
+def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
+    """The robot of a bag's first states: its first robot_description, if it reads as one (else None: the
+    assembler's fallback, chains in message order, until a description in the stream says otherwise)."""
+    first = first_description(path, namespace)
+    if first is None:
+        return None
+    try:
+        return JointMap.from_urdf(first.text)
+    except ValueError:  # no robot: the stream counts it (bad_description) when it reaches it
+        return None
 
 
 def total(summaries: list[BagSummary]) -> BagSummary:
@@ -121,6 +161,9 @@ def total(summaries: list[BagSummary]) -> BagSummary:
         out.skips.merge(s.skips)
         out.stats.merge(s.stats)
         out.steps_per_chain.update(s.steps_per_chain)
+        out.descriptions += s.descriptions
+        out.described += [label for label in s.described if label not in out.described]
+        out.steps_per_body.update(s.steps_per_body)
         out.ppo_steps += s.ppo_steps
     out.topics = [(name, ty, n) for name, (ty, n) in sorted(topics.items())]
     out.batch = TransitionBatch.concatenate([s.batch for s in summaries])
@@ -134,6 +177,11 @@ def format_summary(s: BagSummary) -> str:
     lines += [f"    {t:<{width}}  {n:>8}  {ty}" for t, ty, n in s.topics] or ["    none"]
     if s.rejected:
         lines.append("  undecodable messages: " + _counts({f"{t} ({r})": n for (t, r), n in s.rejected.items()}))
+    if s.descriptions:
+        bodies = ", ".join(s.described) or "none that reads as a robot"
+        lines.append(f"  robot_description: {s.descriptions} ({bodies})")
+    else:
+        lines.append(f"  {NO_DESCRIPTION}")
     st = s.stats
     boundaries = {c.replace("_", " "): getattr(st, f"boundaries_{c}") for c in StreamStats.BOUNDARY_CAUSES}
     lines.append(
@@ -142,6 +190,8 @@ def format_summary(s: BagSummary) -> str:
     lines.append(f"  episodes: {st.episodes} (runs of consecutive steps)")
     chains = ", ".join(f"{n} joints: {c}" for n, c in sorted(s.steps_per_chain.items()))
     lines.append(f"  steps: {st.transitions}" + (f" ({chains})" if chains else ""))
+    if s.steps_per_body:
+        lines.append("  bodies: " + ", ".join(f"{label} {n}" for label, n in s.steps_per_body.items()))
     lines.append(
         f"  usable for PPO: {s.ppo_steps}"
         + (f" ({st.without_policy_info} without policy_info: no behaviour log-prob)" if st.without_policy_info else "")
@@ -214,9 +264,8 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     batch.to_npz(args.out)
     print(
-        f"wrote {len(batch)} steps ({batch.num_episodes} episodes, chains of "
-        f"{int(np.min(batch.num_joints))}..{batch.max_joints} joints, {int(batch.has_policy_info.sum())} "
-        f"with policy_info) to {args.out}"
+        f"wrote {len(batch)} steps ({batch.num_episodes} episodes, {describe_bodies(batch)}, "
+        f"{int(batch.has_policy_info.sum())} with policy_info) to {args.out}"
     )
     return 0
 

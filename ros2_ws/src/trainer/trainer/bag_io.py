@@ -19,6 +19,10 @@ Topics are found relative to a namespace (given, or taken from the one
     policy_info      trajectory_msgs/msg/JointTrajectory -> PolicyInfoRecord (msgs.policy_info layout)
     episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``protocol.episode_start``)
                      or any stamped type                 -> EpisodeStartRecord (``episode_start_record``)
+    robot_description std_msgs/msg/String               -> DescriptionRecord (the URDF, read by the assembler)
+
+An effort command's names dimension (``msgs.effort_names``) goes into
+``EffortRecord.names``; one that does not parse or fit rejects the message.
 
 Other topics (``/clock``, ...) are counted in ``stats.skipped``. A message
 that cannot be decoded is counted in ``stats.rejected`` by (topic, reason),
@@ -46,8 +50,10 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from ruamel.yaml import YAML
 from ruamel.yaml.error import YAMLError
 
+from morph_core.msgs.effort_names import EffortNamesError, effort_names
 from morph_core.msgs.policy_info import PolicyInfoError, unpack_policy_info
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -55,7 +61,7 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import parse_answer_tag, to_ns
-from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC
+from trainer.bag_messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -168,8 +174,18 @@ def odometry_record(msg, log_ns: int) -> OdometryRecord:
 
 
 def effort_record(msg, log_ns: int) -> EffortRecord:
-    answers = parse_answer_tag(msg.layout.dim[0].label) if len(msg.layout.dim) else None
-    return EffortRecord(log_ns, answers, _f64(msg.data))
+    labels = [d.label for d in msg.layout.dim]
+    answers = parse_answer_tag(labels[0]) if labels else None
+    data = _f64(msg.data)
+    try:
+        names = effort_names(labels, len(data))
+    except EffortNamesError as err:
+        raise DecodeError("bad names dimension", str(err)) from None
+    return EffortRecord(log_ns, answers, data, names)
+
+
+def description_record(msg, log_ns: int) -> DescriptionRecord:
+    return DescriptionRecord(log_ns, msg.data)
 
 
 def policy_info_record(msg, log_ns: int):
@@ -185,6 +201,7 @@ def policy_info_record(msg, log_ns: int):
 
 
 _DECODERS = {
+    DESCRIPTION_TOPIC: description_record,
     "joint_states": joint_state_record,
     "odom": odometry_record,
     "effort_commands": effort_record,
@@ -526,13 +543,14 @@ class BagReader:
     def logical_names(self, ns: str) -> dict[str, str]:
         """Full topic name -> logical name (a data topic or the episode announcements) of the topics this reader
         decodes under namespace ``ns``; every other topic of a bag is counted as skipped."""
-        return {full_topic_name(ns, n): n for n in (*DATA_TOPIC_TYPES, self.episode_topic)}
+        return {full_topic_name(ns, n): n for n in (*DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, self.episode_topic)}
 
     def _check(self, bag, ns: str, topics: dict[str, tuple[TopicInfo, Path]], required: Sequence[str]) -> None:
         for name in required:
             if (full := full_topic_name(ns, name)) not in topics:
                 raise BagError(f"{bag}: required topic {full} is not in the bag (it has: {sorted(topics) or 'none'})")
-        for name, expected in DATA_TOPIC_TYPES.items():
+        for name in (*DATA_TOPIC_TYPES, DESCRIPTION_TOPIC):
+            expected = TOPIC_TYPES[name]
             found = topics.get(full := full_topic_name(ns, name))
             if found is not None and found[0].msgtype != expected:
                 raise BagError(f"{found[1]}: topic {full} has type {found[0].msgtype}, expected {expected}")
@@ -574,3 +592,19 @@ def read_bag(paths, **options) -> tuple[list[Record], ReadStats]:
     """All records of ``paths`` (see ``BagReader``) and the reading statistics."""
     reader = BagReader(paths, **options)
     return reader.read(), reader.stats
+
+
+def first_description(path: str | Path, namespace: str | None = None) -> DescriptionRecord | None:
+    """A bag's first ``robot_description`` (read up to it, no further), or None when the bag has none.
+
+    The robot of the states recorded before it: the sim latches its current URDF, so a recorder receives it
+    when its description reader matches the sim's writer, which may be after its state reader did (discovery
+    matches endpoint by endpoint). Those first states were published while that URDF was the current one."""
+    reader = BagReader(path, namespace=namespace)
+    if full_topic_name(reader.namespaces[0], DESCRIPTION_TOPIC) not in reader.topics:
+        return None
+    records = reader.records()
+    try:
+        return next((r for r in records if isinstance(r, DescriptionRecord)), None)
+    finally:
+        records.close()  # the storage files, now

@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from morph_core.msgs.effort_names import names_label
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -25,6 +27,7 @@ _T = TYPESTORE.types
 
 TOPIC_TYPES = {
     "episode_start": "std_msgs/msg/Int64MultiArray",
+    "robot_description": "std_msgs/msg/String",
     "joint_states": "sensor_msgs/msg/JointState",
     "odom": "nav_msgs/msg/Odometry",
     "effort_commands": "std_msgs/msg/Float64MultiArray",
@@ -33,8 +36,12 @@ TOPIC_TYPES = {
 """relative topic name -> message type, as the two nodes publish them"""
 EPISODE_TOPIC = "episode_start"
 """the topic announcing episodes (its messages are not data: they say where episodes start)"""
-DATA_TOPIC_TYPES = {name: msgtype for name, msgtype in TOPIC_TYPES.items() if name != EPISODE_TOPIC}
-"""the data topics' types (all but the announcement)"""
+DESCRIPTION_TOPIC = "robot_description"
+"""the robot's URDF (latched; not data either: it says which robot the states that follow are of)"""
+DATA_TOPIC_TYPES = {
+    name: msgtype for name, msgtype in TOPIC_TYPES.items() if name not in (EPISODE_TOPIC, DESCRIPTION_TOPIC)
+}
+"""the data topics' types (all but the announcement and the description)"""
 
 
 def stamp(ns: int):
@@ -76,6 +83,8 @@ def record_message(r: Record):
         return "odom", msg
     if isinstance(r, EffortRecord):
         dims = [] if r.answers_ns is None else [_dim(answer_tag(*from_ns(r.answers_ns)), r.effort.size)]
+        if r.names is not None:  # after dim[0] (an empty label: untagged), the names dimension
+            dims = (dims or [_dim("", r.effort.size)]) + [_dim(names_label(r.names), 1)]
         layout = _T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
         return "effort_commands", _T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
     if isinstance(r, PolicyInfoRecord):
@@ -92,4 +101,7 @@ def record_message(r: Record):
         label, data = pack_episode_start(r.episode, r.stamp_ns, r.num_joints, cause)
         layout = _T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(label, len(data))], data_offset=0)
         return "episode_start", _T["std_msgs/msg/Int64MultiArray"](layout=layout, data=np.array(data, np.int64))
+    if isinstance(r, DescriptionRecord):
+        text = r.text.decode(errors="replace") if isinstance(r.text, bytes) else r.text
+        return DESCRIPTION_TOPIC, _T["std_msgs/msg/String"](data=text)
     raise TypeError(f"not a record: {r!r}")

@@ -2,11 +2,14 @@
 
     morph-train --live --namespaces /swimmer0 /swimmer1 --out runs/live [--resume] [TrainConfig options]
 
-Per namespace the node subscribes to ``episode_start``, ``joint_states``,
-``odom``, ``effort_commands`` and ``policy_info`` (decoded into records by
-``trainer.bag_io``'s decoders, as from a bag) and feeds one
-``protocol.transitions.TransitionAssembler``: the same transitions as
-training from recorded topics, lost or reordered messages counted as skips.
+Per namespace the node subscribes to ``episode_start``,
+``robot_description``, ``joint_states``, ``odom``, ``effort_commands`` and
+``policy_info`` (decoded into records by ``trainer.bag_io``'s decoders, as
+from a bag) and feeds one ``protocol.transitions.TransitionAssembler``: the
+same transitions as training from recorded topics, lost or reordered
+messages counted as skips, each state read on the tree of the pair's latest
+robot description by joint name (a chain in the message's order while the
+pair has none).
 Each finished episode goes to ``trainer.live_learner.LiveLearner`` with the
 weights version of each step (``policy_info``'s ``header.frame_id``); once it
 holds a batch it updates (in a worker thread, so the subscriptions keep
@@ -27,8 +30,9 @@ policy node received and sent them, a few dozen steps per chunk, decoded
 with the same decoders into the same assembler. The trainer then wakes once
 per chunk instead of four times per step and is no extra reader of the
 loop's own topics. It hears what the policy node heard: effort commands of
-other controllers on the namespace are not in the chunks. A chunk lost or
-malformed is counted; the assembler sees a stamp gap there.
+other controllers on the namespace are not in the chunks; the robot
+descriptions it received are (``msgs.stream_chunk.TOPICS``). A chunk lost
+or malformed is counted; the assembler sees a stamp gap there.
 
 Episodes: when a pair appears (at start, or back after a fault) the trainer
 sets its sim's ``episode_steps`` and calls its ``~/reset`` service, so the
@@ -48,7 +52,11 @@ Subscription QoS: reliable keep-last 10,000 for the data topics (a deep queue:
 the worker thread's update must not cost samples; reliable readers match the
 nodes' reliable writers and a best-effort writer is still heard by nobody:
 the project's publishers of these topics are reliable), reliable transient
-local for ``episode_start`` (the sim latches the current announcement).
+local for ``episode_start`` (the sim latches the current announcement), reliable
+transient local keep last 1 for ``robot_description`` (as the sim latches it:
+a trainer that starts late, or a sim that restarts, still gives the robot).
+The description is subscribed before the data topics, so when it and the
+body's first state wait together it is taken first, as the sim sent it.
 """
 
 from __future__ import annotations
@@ -69,7 +77,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, UInt8MultiArray
+from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
@@ -89,13 +97,14 @@ from morph_core.protocol.transitions import (
 from morph_core.protocol.trust import Signer
 from trainer.bag_io import (
     DecodeError,
+    description_record,
     effort_record,
     episode_start_record,
     joint_state_record,
     odometry_record,
     policy_info_record,
 )
-from trainer.bag_messages import TOPIC_TYPES, TYPESTORE
+from trainer.bag_messages import DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES, TYPESTORE
 from trainer.live_learner import LiveLearner, LiveOptions
 
 DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
@@ -110,6 +119,13 @@ EPISODE_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+DESCRIPTION_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""robot_description, as the sim latches it (robot_state_publisher's profile): the latest URDF, even late"""
 WEIGHTS_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=1,
@@ -127,6 +143,9 @@ DATA_TOPICS = {
 }
 """a pair's data topics: message type and decoder into a record"""
 ANNOUNCEMENTS = (Int64MultiArray, episode_start_record)
+DESCRIPTION = (String, description_record)
+STREAM_TOPICS = {EPISODE_TOPIC: ANNOUNCEMENTS, DESCRIPTION_TOPIC: DESCRIPTION, **DATA_TOPICS}
+"""every topic of a pair's stream the trainer reads (its topics, or its policy node's chunks): type and decoder"""
 REPORT_PERIOD = 10.0
 """seconds between the trainer's report lines"""
 SIM_NODE = "swimmer_sim"
@@ -221,6 +240,9 @@ class LiveTrainer(Node):
             else:
                 msg_type, decode = ANNOUNCEMENTS
                 self.create_subscription(msg_type, f"{ns}/episode_start", self._handler(pair, decode), EPISODE_QOS)
+                msg_type, decode = DESCRIPTION
+                self.create_subscription(msg_type, f"{ns}/{DESCRIPTION_TOPIC}", self._handler(pair, decode),
+                                         DESCRIPTION_QOS)  # fmt: skip
                 for topic, (msg_type, decode) in DATA_TOPICS.items():
                     self.create_subscription(msg_type, f"{ns}/{topic}", self._handler(pair, decode), DATA_QOS)
             self._weights_pubs.append(self.create_publisher(UInt8MultiArray, f"{ns}/{WEIGHTS_TOPIC}", WEIGHTS_QOS))
@@ -249,7 +271,7 @@ class LiveTrainer(Node):
         return lambda msg: self._take(pair, decode, msg, time.time_ns())
 
     def _chunk_handler(self, pair: _Pair):
-        decoders = {topic: decode for topic, (_, decode) in {**DATA_TOPICS, "episode_start": ANNOUNCEMENTS}.items()}
+        decoders = {topic: decode for topic, (_, decode) in STREAM_TOPICS.items()}
 
         def on_chunk(chunk: UInt8MultiArray) -> None:
             try:
@@ -261,6 +283,9 @@ class LiveTrainer(Node):
                 pair.chunks_lost += sequence - pair.chunk_sequence - 1
             pair.chunk_sequence = sequence  # lower: a restarted policy node counts from 0 again
             for entry in entries:
+                if entry.topic not in decoders:  # a topic of a newer chunk layout, which this trainer does not read
+                    pair.decode_errors[f"unread_{entry.topic}"] += 1
+                    continue
                 try:
                     msg = chunk_message(entry)
                 except Exception:  # noqa: BLE001 - rosbags raises several types for bytes that are not the type's CDR

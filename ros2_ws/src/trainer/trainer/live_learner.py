@@ -25,10 +25,11 @@ objective still holds, only the drop cannot be applied. Steps without
 policy_info (no behaviour log-prob) cannot enter PPO: the episode keeps only
 its part after the last such step.
 
-Each step carries its robot's tree (``Transition.parents``, the assembler's
-``tree_of``: a chain in the ``joint_states`` message's order unless told
-otherwise); the values, GAE bootstraps and the update read each sample with
-its own tree (``train_from_data.Samples``). An episode is one robot: one whose
+Each step carries its robot's tree (``Transition.parents``: the tree of the
+pair's ``robot_description``, its joints bound by name, or without one a chain
+in the ``joint_states`` message's order; ``protocol.transitions``); the values,
+GAE bootstraps and the update read each sample with its own tree
+(``train_from_data.Samples``). An episode is one robot: one whose
 steps disagree on their joints or tree is dropped (``dropped_no_info``).
 
 The run directory is the simulator trainer's: config.json, progress.csv
@@ -312,7 +313,7 @@ class LiveLearner:
             "prepare_s": prepare_s,
             "update_s": update_s,
             "learning_rate": self.learner.optimizer.param_groups[0]["lr"],
-            **EpisodeReturns.of(data).row(cfg.dims),
+            **EpisodeReturns.of(data).row(cfg.dims, trees=not cfg.body_mix.chains_only),  # as live_log_columns
             **stats.row(cfg.dims),
             "explained_variance": explained_variance(batch.values, batch.returns),
             "log_std": float(self.policy.log_std.detach()),

@@ -3,8 +3,8 @@
     morph-record --ros-args -r __ns:=/robot1 -p output:=bags/run1 -p max_episodes:=10
 
 Topics (relative names resolve under the node's namespace): ``episode_start``,
-``joint_states``, ``odom``, ``effort_commands``, ``policy_info`` and
-``/clock`` by default (parameter ``topics``). Topics of a known type
+``robot_description``, ``joint_states``, ``odom``, ``effort_commands``,
+``policy_info`` and ``/clock`` by default (parameter ``topics``). Topics of a known type
 (``topic_types``: the project's conventions) are subscribed at once,
 reliable, so a node started after the recorder is recorded from its first
 message (a lockstep loop runs hundreds of steps in the time graph discovery
@@ -20,7 +20,8 @@ only if every publisher is reliable (a reliable reader gets nothing from a
 best-effort writer: a subscription made in advance is replaced when a
 best-effort publisher appears), transient-local only if every publisher is
 (then the recorder still gets what a latched publisher kept, e.g. the
-current episode's announcement), keep-last with a deep queue
+current episode's announcement and the robot's description, however late it
+starts), keep-last with a deep queue
 (``queue_depth``) so a burst is not dropped while a chunk is written.
 
 The bag (``trainer.bag_writer``): metadata.yaml version 9 with each topic's
@@ -47,16 +48,19 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from trainer.bag_messages import DATA_TOPIC_TYPES, EPISODE_TOPIC, TOPIC_TYPES
+from trainer.bag_messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
-# The announcement first: subscribed to before joint_states in the same discovery pass, so a lockstep
-# sim (which starts once joint_states has a listener) cannot announce its first episode unheard.
+# The announcement and the description first: subscribed to before joint_states in the same discovery pass, so a
+# lockstep sim (which starts once joint_states has a listener) cannot announce its first episode unheard, and the
+# description, published before the body's first state, is not taken after it when both are waiting.
 CLOCK = ("/clock", "rosgraph_msgs/msg/Clock")
-DEFAULT_TOPICS = [EPISODE_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
-# The project's own conventions, subscribed to before any publisher appears; the announcement as transient
-# local (the sim latches it). Subscribed only once discovery saw the sim, it came after a lockstep loop had
-# run more than max_episodes. A publisher that offers otherwise gets the subscription replaced by discovery.
+DEFAULT_TOPICS = [EPISODE_TOPIC, DESCRIPTION_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
+# The project's own conventions, subscribed to before any publisher appears; the announcement and the description
+# as transient local (the sim latches them). Subscribed only once discovery saw the sim, the announcement came
+# after a lockstep loop had run more than max_episodes. A publisher that offers otherwise gets the subscription
+# replaced by discovery.
+LATCHED_TOPICS = (EPISODE_TOPIC, DESCRIPTION_TOPIC)
 KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*TOPIC_TYPES.items(), CLOCK)]
 _LOG_THROTTLE = 5.0
 
@@ -272,9 +276,10 @@ class RecorderNode(Node):
             if msgtype.count("/") != 2:
                 raise BagWriterError(f"topic_types entry {pair!r} is not topic=pkg/msg/Type")
             declared[self.resolve_topic_name(name)] = msgtype
+        latched = {self._episode_topic, *(self.resolve_topic_name(t) for t in LATCHED_TOPICS)}
         for topic in self._wanted:
-            if topic in declared:  # our nodes publish reliably, and latch the announcement
-                self._subscribe(topic, declared[topic], reliable=True, latched=topic == self._episode_topic)
+            if topic in declared:  # our nodes publish reliably, and latch the announcement and the description
+                self._subscribe(topic, declared[topic], reliable=True, latched=topic in latched)
         self._discover()
         self.create_timer(0.1, self._discover)
         self.create_timer(p("flush_period"), self._flush)

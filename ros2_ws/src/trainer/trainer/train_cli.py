@@ -27,17 +27,16 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from morph_core.algo.checkpoint import TrainingStateError
 from morph_core.algo.train import TrainConfig, load_run_config, train
-from morph_core.algo.train_from_data import passes_cut, train_from_data
+from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
+from trainer.bag_cli import bag_robot
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
 
@@ -125,7 +124,7 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     batches, warnings, skips = [], [], SkipCounts()
     for bag in bags:
         reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        asm = TransitionAssembler()
+        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
         batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
         warnings += reader.stats.warnings
         skips.merge(asm.skips)
@@ -167,8 +166,8 @@ def _train_from_bags(args) -> None:
               "controller acted): they enter the advantages, not the updates", file=sys.stderr)  # fmt: skip
     updates = args.iterations or passes_cut(len(data) - missing, cfg.batch_size)
     print(
-        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, chains of {int(np.min(data.num_joints))}.."
-        f"{data.max_joints} joints) from {len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
+        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, {describe_bodies(data)}) from "
+        f"{len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
         f"update(s) of up to {cfg.batch_size} samples into {args.out}",
         flush=True,
     )

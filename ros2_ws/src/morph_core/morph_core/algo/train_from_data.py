@@ -56,7 +56,10 @@ Logged per update (``progress.csv``, TensorBoard), besides the update's
 statistics per dimension as in simulator training: the mean truncated
 weight, the share of samples whose weight the cap cut, the share of stale
 samples (|log pi_prox - log pi_behav| > ``STALE_LOG_RATIO``), and the
-recorded episodes' returns per chain length (fixed for one data set).
+recorded episodes' returns per chain length (fixed for one data set) and,
+when the data hold trees (or the run's ``bodies`` do), over the chains and
+over the trees apart (``return_chains``, ``return_trees``, as simulator
+training logs them).
 
 A run trains on one data set, then optionally on further ones (rounds:
 record with the current policy, train, record again), policy, critic, Adam
@@ -147,15 +150,23 @@ class EpisodeReturns:
     """[E] sum of rewards"""
     lengths: np.ndarray
     """[E] transitions"""
+    chains: np.ndarray | None = None
+    """[E] whether each episode's body is a chain (None: all are)"""
 
     @classmethod
     def of(cls, data: TransitionBatch) -> EpisodeReturns:
         starts, lengths = episode_spans(data)
         sums = np.add.reduceat(data.reward, starts) if len(starts) else np.zeros(0)
-        return cls(data.num_joints[starts], sums, lengths)
+        chains = None
+        if not data.is_chains:
+            j = np.arange(data.max_joints)
+            n = data.num_joints[starts, None]
+            chains = (data.parents[starts] == np.where(j < n, j - 1, -1)).all(axis=1)
+        return cls(data.num_joints[starts], sums, lengths, chains)
 
-    def row(self, dims) -> dict[str, float]:
-        """Log columns: episodes, mean return overall and per chain length in ``dims``, mean reward per step."""
+    def row(self, dims, trees: bool = False) -> dict[str, float]:
+        """Log columns: episodes, mean return overall and per chain length in ``dims``, mean reward per step;
+        with ``trees`` the mean return over the chains and over the trees too."""
         out = {
             "episodes": len(self.returns),
             "return_mean": float(self.returns.mean()) if len(self.returns) else math.nan,
@@ -164,16 +175,36 @@ class EpisodeReturns:
         for d in dims:
             r = self.returns[self.num_joints == d]
             out[f"return_d{d}"] = float(r.mean()) if len(r) else math.nan
+        if trees:
+            chains = np.ones(len(self.returns), bool) if self.chains is None else self.chains
+            for key, r in (("return_chains", self.returns[chains]), ("return_trees", self.returns[~chains])):
+                out[key] = float(r.mean()) if len(r) else math.nan
         return out
 
 
-def log_columns(cfg: TrainConfig) -> list[str]:
+def describe_bodies(data: TransitionBatch, shown: int = 6) -> str:
+    """The data's bodies in a phrase: ``chains of 3..9 joints``, or with trees their joint counts and steps per
+    body (``env.bodies.body_label``), e.g. ``4..5 joints: star-2x2 20, y-1x2 15 steps``."""
+    lo, hi = int(data.num_joints.min()), data.max_joints
+    if data.is_chains:
+        return f"chains of {lo}..{hi} joints"
+    bodies = list(data.steps_per_body().items())
+    listed = ", ".join(f"{label} {n}" for label, n in bodies[:shown])
+    more = f" and {len(bodies) - shown} more bodies" if len(bodies) > shown else ""
+    return f"{lo}..{hi} joints: {listed}{more} steps"
+
+
+def log_columns(cfg: TrainConfig, trees: bool | None = None) -> list[str]:
+    """The log's columns; ``trees`` (default: the run's ``bodies`` hold trees) adds the returns over the chains
+    and over the trees."""
+    trees = not cfg.body_mix.chains_only if trees is None else trees
     per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
         "global_step", "iteration", "data_round", "round_iteration", "env_steps", "data_steps", "usable_steps",
         "batch_size",
         "wall_time", "sps", "prepare_s", "update_s", "learning_rate",
-        "episodes", "return_mean", *[f"return_d{d}" for d in cfg.dims], "reward_rate",
+        "episodes", "return_mean", *[f"return_d{d}" for d in cfg.dims],
+        *(["return_chains", "return_trees"] if trees else []), "reward_rate",
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         "is_weight_mean", "is_weight_capped_frac", "stale_frac", "behaviour_logr_mean",
         *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
@@ -419,11 +450,13 @@ def train_from_data(
         current = _Round(digest, len(data), list(source or []), iterations or one_pass)
         counters["data_round"] += 1
         counters["env_steps"] += len(data)
-    log = RunLog(run_dir, log_columns(cfg), resume_step=counters["global_step"] if resume else None,
+    # Trees in the data, the run's bodies or a log resumed: the returns over chains and trees apart, kept for the run.
+    trees = not data.is_chains or not cfg.body_mix.chains_only or (resumed and _logs_trees(run_dir))
+    log = RunLog(run_dir, log_columns(cfg, trees), resume_step=counters["global_step"] if resume else None,
                  tensorboard=cfg.tensorboard)  # fmt: skip
 
     samples = Samples(data, cfg.max_joints)
-    recorded = EpisodeReturns.of(data).row(cfg.dims)
+    recorded = EpisodeReturns.of(data).row(cfg.dims, trees)
     update_cfg = cfg.update_config()
     bar = _progress(cfg, current)
     while current.done < current.iterations:
@@ -496,6 +529,15 @@ def _save_state(path: Path, learner: Learner, gen: torch.Generator, current: _Ro
     save_training_state(
         path, learner.policy, learner.optimizer, gen, meta, arrays, dict(counters), learner.state_tensors()
     )
+
+
+def _logs_trees(run_dir: Path) -> bool:
+    """Whether the run's progress.csv has the returns over chains and trees (an earlier round had trees)."""
+    try:
+        with (run_dir / "progress.csv").open() as f:
+            return "return_trees" in f.readline().strip().split(",")
+    except OSError:
+        return False
 
 
 def run_state(run_dir: str | Path) -> dict | None:

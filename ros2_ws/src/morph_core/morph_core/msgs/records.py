@@ -2,9 +2,10 @@
 
 Nothing here imports ROS. ``log_ns`` is when the message was received (a
 bag's log time), ``stamp_ns`` the stamp it carries. Arrays are float64 in
-the message's joint order (joint 0 next to the torso). These are the inputs
-of episode assembly (``protocol``); recorders and live trainers only fill
-them in.
+the message's joint order (which joint is which: the names they come
+with, laid onto the robot's tree by ``protocol.joint_map``). These are the
+inputs of episode assembly (``protocol``); recorders and live trainers only
+fill them in.
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ class EffortRecord:
     log_ns: int
     answers_ns: int | None
     effort: np.ndarray
+    names: tuple[str, ...] | None = None
+    """the joints the efforts are for, in their order (the command's names dimension, ``msgs.effort_names``);
+    None: the command names none, and its efforts are in the order of the state it answers"""
 
 
 @dataclass(frozen=True)
@@ -83,4 +87,13 @@ class EpisodeStartRecord:
     "rebuild" or "diverged" (``protocol.episode_start.EpisodeCause``)"""
 
 
-Record = JointStateRecord | OdometryRecord | EffortRecord | PolicyInfoRecord | EpisodeStartRecord
+@dataclass(frozen=True)
+class DescriptionRecord:
+    """``robot_description`` (std_msgs/String): the robot's URDF, published (latched) whenever the robot
+    changes, before its first state. Read by ``protocol.joint_map.JointMap.from_urdf``; not checked here."""
+
+    log_ns: int
+    text: str
+
+
+Record = JointStateRecord | OdometryRecord | EffortRecord | PolicyInfoRecord | EpisodeStartRecord | DescriptionRecord

@@ -4,8 +4,9 @@ A live trainer listening to a lockstep pair's four data topics wakes four
 times per control step and is one more reader of every message: on a machine
 whose cores the pairs already fill, that costs the loops a large share of
 their rate (docs/benchmarks.md). The policy node sees the whole stream anyway
-(it receives ``episode_start``, ``joint_states`` and ``odom`` and sends
-``effort_commands`` and ``policy_info``), so it can hand it over in chunks:
+(it receives ``episode_start``, ``robot_description``, ``joint_states`` and
+``odom`` and sends ``effort_commands`` and ``policy_info``), so it can hand it
+over in chunks:
 one message per ``MAX_CHUNK_BYTES`` or per period, each message inside it
 serialized exactly as on the wire (CDR), in the order the node received or
 sent it. A trainer decodes them with the same decoders as a bag and feeds
@@ -29,8 +30,8 @@ from dataclasses import dataclass
 
 TOPIC = "stream_chunks"
 """the chunks' topic, relative to a pair's namespace (published by its policy node)"""
-TOPICS = ("episode_start", "joint_states", "odom", "effort_commands", "policy_info")
-"""the topics a chunk carries, by index"""
+TOPICS = ("episode_start", "joint_states", "odom", "effort_commands", "policy_info", "robot_description")
+"""the topics a chunk carries, by index (new ones are appended: a chunk's indices keep their meaning)"""
 MAX_CHUNK_BYTES = 60_000
 """a chunk goes out before it would grow past this: one UDP datagram, never a fragmented sample (a
 reliable Fast DDS reader can wedge on those, docs/design.md)"""

@@ -12,7 +12,23 @@ increasing receive times.
 
 For tests and for data without DDS; ``truth`` keeps what actually happened
 (each step's state stamp, the env's own observation, the action the env was
-stepped with) so a replay can be compared against what the records say.
+stepped with, in the env's joint order) so a replay can be compared against
+what the records say.
+
+Trees and joint names. The swimmer may be a tree (``TreeSwimmerSim``). With
+``describe`` the sim's ``robot_description`` is recorded too
+(``DescriptionRecord``: ``env.urdf.swimmer_urdf`` of the body, before the
+first state of each new body, as the sim node publishes it), and the
+controller reads every state through it by joint name
+(``protocol.joint_map``), as the policy node does; without one it reads the
+joints as a chain in the message's order. ``shuffle_seed`` lists each
+state's joints in a random order of its own (the sim's shuffling option);
+``name_efforts`` labels each effort command with its joints' names
+(``msgs.effort_names``). Answers go out in the order of the state they
+answer, restricted to the tree's joints (``JointOrder.message_names``),
+``policy_info``'s arrays and ``joint_names`` too, as the policy node sends
+them; the sim applies them by name. With none of these options and a chain,
+the records are what they always were.
 """
 
 from __future__ import annotations
@@ -23,10 +39,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from morph_core.env.model import body_parents
 from morph_core.env.sim import SwimmerSim
+from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.joint_state import YawUnwrapper, chain_batch, global_features, quaternion_from_yaw, world_to_body
 from morph_core.msgs.policy_info import pack_policy_info, unpack_policy_info
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -35,10 +54,15 @@ from morph_core.msgs.records import (
 )
 from morph_core.msgs.stamps import seconds_to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import ChainBatch
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.tree import KinematicTree
+from morph_core.protocol.episode_start import EpisodeCause
+from morph_core.protocol.joint_map import JointMap, JointOrder
 
-Controller = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, dict | None]]
-"""(joint_pos, joint_vel, global) -> (action before any clip, policy_info fields or None)"""
+Controller = Callable[[np.ndarray, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, dict | None]]
+"""(joint_pos, joint_vel, global, parents) -> (action before any clip, policy_info fields or None); joints in the
+tree's order, ``parents`` its parent array, None for a chain"""
 
 
 class SamplingController:
@@ -48,8 +72,13 @@ class SamplingController:
         self.policy = policy
         self.generator = torch.Generator().manual_seed(seed)
 
-    def __call__(self, pos, vel, glob):
-        action, _, _, mean = self.policy.act(chain_batch(pos, vel, glob), generator=self.generator)
+    def __call__(self, pos, vel, glob, parents=None):
+        if parents is None:
+            batch = chain_batch(pos, vel, glob)
+        else:
+            n = len(pos)
+            batch = ChainBatch.from_padded(pos[None], vel[None], np.asarray(glob)[None], [n], parents=parents[None])
+        action, _, _, mean = self.policy.act(batch, generator=self.generator)
         a, mu = action[0].double().numpy(), mean[0].double().numpy()
         return a, pack_policy_info(a, mu, float(self.policy.log_std.detach()))
 
@@ -60,8 +89,8 @@ class MeanController:
     def __init__(self, policy: GraphActorCritic):
         self.numpy_policy = NumpyPolicy(policy)
 
-    def __call__(self, pos, vel, glob):
-        return self.numpy_policy.mean(pos, vel, glob).astype(np.float64), None
+    def __call__(self, pos, vel, glob, parents=None):
+        return self.numpy_policy.mean(pos, vel, glob, parents).astype(np.float64), None
 
 
 class GaussianController:
@@ -71,10 +100,48 @@ class GaussianController:
         self.mean, self.log_std, self.with_policy_info = mean, log_std, with_policy_info
         self.rng = np.random.default_rng(seed)
 
-    def __call__(self, pos, vel, glob):
+    def __call__(self, pos, vel, glob, parents=None):
         mu = np.full(len(pos), self.mean)
         a = mu + np.exp(self.log_std) * self.rng.standard_normal(len(pos))
         return a, (pack_policy_info(a, mu, self.log_std) if self.with_policy_info else None)
+
+
+class TreeSwimmerSim(SwimmerSim):
+    """A ``SwimmerSim`` whose body may be a tree: ``body`` and ``rebuild`` take a chain length or a
+    ``KinematicTree`` (its parents in pre-order; the joints are the swimmer's, ``motor{k}_rot`` in that order,
+    whatever the tree names them). Efforts, clock and torso are ``SwimmerSim``'s; only the body is built here,
+    through the env's own ``reset(options={"tree": ...})``, until ``SwimmerSim`` builds trees itself. A tree
+    stays until the next ``rebuild`` (``reset`` keeps it; a chain length goes back to SwimmerSim's rules)."""
+
+    def __init__(self, body: int | KinematicTree = 6, seed: int | None = 0, effort_timeout: float | None = None,
+                 episode_steps: int = 0):  # fmt: skip
+        self._tree: KinematicTree | None = None
+        tree = body if isinstance(body, KinematicTree) else None
+        super().__init__(body if tree is None else tree.num_joints, seed, effort_timeout, episode_steps)
+        if tree is not None:
+            self.rebuild(tree)
+
+    @property
+    def tree(self) -> KinematicTree:
+        """The current body (joints in the env's order, the swimmer's names)."""
+        return self._env.tree
+
+    def rebuild(self, body: int | KinematicTree) -> None:
+        """Begin a new episode with this body (a chain length, or a tree)."""
+        if not isinstance(body, KinematicTree):
+            self._tree = None
+            super().rebuild(body)
+            return
+        self._tree = body
+        self._env.reset(options={"tree": body})
+        self._new_episode(EpisodeCause.REBUILD)
+
+    def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
+        if self._tree is None:
+            super().reset(cause)
+        else:
+            self._env.reset(options={"tree": self._tree})
+            self._new_episode(cause)
 
 
 @dataclass(frozen=True)
@@ -84,27 +151,46 @@ class StepTruth:
     stamp_ns: int
     episode: int
     observation: dict
+    """the env's joints (its order) and global features at the state"""
     action: np.ndarray | None
-    """the controller's action (before the sim's clip); None if the state was never stepped from"""
+    """the controller's action (before the sim's clip, in the env's joint order); None if the state was never
+    stepped from"""
 
 
 class LoopbackRecording:
-    """A ``SwimmerSim`` driven in lockstep by ``controller``; ``records`` is what a recorder would hold."""
+    """A ``SwimmerSim`` (``TreeSwimmerSim`` for trees) driven in lockstep by ``controller``; ``records`` is what a
+    recorder would hold. ``describe``, ``shuffle_seed`` and ``name_efforts``: see the module docstring."""
 
-    def __init__(self, sim: SwimmerSim, controller: Controller, joint_prefix: str = "", log_step_ns: int = 1000):
+    def __init__(
+        self,
+        sim: SwimmerSim,
+        controller: Controller,
+        joint_prefix: str = "",
+        log_step_ns: int = 1000,
+        *,
+        describe: bool = False,
+        shuffle_seed: int | None = None,
+        name_efforts: bool = False,
+    ):
         if sim.effort_timeout is not None:
             raise ValueError("the loopback runs on sim time only: build the SwimmerSim with effort_timeout=None")
         self.sim = sim
         self.controller = controller
         self.prefix = joint_prefix
+        self.describe = describe
+        self.name_efforts = name_efforts
         self.records: list[Record] = []
         self.truth: list[StepTruth] = []
+        self._shuffle = None if shuffle_seed is None else np.random.default_rng(shuffle_seed)
         self._log_step = log_step_ns
         self._log_ns = 0
         self._ticks = 0  # control periods elapsed, resets included: stamps never repeat
         self._episode = 0
         self._unwrap = YawUnwrapper()
-        self._names: tuple[str, ...] = ()
+        self._robot: tuple | None = None  # (names, parents) the unwrapping last restarted for
+        self._joint_map = JointMap()  # the controller's (the policy node's): the latest description's
+        self._described: tuple[int, ...] | None = None  # the parents of the body last described
+        self._order: JointOrder | None = None  # the answered state's joints on the controller's tree
         self._announce_next = True
         self._state_published = False
 
@@ -130,16 +216,17 @@ class LoopbackRecording:
             stamp = self.stamp_ns
             action, info = self._answer()
             effort = np.clip(action, -1.0, 1.0)
+            order = self._order
             if late is not None and late(i):
                 self._step(stamp, None)
                 self.records += self._state_records()
-                self.records += self._answer_records(stamp, effort, info)
-                self.sim.command(effort, 0.0)
+                self.records += self._answer_records(stamp, effort, info, order)
+                self.sim.command(self._in_env_order(effort, order), 0.0)
                 self._state_published = True
             else:
-                self.records += self._answer_records(stamp, effort, info)
-                self.sim.command(effort, 0.0)
-                self._step(stamp, action)
+                self.records += self._answer_records(stamp, effort, info, order)
+                self.sim.command(self._in_env_order(effort, order), 0.0)
+                self._step(stamp, self._in_env_order(action, order))
                 self._state_published = False
 
     def _step(self, stamp: int, action: np.ndarray | None) -> None:
@@ -154,33 +241,64 @@ class LoopbackRecording:
             self.records += self._state_records()
             self._state_published = True
             action, info = self._answer()
-            self.records += self._answer_records(self.stamp_ns, np.clip(action, -1.0, 1.0), info)
+            self.records += self._answer_records(self.stamp_ns, np.clip(action, -1.0, 1.0), info, self._order)
 
-    def new_episode(self, num_joints: int | None = None, announce: bool = True, same_stamp: bool = False) -> None:
-        """End the episode (``finish``) and reset the swimmer, optionally to another chain length. The new first
-        state is stamped one period after the last one (``same_stamp``: with the last one's stamp, as a sim
-        that rebuilds without stepping its clock), and announced unless ``announce`` is False."""
+    def new_episode(
+        self,
+        num_joints: int | KinematicTree | None = None,
+        announce: bool = True,
+        same_stamp: bool = False,
+    ) -> None:
+        """End the episode (``finish``) and reset the swimmer, optionally to another body (a chain length, or a
+        tree for a ``TreeSwimmerSim``; None keeps the body). The new first state is stamped one period after
+        the last one (``same_stamp``: with the last one's stamp, as a sim that rebuilds without stepping its
+        clock), and announced unless ``announce`` is False."""
         self.finish()
-        self.sim.rebuild(self.sim.num_joints if num_joints is None else num_joints)
+        if num_joints is None:
+            num_joints = self.sim.tree if isinstance(self.sim, TreeSwimmerSim) else self.sim.num_joints
+        self.sim.rebuild(num_joints)
         self._ticks += not same_stamp
         self._episode += 1
         self._announce_next = announce
         self._state_published = False
 
     # -- messages ---------------------------------------------------------------
+    def _body(self) -> int | KinematicTree:
+        """The sim's body: its tree (a ``TreeSwimmerSim``, or any sim that says), else its chain length."""
+        tree = getattr(self.sim, "tree", None)
+        return self.sim.num_joints if tree is None else tree
+
     def _answer(self) -> tuple[np.ndarray, dict | None]:
-        """The controller's answer to the current state, from its messages as the policy node builds it."""
+        """The controller's answer to the current state (in the order of the tree it reads the state on), from
+        its messages as the policy node builds it."""
         state = next(r for r in reversed(self.records) if isinstance(r, JointStateRecord))
         odom = next(r for r in reversed(self.records) if isinstance(r, OdometryRecord))
-        if state.names != self._names:
-            self._names = state.names
+        order = self._order = self._joint_map.order(state.names)
+        tree = order.tree
+        robot = (tree.names, tree.parents.tobytes())
+        if robot != self._robot:  # another robot (not another order of the same joints): its yaw starts afresh
+            self._robot = robot
             self._unwrap.reset()
         glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
-        return self.controller(state.position, state.velocity, glob)
+        parents = None if tree.is_chain else tree.parents
+        return self.controller(order.to_tree(state.position), order.to_tree(state.velocity), glob, parents)
+
+    def _in_env_order(self, values: np.ndarray, order: JointOrder) -> np.ndarray:
+        """Per-joint values in the order of the controller's tree, in the env's joint order (by name)."""
+        env_names = tuple(self.sim.joint_names(self.prefix))
+        if order.tree.names == env_names:
+            return values
+        at = {name: j for j, name in enumerate(order.tree.names)}
+        return values[[at[name] for name in env_names]]
 
     def _state_records(self) -> list[Record]:
         stamp, torso = self.stamp_ns, self.sim.torso()
         out: list[Record] = []
+        if self.describe and body_parents(self._body()) != self._described:
+            text = swimmer_urdf(self._body(), self.prefix)  # as the sim node publishes it
+            out.append(DescriptionRecord(self._log(), text))
+            self._joint_map = JointMap.from_urdf(text)  # the policy node reads the states on it from now on
+            self._described = body_parents(self._body())
         if self._announce_next:
             out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints))
             self._unwrap.reset()  # the policy node restarts unwrapping with each announced episode
@@ -198,7 +316,11 @@ class LoopbackRecording:
         )
         names = tuple(self.sim.joint_names(self.prefix))
         pos, vel, applied = self.sim.joint_positions, self.sim.joint_velocities, self.sim.applied.copy()
-        out.append(JointStateRecord(self._log(), stamp, names, pos, vel, applied))
+        if self._shuffle is None:
+            out.append(JointStateRecord(self._log(), stamp, names, pos, vel, applied))
+        else:
+            k = self._shuffle.permutation(len(names))
+            out.append(JointStateRecord(self._log(), stamp, tuple(names[i] for i in k), pos[k], vel[k], applied[k]))
         observation = {
             "joint_pos": pos,
             "joint_vel": vel,
@@ -207,19 +329,28 @@ class LoopbackRecording:
         self.truth.append(StepTruth(stamp, self._episode, observation, None))
         return out
 
-    def _answer_records(self, stamp: int, effort: np.ndarray, info: dict | None) -> list[Record]:
-        out: list[Record] = [EffortRecord(self._log(), stamp, effort.astype(np.float64))]
+    def _answer_records(self, stamp: int, effort: np.ndarray, info: dict | None, order: JointOrder) -> list[Record]:
+        """The effort command and policy_info answering the state ``order`` read (values in its tree's order),
+        in the state's order (``message_names``)."""
+        names = order.message_names
+        effort = order.to_message(effort).astype(np.float64)
+        out: list[Record] = [EffortRecord(self._log(), stamp, effort, names if self.name_efforts else None)]
         if info is not None:
-            out.append(unpack_policy_info(self._log(), stamp, self._names, **info))
+            fields = {k: order.to_message(v) for k, v in info.items()}
+            out.append(unpack_policy_info(self._log(), stamp, names, **fields))
         return out
 
 
-def record_episodes(controller: Controller, episodes, seed: int = 0) -> list:
-    """Records of consecutive episodes ``((num_joints, steps), ...)`` of one seeded sim under ``controller``."""
-    loop = LoopbackRecording(SwimmerSim(episodes[0][0], seed=seed, effort_timeout=None), controller)
-    for i, (n, steps) in enumerate(episodes):
+def record_episodes(controller: Controller, episodes, seed: int = 0, **options) -> list:
+    """Records of consecutive episodes ``((body, steps), ...)`` of one seeded sim under ``controller``: a body
+    is a chain length or a ``KinematicTree`` (then the sim is a ``TreeSwimmerSim``); ``options`` are
+    ``LoopbackRecording``'s (``describe``, ``shuffle_seed``, ``name_efforts``, ``joint_prefix``)."""
+    trees = any(isinstance(body, KinematicTree) for body, _ in episodes)
+    sim_type = TreeSwimmerSim if trees else SwimmerSim
+    loop = LoopbackRecording(sim_type(episodes[0][0], seed=seed, effort_timeout=None), controller, **options)
+    for i, (body, steps) in enumerate(episodes):
         if i:
-            loop.new_episode(n)
+            loop.new_episode(body)
         loop.run(steps)
     loop.finish()
     return loop.records

@@ -12,8 +12,10 @@ does).
 The robot's graph is ``parents`` (``policy.index_plan``): joints in
 topological order, each row's parent joint of each joint, -1 when the joint
 hangs off the torso and at padding; a chain of N joints is [-1, 0, ..., N-2].
-A file written before the key existed holds chains (the joint order of the
-``joint_states`` message was the chain), and reads as such. Parents that are
+From recorded topics it is the tree of the robot's ``robot_description``
+(``protocol.transitions``), or without one a chain in the ``joint_states``
+message's order. A file written before the key existed holds chains, and
+reads as such. Parents that are
 not int64 [T, J], not -1 at padding, a parent not earlier than its joint, or
 two trees in one episode are refused (``TransitionBatchError``, naming the row
 and, from ``from_npz``, the file).
@@ -23,7 +25,7 @@ Keys of the ``.npz`` (T rows, J = longest chain, 0 if T = 0):
     episode          int64   [T]     run of consecutive transitions (0, 1, ... in stream order)
     stamp_ns         int64   [T]     the state's stamp
     num_joints       int64   [T]
-    joint_pos        float64 [T, J]  joint angles, torso to tail
+    joint_pos        float64 [T, J]  joint angles, in the robot's tree order (a chain's: torso to tail)
     joint_vel        float64 [T, J]
     global           float64 [T, 4]  yaw (unwrapped), yaw rate, vx, vy (world frame), as the policy sees them
     action           float64 [T, J]  the sampled action (policy_info), else the effort command
@@ -202,6 +204,24 @@ class TransitionBatch:
     @property
     def num_episodes(self) -> int:
         return len(np.unique(self.episode))
+
+    def body_labels(self) -> list[str]:
+        """Each row's body as logs name it (``env.bodies.body_label`` of its tree: ``chain-N``, a named
+        shape such as ``star-2x2``, else ``tree-`` and its topology hash)."""
+        from morph_core.env.bodies import body_label, swimmer_tree  # labels only: the env's families
+
+        if not len(self):
+            return []
+        shapes, inverse = np.unique(np.c_[self.num_joints, self.parents], axis=0, return_inverse=True)
+        labels = [body_label(swimmer_tree(row[1 : 1 + row[0]])) for row in shapes]
+        return [labels[i] for i in inverse.reshape(-1)]
+
+    def steps_per_body(self) -> dict[str, int]:
+        """Rows per body label, in the order the bodies first appear."""
+        out: dict[str, int] = {}
+        for label in self.body_labels():
+            out[label] = out.get(label, 0) + 1
+        return out
 
     @property
     def ppo_ready(self) -> bool:

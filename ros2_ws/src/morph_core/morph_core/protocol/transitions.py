@@ -11,7 +11,8 @@ next state s' one control period later:
 - observation: joint positions and velocities of s, and (yaw, yaw rate, vx,
   vy) rebuilt from the odometry carrying s's stamp exactly as the policy node
   does (``msgs.joint_state.global_features``, yaw unwrapped along the stream,
-  unwrapping restarted at each announced episode and each new chain);
+  unwrapping restarted at each announced episode, each new robot and the
+  first state after a new description);
 - action: the sampled action of the ``policy_info`` stamped s (the behaviour
   log-prob comes with it), else the effort command answering s (then
   ``has_policy_info`` is False and the log-prob NaN: PPO cannot use the
@@ -32,22 +33,36 @@ state named by its answer tag (``msgs.stamps``), a policy_info carries the
 stamp of the state it answers. An untagged effort (another controller) is
 taken as the answer to the latest state received before it.
 
-The robot's graph. Each transition carries its state's ``parents``
-(``policy.index_plan``: joint j's parent joint in the message's joint order,
--1 off the torso). Which tree a state's joints form is the assembler's
-``tree_of`` (a ``TreeOf``): called with a state's joint names as the state
-arrives, it returns the tree (a ``policy.tree.KinematicTree`` listing those
-names in that order, or the parent array itself). The default,
-``chain_of_names``, is today's meaning: the joints form a chain in the
-message's order. A state whose tree cannot be told (``tree_of`` raises
-``ValueError``, or gives a tree that does not fit the names) is skipped as
-``malformed``.
+The robot's graph, by joint name. A ``robot_description`` record
+(``DescriptionRecord``: the robot's URDF, which the sim publishes before the
+first state of each body) says which robot the states that follow are of.
+The assembler keeps the latest one that reads as a robot
+(``protocol.joint_map.JointMap``; one that does not is counted as
+``bad_description`` and the one before it kept) and binds each state to its
+tree by name as the state arrives (``JointMap.order``): a state may list the
+joints in any order, another one at every state, and carry joints the robot
+does not actuate. Until a description arrives (or with none at all: a chain
+robot needs none) each state's joints form a chain in the message's order
+(``JointMap()``, the assembler's ``joint_map`` unless given another).
+Everything a transition holds is in the tree's order: the observation, the
+action (a ``policy_info``'s arrays laid out by its ``joint_names``; an effort
+command's by its names dimension, ``msgs.effort_names``, or, naming none, in
+the order of the state it answers) and the check against the applied effort
+(s'.effort is in s''s own message order, which may differ from s's: compared
+joint by joint, by name); ``names`` are the tree's joints and ``parents``
+(``policy.index_plan``: joint j's parent joint, -1 off the torso) its parent
+array. A state that does not fit the description is skipped under the
+reason ``JointMap`` gives: ``unknown_joint`` (a joint the description does
+not have) or ``missing_joint`` (one of its actuated joints missing); an
+answer whose joint names are not the tree's joints as ``names_mismatch``.
 
 Episode boundaries (no transition across them): an episode announcement for
-s' (``EpisodeStartRecord``), a change of joint names or of their tree (a new
-robot), or s' not stamped one control period after s (a lost state, a restarted sim whose
-clock went back). A different state with the latest state's own stamp is a
-robot rebuilt or reset without the clock moving on (the sim node's runtime
+s' (``EpisodeStartRecord``), another robot (s' bound to another tree than s:
+other joint names or other parents, i.e. a description that changed the tree,
+or without a description another chain of names), or s' not stamped one
+control period after s (a lost state, a restarted sim whose clock went
+back). A different state with the latest state's own stamp is a robot
+rebuilt or reset without the clock moving on (the sim node's runtime
 rebuild does this): the odometry and announcement received after the old
 state are the new one's, and a new episode starts with it.
 
@@ -66,7 +81,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict, deque
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
@@ -75,6 +90,7 @@ from morph_core.env.model import MAX_JOINTS
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, applied_action, swimmer_reward
 from morph_core.msgs.joint_state import JointStateError, YawUnwrapper, global_features, validate_joint_state
 from morph_core.msgs.records import (
+    DescriptionRecord,
     EffortRecord,
     EpisodeStartRecord,
     JointStateRecord,
@@ -83,41 +99,11 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
-from morph_core.policy.index_plan import chain_parents, check_parents
-from morph_core.policy.tree import KinematicTree
+from morph_core.policy.tree import KinematicTree, UrdfRobot
+from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder
 from morph_core.protocol.transition_batch import TransitionBatch
 
-TreeOf = Callable[[tuple[str, ...]], "KinematicTree | np.ndarray"]
-"""A state's joint names (in the ``joint_states`` message's order) -> the tree they form: a ``KinematicTree``
-whose ``names`` are exactly those names in that order, or the [N] parent array in that order. Raises
-``ValueError`` (e.g. ``policy.tree.TreeError``) when it cannot tell. Called once per state, as it arrives."""
-
-_CHAINS: dict[int, np.ndarray] = {}
-
-
-def chain_of_names(names: tuple[str, ...]) -> np.ndarray:
-    """The default ``TreeOf``: the joints form a chain in the message's order ([-1, 0, ..., N-2], read-only)."""
-    n = len(names)
-    parents = _CHAINS.get(n)
-    if parents is None:
-        parents = chain_parents(n)
-        parents.setflags(write=False)
-        _CHAINS[n] = parents
-    return parents
-
-
-def _parents_of(tree_of: TreeOf, names: tuple[str, ...]) -> np.ndarray:
-    """``tree_of(names)`` as a checked read-only [N] int64 parent array; ValueError if it does not fit."""
-    tree = tree_of(names)
-    if isinstance(tree, KinematicTree):
-        if tree.names != tuple(names):
-            raise ValueError(f"the tree's joints {list(tree.names)} are not the state's {list(names)}, in its order")
-        return tree.parents
-    if tree is _CHAINS.get(len(names)):
-        return tree
-    parents = check_parents(tree, np.ones(len(names), dtype=bool))
-    parents.setflags(write=False)
-    return parents
+_ANSWER_MAPS = 8  # trees whose answer layouts are kept (one robot at a time; a few across description changes)
 
 
 @dataclass(frozen=True)
@@ -173,13 +159,18 @@ class SkipCounts:
     ambiguous_answer: int = 0
     """several different answers to the state all fit the applied effort"""
     names_mismatch: int = 0
-    """the policy_info's joint names are not the state's"""
+    """the joint names of the policy_info (or of the effort command's names dimension) are not exactly the
+    joints of the state's tree"""
     malformed: int = 0
     """lengths that do not fit the state's joints, empty or duplicate joint names, too many joints"""
     non_finite: int = 0
     """NaN or inf in a message the step needs"""
     duplicate_stamp: int = 0
     """two different states (or odometries) with one stamp: which is which cannot be told"""
+    unknown_joint: int = 0
+    """the state names a joint the robot's description does not have (``protocol.joint_map``)"""
+    missing_joint: int = 0
+    """the state lacks one of the actuated joints of the robot's description"""
     # -- messages --
     orphan_effort: int = 0
     """an effort command whose answer tag names no recorded state"""
@@ -191,6 +182,8 @@ class SkipCounts:
     """an episode announcement for a state that never arrived"""
     late_message: int = 0
     """a message that arrived after its state's step had been judged (``settle_states``)"""
+    bad_description: int = 0
+    """a robot_description that is no robot (``policy.tree.TreeError``): the one before it stays in use"""
 
     STEP_REASONS = (
         "no_odometry",
@@ -202,8 +195,17 @@ class SkipCounts:
         "malformed",
         "non_finite",
         "duplicate_stamp",
+        "unknown_joint",
+        "missing_joint",
     )
-    MESSAGE_REASONS = ("orphan_effort", "orphan_policy_info", "orphan_odometry", "orphan_announcement", "late_message")
+    MESSAGE_REASONS = (
+        "orphan_effort",
+        "orphan_policy_info",
+        "orphan_odometry",
+        "orphan_announcement",
+        "late_message",
+        "bad_description",
+    )
 
     def add(self, reason: str, count: int = 1) -> None:
         setattr(self, reason, getattr(self, reason) + count)
@@ -244,6 +246,8 @@ class StreamStats:
     """transitions whose action is an effort command, with no behaviour log-prob"""
     applied_unverified: int = 0
     """transitions whose next state reports no applied effort: the answering command is trusted"""
+    descriptions: int = 0
+    """robot descriptions that read as a robot (one re-sent unchanged included)"""
 
     BOUNDARY_CAUSES = ("announced", "new_chain", "stamp_gap")
 
@@ -272,12 +276,13 @@ class StreamStats:
 
 @dataclass(frozen=True)
 class Transition:
-    """One control period of one swimmer (arrays float64, the state's joint order)."""
+    """One control period of one swimmer (arrays float64, joints in the order of the robot's tree)."""
 
     episode: int
     """run of consecutive transitions this one belongs to (0, 1, ... over the assembler's life)"""
     stamp_ns: int
     names: tuple[str, ...]
+    """the tree's joints, in its order (without a description: the state's, in the message's order)"""
     joint_pos: np.ndarray
     joint_vel: np.ndarray
     global_feats: np.ndarray
@@ -292,8 +297,8 @@ class Transition:
     next_joint_vel: np.ndarray
     next_global: np.ndarray
     parents: np.ndarray | None = None
-    """[N] int64 parent joint of each joint (-1: the torso), the state's and the next state's (an episode has one
-    tree); None: a chain"""
+    """[N] int64 parent joint of each joint (-1: the torso), the tree's (the state's and the next state's: an
+    episode has one tree); None: a chain"""
 
 
 @dataclass
@@ -324,18 +329,29 @@ class _Slot:
     obs: _Observation | None = None
     obs_error: str | None = None
     observed: bool = False
-    parents: np.ndarray | None = None
-    """the state's tree (``TreeOf``), None if it could not be told"""
+    order: JointOrder | None = None
+    """how the state's joints lay onto the robot's tree (``JointMap.order``), None if they do not"""
+    order_error: str = ""
+    """why they do not: the skip reason"""
+    described: bool = False
+    """the state was bound to a robot description (not to the fallback's chain of its names)"""
+    newly_described: bool = False
+    """the first state after a description was adopted: the policy node restarts its yaw unwrapping there"""
 
 
 class TransitionAssembler:
     """Records in, transitions out, for one stream (one robot); see the module docstring."""
 
-    def __init__(self, config: TransitionConfig | None = None, tree_of: TreeOf | None = None):
-        """``tree_of``: the tree a state's joint names form (see the module docstring); default
-        ``chain_of_names``, a chain in the message's order."""
+    def __init__(self, config: TransitionConfig | None = None, joint_map: JointMap | None = None):
+        """``joint_map``: the robot's joints until a description in the stream replaces it (one known
+        otherwise, e.g. ``JointMap.from_urdf`` of a URDF file); default ``JointMap()``, each state's joints a
+        chain in the message's order."""
         self.config = config or TransitionConfig()
-        self.tree_of = chain_of_names if tree_of is None else tree_of
+        self.joint_map = JointMap() if joint_map is None else joint_map
+        self._newly_described = False
+        """the robot the states are bound to as they arrive: the latest description's (kept across ``flush``)"""
+        self._description: str | bytes | None = None  # the text ``joint_map`` was read from
+        self._answer_maps: dict[KinematicTree, JointMap] = {}
         self.skips = SkipCounts()
         self.stats = StreamStats()
         self._period_ns = self.config.control_period_ns
@@ -355,6 +371,7 @@ class TransitionAssembler:
         self._latest_state: int | None = None  # stamp, for untagged efforts
         self._judged: OrderedDict[int, None] = OrderedDict()
         self._unwrap = YawUnwrapper()
+        self._restart_unwrap = False  # at the next state observed (a description was adopted before it)
         self._held: dict | None = None  # the latest transition's fields but ``truncated``: known at the next judgement
         self._ready: list[Transition] = []
 
@@ -391,6 +408,8 @@ class TransitionAssembler:
                     slot.announced = True
                 else:
                     slot.announced_later = True
+        elif isinstance(record, DescriptionRecord):
+            self._on_description(record)
         else:
             raise TypeError(f"not a record: {type(record).__name__}")
         self._judge_settled(final=False)
@@ -427,6 +446,22 @@ class TransitionAssembler:
             slot = self._slots[stamp] = self._stateless[stamp] = _Slot(stamp, self._states_seen)
         return slot
 
+    def _on_description(self, record: DescriptionRecord) -> None:
+        """The robot from now on: states that arrive after it are bound to its tree (the ones before it keep
+        theirs). One that is no robot is counted and changes nothing."""
+        if self._description is not None and record.text == self._description:
+            self.stats.descriptions += 1  # re-sent (a latched publisher, to a reader that matched again)
+            return
+        try:
+            joint_map = JointMap.from_urdf(record.text)
+        except ValueError:  # policy.tree.TreeError: malformed XML, no robot, more joints than allowed, ...
+            self.skips.bad_description += 1
+            return
+        self.stats.descriptions += 1
+        self._description = record.text
+        self.joint_map = joint_map
+        self._newly_described = True  # the next state to arrive is the first the policy node reads on it
+
     def _on_state(self, record: JointStateRecord) -> None:
         stamp, latest = record.stamp_ns, self._latest_state
         slot = self._slots.get(stamp)
@@ -462,12 +497,15 @@ class TransitionAssembler:
         self._add_state(record, new)
 
     def _set_state(self, slot: _Slot, record: JointStateRecord) -> None:
-        """Put the state in its slot, with its tree (``tree_of``, asked once, as the state arrives)."""
+        """Put the state in its slot, bound to the robot's tree as it arrives (``joint_map``)."""
         slot.state = record
+        slot.described = not self.joint_map.is_fallback
         try:
-            slot.parents = _parents_of(self.tree_of, record.names)
-        except ValueError:
-            slot.parents = None  # judged malformed (_observe)
+            slot.order = self.joint_map.order(record.names)
+        except JointMapError as err:
+            slot.order, slot.order_error = None, err.code
+        except ValueError:  # without a description: names that make no chain (none, twice, invalid, too many)
+            slot.order, slot.order_error = None, "malformed"
 
     def _add_state(self, record: JointStateRecord, slot: _Slot | None) -> None:
         if slot is None:
@@ -475,6 +513,7 @@ class TransitionAssembler:
         self._slots[record.stamp_ns] = slot
         self._stateless.pop(record.stamp_ns, None)
         self._set_state(slot, record)
+        slot.newly_described, self._newly_described = self._newly_described, False
         self._sequence.append(record.stamp_ns)
         self._states_seen += 1
         self.stats.states += 1
@@ -565,6 +604,7 @@ class TransitionAssembler:
             self.skips.add(answer)
             return None
         action, log_prob, has_info = answer
+        tree = a.order.tree
         cfg = self.config
         reward = swimmer_reward(
             obs.x, obs_next.x, cfg.control_period, applied_action(action), cfg.forward_reward_weight,
@@ -572,7 +612,7 @@ class TransitionAssembler:
         )  # fmt: skip
         return dict(
             stamp_ns=a.stamp,
-            names=a.state.names,
+            names=tree.names,
             joint_pos=obs.pos,
             joint_vel=obs.vel,
             global_feats=obs.glob,
@@ -584,7 +624,7 @@ class TransitionAssembler:
             next_joint_pos=obs_next.pos,
             next_joint_vel=obs_next.vel,
             next_global=obs_next.glob,
-            parents=a.parents,
+            parents=tree.parents,
         )
 
     def _boundary(self, a: _Slot, b: _Slot) -> str | None:
@@ -601,6 +641,9 @@ class TransitionAssembler:
         if slot.observed:
             return slot.obs
         slot.observed = True
+        # A new description is a new robot to the policy node (its graph, even one of the same tree): it restarts
+        # its unwrapping at the first state it reads on it, which is the first it answers.
+        self._restart_unwrap |= slot.newly_described
         s, odom = slot.state, slot.odom
         if slot.conflict or slot.later_odom is not None:  # two odometries, one state
             slot.obs_error = "duplicate_stamp"
@@ -612,51 +655,80 @@ class TransitionAssembler:
             except JointStateError:
                 slot.obs_error = "malformed"
                 return None
-            if s.effort.size not in (0, len(s.names)) or slot.parents is None:
+            if s.effort.size not in (0, len(s.names)):
                 slot.obs_error = "malformed"
+            elif slot.order is None:
+                slot.obs_error = slot.order_error
             elif odom is None:
                 slot.obs_error = "no_odometry"
             elif not _finite(odom.x, odom.y, odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z):
                 slot.obs_error = "non_finite"
             else:
+                if self._restart_unwrap:
+                    self._unwrap.reset()
+                    self._restart_unwrap = False
                 try:
                     glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
                 except JointStateError:  # a zero quaternion
                     slot.obs_error = "malformed"
                     return None
-                slot.obs = _Observation(pos, vel, glob, float(odom.x))
+                order = slot.order
+                slot.obs = _Observation(order.to_tree(pos), order.to_tree(vel), glob, float(odom.x))
         return slot.obs
 
+    def _laid_out(self, tree: KinematicTree, names: tuple[str, ...]) -> JointOrder | None:
+        """How an answer's values, one per name of ``names``, lay onto ``tree`` (``JointOrder.to_tree``); None
+        unless ``names`` are exactly the tree's joints (in any order)."""
+        joint_map = self._answer_maps.get(tree)
+        if joint_map is None:
+            if len(self._answer_maps) >= _ANSWER_MAPS:
+                self._answer_maps.clear()
+            joint_map = self._answer_maps[tree] = JointMap(UrdfRobot(tree, frozenset()))
+        try:
+            return joint_map.order(names)
+        except JointMapError:
+            return None
+
     def _answer(self, a: _Slot, b: _Slot) -> tuple[np.ndarray, float, bool] | str:
-        """(action, behaviour log-prob, has policy_info) for state a, checked against what the sim
-        applied until b; or the skip reason."""
-        n = len(a.state.names)
-        infos, info_error = [], None
+        """(action, behaviour log-prob, has policy_info) for state a, in its tree's order, checked against what
+        the sim applied until b (a state of the same tree, its joints perhaps listed in another order); or the
+        skip reason."""
+        tree = a.order.tree
+        n = tree.num_joints
+        infos, info_error = [], None  # (action in the tree's order, log-prob)
         for info in a.infos:
             if not _finite(info.action, info.mean, info.log_std, info.log_prob_per_joint):
                 info_error = "non_finite"
             elif any(x.shape != (n,) for x in (info.action, info.mean, info.log_std, info.log_prob_per_joint)):
                 info_error = "malformed"
-            elif info.names != a.state.names:
+            elif (laid := self._laid_out(tree, info.names)) is None:
                 info_error = "names_mismatch"
             else:
-                infos.append(info)
-        efforts, effort_error = [], None
+                infos.append((laid.to_tree(info.action), info.log_prob))
+        efforts, effort_error = [], None  # in the tree's order
         for e in a.efforts:
             if not _finite(e.effort):
                 effort_error = "non_finite"
-            elif e.effort.shape != (n,):
+            elif e.names is None:  # in the order of the state it answers
+                if e.effort.shape != (len(a.state.names),):
+                    effort_error = "malformed"
+                else:
+                    efforts.append(a.order.to_tree(e.effort))
+            elif e.effort.shape != (n,) or len(e.names) != n:
                 effort_error = "malformed"
+            elif (laid := self._laid_out(tree, e.names)) is None:
+                effort_error = "names_mismatch"
             else:
-                efforts.append(e.effort)
+                efforts.append(laid.to_tree(e.effort))
         if info_error and not infos:
             return info_error  # a sampling policy answered, but unusably: the effort alone is no substitute
         if not infos and not efforts:
             return effort_error or "no_answer"
 
-        # What the sim applied over a -> b: the next state says; failing that, the command answering a.
+        # What the sim applied over a -> b: the next state says (in its own message order); failing that, the
+        # command answering a.
         if b.state.effort.size:
-            applied = [b.state.effort]
+            applied = [b.order.to_tree(b.state.effort)]
         elif efforts:
             applied = efforts
         else:
@@ -667,13 +739,13 @@ class TransitionAssembler:
             return any((np.abs(clipped - x) <= self.config.applied_atol).all() for x in applied)
 
         if infos:
-            fitting = [i for i in infos if fits(i.action)]
+            fitting = [(action, log_prob) for action, log_prob in infos if fits(action)]
             if not fitting:
                 return "not_applied"
-            first = fitting[0]
-            if any(not np.array_equal(i.action, first.action) or i.log_prob != first.log_prob for i in fitting[1:]):
+            first, first_log_prob = fitting[0]
+            if any(not np.array_equal(action, first) or log_prob != first_log_prob for action, log_prob in fitting[1:]):
                 return "ambiguous_answer"
-            answer = first.action.copy(), first.log_prob, True
+            answer = first.copy(), first_log_prob, True
         else:
             fitting = [e for e in efforts if fits(e)]
             if not fitting:
@@ -694,9 +766,11 @@ class Assembled:
     stats: StreamStats
 
 
-def assemble(records: Iterable[Record], config: TransitionConfig | None = None) -> Assembled:
+def assemble(
+    records: Iterable[Record], config: TransitionConfig | None = None, joint_map: JointMap | None = None
+) -> Assembled:
     """Transitions of one finished stream of records in receive order (e.g. one bag)."""
-    asm = TransitionAssembler(config)
+    asm = TransitionAssembler(config, joint_map)
     transitions = asm.push_many(records) + asm.flush()
     return Assembled(TransitionBatch.from_transitions(transitions), asm.skips, asm.stats)
 
@@ -713,11 +787,16 @@ def _finite(*values) -> bool:
 
 
 def _other_robot(a: _Slot, b: _Slot) -> bool:
-    """Whether two states are of different robots: other joint names, or the same names in another tree (a
-    state whose tree could not be told is skipped as malformed, not a boundary)."""
-    if a.state.names != b.state.names:
-        return True
-    return a.parents is not None and b.parents is not None and not np.array_equal(a.parents, b.parents)
+    """Whether two states are of different robots: bound to trees with other joints or other parents (the
+    same joints listed in another order are the same robot). A state that fits no tree is skipped under its
+    reason, not a boundary, unless neither was bound to a description: then other joint names are another
+    chain."""
+    if a.order is not None and b.order is not None:
+        ta, tb = a.order.tree, b.order.tree
+        return ta is not tb and (ta.names != tb.names or not np.array_equal(ta.parents, tb.parents))
+    if not a.described and not b.described:
+        return a.state.names != b.state.names
+    return False
 
 
 def _same_state(a: JointStateRecord, b: JointStateRecord) -> bool:
