@@ -948,3 +948,14 @@ def test_answers_naming_other_joints_are_names_mismatches(policy):
     result = assemble_with([reverse(r) for r in loop.records if not isinstance(r, PolicyInfoRecord)])
     assert result.skips == SkipCounts() and len(result.batch) == len(clean)
     np.testing.assert_array_equal(result.batch.action, np.clip(clean.action, -1.0, 1.0))
+
+
+def test_answers_computed_on_another_tree_are_not_taken_for_the_state_as_read_here(policy):
+    """Without the descriptions the trees' states read as chains in message order, which is not what the policy
+    answered on: its efforts say so (their tree dimension), and no step is made of them."""
+    loop, _ = record_trees(SamplingController(policy, seed=3), describe=True, name_efforts=True)
+    described = assemble(loop.records)
+    assert described.skips.wrong_tree == 0 and len(described.batch) == 20 + 15 + 12
+    blind = assemble([r for r in loop.records if not isinstance(r, DescriptionRecord)])
+    assert len(blind.batch) == 0
+    assert blind.skips.wrong_tree == described.stats.states - 3  # every state but each episode's last

@@ -50,7 +50,7 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from ruamel.yaml import YAML
 from ruamel.yaml.error import YAMLError
 
-from morph_core.msgs.effort_names import EffortNamesError, effort_names
+from morph_core.msgs.effort_names import EffortNamesError, effort_names, effort_tree
 from morph_core.msgs.policy_info import PolicyInfoError, unpack_policy_info
 from morph_core.msgs.records import (
     DescriptionRecord,
@@ -178,10 +178,10 @@ def effort_record(msg, log_ns: int) -> EffortRecord:
     answers = parse_answer_tag(labels[0]) if labels else None
     data = _f64(msg.data)
     try:
-        names = effort_names(labels, len(data))
+        names, layout = effort_names(labels, len(data)), effort_tree(labels)
     except EffortNamesError as err:
         raise DecodeError("bad names dimension", str(err)) from None
-    return EffortRecord(log_ns, answers, data, names)
+    return EffortRecord(log_ns, answers, data, names, layout)
 
 
 def description_record(msg, log_ns: int) -> DescriptionRecord:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from morph_core.msgs.effort_names import names_label
+from morph_core.msgs.effort_names import names_label, tree_label
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -85,6 +85,8 @@ def record_message(r: Record):
         dims = [] if r.answers_ns is None else [_dim(answer_tag(*from_ns(r.answers_ns)), r.effort.size)]
         if r.names is not None:  # after dim[0] (an empty label: untagged), the names dimension
             dims = (dims or [_dim("", r.effort.size)]) + [_dim(names_label(r.names), 1)]
+        if r.layout is not None:  # and the joint layout the efforts were computed on
+            dims = (dims or [_dim("", r.effort.size)]) + [_dim(tree_label(r.layout), 1)]
         layout = _T["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
         return "effort_commands", _T["std_msgs/msg/Float64MultiArray"](layout=layout, data=r.effort)
     if isinstance(r, PolicyInfoRecord):

@@ -52,6 +52,9 @@ class EffortRecord:
     names: tuple[str, ...] | None = None
     """the joints the efforts are for, in their order (the command's names dimension, ``msgs.effort_names``);
     None: the command names none, and its efforts are in the order of the state it answers"""
+    layout: str | None = None
+    """the joint layout the efforts were computed on (the command's tree dimension: ``KinematicTree.layout_hash``),
+    None when it gives none"""
 
 
 @dataclass(frozen=True)

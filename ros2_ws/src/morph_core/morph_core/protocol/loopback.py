@@ -334,7 +334,8 @@ class LoopbackRecording:
         in the state's order (``message_names``)."""
         names = order.message_names
         effort = order.to_message(effort).astype(np.float64)
-        out: list[Record] = [EffortRecord(self._log(), stamp, effort, names if self.name_efforts else None)]
+        named = (names, order.tree.layout_hash) if self.name_efforts else (None, None)  # as the policy node names them
+        out: list[Record] = [EffortRecord(self._log(), stamp, effort, *named)]
         if info is not None:
             fields = {k: order.to_message(v) for k, v in info.items()}
             out.append(unpack_policy_info(self._log(), stamp, names, **fields))

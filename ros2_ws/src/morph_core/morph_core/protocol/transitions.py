@@ -171,6 +171,10 @@ class SkipCounts:
     """the state names a joint the robot's description does not have (``protocol.joint_map``)"""
     missing_joint: int = 0
     """the state lacks one of the actuated joints of the robot's description"""
+    wrong_tree: int = 0
+    """every effort command answering the state says it was computed on another joint layout than the tree the
+    state is read on (``msgs.effort_names``): the policy and this stream disagree on the robot, e.g. its
+    description reached one of them late"""
     # -- messages --
     orphan_effort: int = 0
     """an effort command whose answer tag names no recorded state"""
@@ -706,8 +710,11 @@ class TransitionAssembler:
             else:
                 infos.append((laid.to_tree(info.action), info.log_prob))
         efforts, effort_error = [], None  # in the tree's order
+        other_tree = 0  # answers computed on another joint layout: not answers to this state as read here
         for e in a.efforts:
-            if not _finite(e.effort):
+            if e.layout is not None and e.layout != tree.layout_hash:
+                other_tree += 1
+            elif not _finite(e.effort):
                 effort_error = "non_finite"
             elif e.names is None:  # in the order of the state it answers
                 if e.effort.shape != (len(a.state.names),):
@@ -720,6 +727,8 @@ class TransitionAssembler:
                 effort_error = "names_mismatch"
             else:
                 efforts.append(laid.to_tree(e.effort))
+        if other_tree and not efforts:
+            return "wrong_tree"  # its policy_info, if any, is of that other tree too
         if info_error and not infos:
             return info_error  # a sampling policy answered, but unusably: the effort alone is no substitute
         if not infos and not efforts:
