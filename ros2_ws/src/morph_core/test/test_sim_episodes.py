@@ -10,7 +10,7 @@ recorded efforts stepped in between.
 import numpy as np
 import pytest
 
-from morph_core.env.bodies import parse_bodies
+from morph_core.env.bodies import parse_bodies, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.protocol.episode_start import EpisodeCause
@@ -220,3 +220,20 @@ def test_diverged_physics_starts_a_new_episode_the_env_would_start():
     assert sim.stamp_ns == PERIOD_NS == sim.episode_start_ns  # in place of the diverged state
     np.testing.assert_array_equal(sim.joint_positions, env.data.qpos[3:])
     np.testing.assert_array_equal(sim.torso().yaw, env.data.qpos[2])
+
+
+def test_a_tree_rebuilt_in_a_fixed_sim_stays_through_resets_as_the_env_draws_it():
+    tree = swimmer_tree(star_parents(3, 2))
+    sim = SwimmerSim(4, seed=9, effort_timeout=None)
+    sim.rebuild(tree)
+    env = MorphSwimmerEnv(num_joints=4)
+    env.reset(seed=9)
+    env.reset(options={"tree": tree})
+    for _ in range(3):
+        assert sim.tree.parents.tolist() == tree.parents.tolist() and sim.joint_range == (6, 6)
+        np.testing.assert_array_equal(sim.joint_positions, env.data.qpos[3:])
+        sim.reset()
+        env.reset(options={"tree": tree})
+    sim.rebuild(5)  # back to a chain: its length from now on
+    sim.reset()
+    assert sim.tree.is_chain and sim.num_joints == 5

@@ -38,7 +38,7 @@ from morph_core.protocol.loopback import (
     LoopbackRecording,
     MeanController,
     SamplingController,
-    TreeSwimmerSim,
+    body_sim,
 )
 from morph_core.protocol.transition_batch import (
     EXPORT_KEYS,
@@ -805,7 +805,7 @@ TREES = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)), swimme
 
 
 def record_trees(controller, bodies=((TREES[0], 20), (TREES[1], 15), (TREES[2], 12)), **options):
-    loop = LoopbackRecording(TreeSwimmerSim(bodies[0][0], seed=SEED, effort_timeout=None), controller, **options)
+    loop = LoopbackRecording(body_sim(bodies[0][0], SEED), controller, **options)
     for i, (body, steps) in enumerate(bodies):
         if i:
             loop.new_episode(body)

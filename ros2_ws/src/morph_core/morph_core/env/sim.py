@@ -101,7 +101,7 @@ class SwimmerSim:
         if robot is not None:
             self._env = robot
             self._physics = robot.advance
-            self._fixed: int | None = None
+            self._fixed: int | KinematicTree | None = None
         else:
             self._env = MorphSwimmerEnv(num_joints=num_joints, observation_mode="graph", bodies=bodies)
             self._physics = self._swim
@@ -145,7 +145,10 @@ class SwimmerSim:
     @property
     def joint_range(self) -> tuple[int, int]:
         """Joint counts the next reset may draw (lo == hi: a fixed chain, or a robot)."""
-        return (self._fixed, self._fixed) if self._fixed is not None else self._env.joint_range
+        if self._fixed is None:
+            return self._env.joint_range
+        n = self._fixed if isinstance(self._fixed, int) else self._fixed.num_joints
+        return n, n
 
     @property
     def bodies(self) -> BodyMix | None:
@@ -175,24 +178,31 @@ class SwimmerSim:
     def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
         """Begin a new episode, one control period after the current state: a fresh swimmer (its
         length or body redrawn when there is a choice); efforts drop to zero."""
-        if self._fixed is not None:
+        if isinstance(self._fixed, KinematicTree):
+            self._env.reset(options={"tree": self._fixed})
+        elif self._fixed is not None:
             self._env.reset(options={"num_joints": self._fixed})  # draws the same as env.reset() would
         else:
             self._env.reset()
         self._new_episode(cause)
 
-    def rebuild(self, num_joints: int) -> None:
-        """Begin a new episode with a chain of ``num_joints`` joints. A fixed chain keeps that length from
-        now on; with a range, later resets draw from the range again. A sim of a body spec or of a robot
-        refuses (ValueError): its bodies are the spec's or the model's."""
+    def rebuild(self, body: int | KinematicTree) -> None:
+        """Begin a new episode with a chain of ``body`` joints, or a swimmer of the tree ``body`` (its parents;
+        the joints get the swimmer's names). A fixed body is that one from now on; with a range, later resets
+        draw from the range again. A sim of a body spec or of a robot refuses (ValueError): its bodies are the
+        spec's or the model's."""
         if self.robot is not None:
             raise ValueError(f"the robot model {self.robot.name!r} has {self.num_joints} joints; it cannot be rebuilt")
         if self._env.bodies is not None:
             raise ValueError(f"the bodies are drawn from {str(self._env.bodies)!r}; a chain cannot be rebuilt in it")
-        n = check_num_joints(num_joints)
+        if isinstance(body, KinematicTree):
+            fixed, options = body, {"tree": body}
+        else:
+            fixed = check_num_joints(body)
+            options = {"num_joints": fixed}
         if self._fixed is not None:
-            self._fixed = n
-        self._env.reset(options={"num_joints": n})
+            self._fixed = fixed
+        self._env.reset(options=options)
         self._new_episode(EpisodeCause.REBUILD)
 
     def _new_episode(self, cause: EpisodeCause) -> None:

@@ -15,7 +15,7 @@ For tests and for data without DDS; ``truth`` keeps what actually happened
 stepped with, in the env's joint order) so a replay can be compared against
 what the records say.
 
-Trees and joint names. The swimmer may be a tree (``TreeSwimmerSim``). With
+Trees and joint names. The swimmer may be a tree (``SwimmerSim.rebuild(tree)``). With
 ``describe`` the sim's ``robot_description`` is recorded too
 (``DescriptionRecord``: ``env.urdf.swimmer_urdf`` of the body, before the
 first state of each new body, as the sim node publishes it), and the
@@ -57,7 +57,6 @@ from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
-from morph_core.protocol.episode_start import EpisodeCause
 from morph_core.protocol.joint_map import JointMap, JointOrder
 
 Controller = Callable[[np.ndarray, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, dict | None]]
@@ -106,44 +105,6 @@ class GaussianController:
         return a, (pack_policy_info(a, mu, self.log_std) if self.with_policy_info else None)
 
 
-class TreeSwimmerSim(SwimmerSim):
-    """A ``SwimmerSim`` whose body may be a tree: ``body`` and ``rebuild`` take a chain length or a
-    ``KinematicTree`` (its parents in pre-order; the joints are the swimmer's, ``motor{k}_rot`` in that order,
-    whatever the tree names them). Efforts, clock and torso are ``SwimmerSim``'s; only the body is built here,
-    through the env's own ``reset(options={"tree": ...})``, until ``SwimmerSim`` builds trees itself. A tree
-    stays until the next ``rebuild`` (``reset`` keeps it; a chain length goes back to SwimmerSim's rules)."""
-
-    def __init__(self, body: int | KinematicTree = 6, seed: int | None = 0, effort_timeout: float | None = None,
-                 episode_steps: int = 0):  # fmt: skip
-        self._tree: KinematicTree | None = None
-        tree = body if isinstance(body, KinematicTree) else None
-        super().__init__(body if tree is None else tree.num_joints, seed, effort_timeout, episode_steps)
-        if tree is not None:
-            self.rebuild(tree)
-
-    @property
-    def tree(self) -> KinematicTree:
-        """The current body (joints in the env's order, the swimmer's names)."""
-        return self._env.tree
-
-    def rebuild(self, body: int | KinematicTree) -> None:
-        """Begin a new episode with this body (a chain length, or a tree)."""
-        if not isinstance(body, KinematicTree):
-            self._tree = None
-            super().rebuild(body)
-            return
-        self._tree = body
-        self._env.reset(options={"tree": body})
-        self._new_episode(EpisodeCause.REBUILD)
-
-    def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
-        if self._tree is None:
-            super().reset(cause)
-        else:
-            self._env.reset(options={"tree": self._tree})
-            self._new_episode(cause)
-
-
 @dataclass(frozen=True)
 class StepTruth:
     """What happened at one state: the env's observation there and the action the env was stepped with."""
@@ -158,7 +119,7 @@ class StepTruth:
 
 
 class LoopbackRecording:
-    """A ``SwimmerSim`` (``TreeSwimmerSim`` for trees) driven in lockstep by ``controller``; ``records`` is what a
+    """A ``SwimmerSim`` (of chains or trees) driven in lockstep by ``controller``; ``records`` is what a
     recorder would hold. ``describe``, ``shuffle_seed`` and ``name_efforts``: see the module docstring."""
 
     def __init__(
@@ -250,12 +211,12 @@ class LoopbackRecording:
         same_stamp: bool = False,
     ) -> None:
         """End the episode (``finish``) and reset the swimmer, optionally to another body (a chain length, or a
-        tree for a ``TreeSwimmerSim``; None keeps the body). The new first state is stamped one period after
+        tree; None keeps the body). The new first state is stamped one period after
         the last one (``same_stamp``: with the last one's stamp, as a sim that rebuilds without stepping its
         clock), and announced unless ``announce`` is False."""
         self.finish()
         if num_joints is None:
-            num_joints = self.sim.tree if isinstance(self.sim, TreeSwimmerSim) else self.sim.num_joints
+            num_joints = self.sim.num_joints if self.sim.tree.is_chain else self.sim.tree
         self.sim.rebuild(num_joints)
         self._ticks += not same_stamp
         self._episode += 1
@@ -264,7 +225,7 @@ class LoopbackRecording:
 
     # -- messages ---------------------------------------------------------------
     def _body(self) -> int | KinematicTree:
-        """The sim's body: its tree (a ``TreeSwimmerSim``, or any sim that says), else its chain length."""
+        """The sim's body: its tree (any sim that says), else its chain length."""
         tree = getattr(self.sim, "tree", None)
         return self.sim.num_joints if tree is None else tree
 
@@ -342,13 +303,20 @@ class LoopbackRecording:
         return out
 
 
+def body_sim(body: int | KinematicTree, seed: int) -> SwimmerSim:
+    """A seeded sim with this first body (a tree: built as a rebuild after the seeded reset), no effort timeout."""
+    if isinstance(body, KinematicTree):
+        sim = SwimmerSim(body.num_joints, seed=seed, effort_timeout=None)
+        sim.rebuild(body)
+        return sim
+    return SwimmerSim(body, seed=seed, effort_timeout=None)
+
+
 def record_episodes(controller: Controller, episodes, seed: int = 0, **options) -> list:
     """Records of consecutive episodes ``((body, steps), ...)`` of one seeded sim under ``controller``: a body
-    is a chain length or a ``KinematicTree`` (then the sim is a ``TreeSwimmerSim``); ``options`` are
-    ``LoopbackRecording``'s (``describe``, ``shuffle_seed``, ``name_efforts``, ``joint_prefix``)."""
-    trees = any(isinstance(body, KinematicTree) for body, _ in episodes)
-    sim_type = TreeSwimmerSim if trees else SwimmerSim
-    loop = LoopbackRecording(sim_type(episodes[0][0], seed=seed, effort_timeout=None), controller, **options)
+    is a chain length or a ``KinematicTree``; ``options`` are ``LoopbackRecording``'s (``describe``,
+    ``shuffle_seed``, ``name_efforts``, ``joint_prefix``)."""
+    loop = LoopbackRecording(body_sim(episodes[0][0], seed), controller, **options)
     for i, (body, steps) in enumerate(episodes):
         if i:
             loop.new_episode(body)
