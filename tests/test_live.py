@@ -89,12 +89,15 @@ def node(module: str, ns: str, params: dict, log_path: Path, prefix: list[str] =
     return Proc(args, log_path)
 
 
-def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, key, which=("sim", "policy"), prefix=()) -> dict:
-    """A lockstep sim and a sampling policy node in ``ns``; the node trusts ``key`` (conftest's ``TrainerKey``)."""
+def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, key, which=("sim", "policy"), prefix=(),
+               body: dict | None = None) -> dict:  # fmt: skip
+    """A lockstep sim and a sampling policy node in ``ns``; the node trusts ``key`` (conftest's ``TrainerKey``).
+    ``body``: the sim's body parameters (default chains of 2..10 joints)."""
     procs = {}
     if "sim" in which:
+        body = dict(min_joints=2, max_joints=10) if body is None else body
         procs["sim"] = node("swimmer_sim_node.sim_node", ns, dict(lockstep=True, real_time_factor=0.0,
-                                   effort_timeout=1.0, min_joints=2, max_joints=10, seed=seed),
+                                   effort_timeout=1.0, seed=seed, **body),
                                    tmp_path / f"sim{ns.replace('/', '_')}_{seed}.log", prefix)  # fmt: skip
     if "policy" in which:
         params = dict(deterministic=False, seed=seed, checkpoint=str(checkpoint), trusted_keys=key.trusted)
@@ -304,6 +307,32 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
     assert any(r.cause == "steps" for r in records) and any(r.cause == "reset" for r in records)
     assert len({r.num_joints for r in records}) >= 2 and all(2 <= r.num_joints <= 10 for r in records)
     assert "dropped its partial episode" in Path(tmp_path / "trainer.log").read_text()
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
+def test_live_training_on_branched_swimmers_with_shuffled_joints(
+    probe, namespace, tmp_path, untrained_checkpoint, trainer_key, listen
+):
+    """A pair whose sim draws Y and star swimmers and lists their joints in a new order every state: the
+    trainer reads each state on its body's tree (robot_description, from its topic or the policy node's
+    chunks) and updates on trees, and the policy node takes the new weights."""
+    ns = f"{namespace}/t0"
+    out = tmp_path / "run"
+    weights = WeightsWatch(probe, ns)
+    spec = "y:1-2x2,star:3x1-2"  # the trainer's --bodies: its log splits the returns over chains and trees
+    trainer = Trainer([ns], out, tmp_path / "trainer.log", trainer_key, "--bodies", spec, *reads(listen))
+    body = dict(topology=spec, shuffle_joints=True)
+    procs = [trainer, *start_pair(ns, 4, untrained_checkpoint, tmp_path, trainer_key, body=body).values()]
+    try:
+        probe.spin_until(lambda: weights.version >= 2, STARTUP + 120, lambda: trainer.log()[-6000:])
+    finally:
+        for p in procs:
+            p.stop()
+    rows = progress(out)
+    assert len(rows) >= 2 and all(int(r["batch_size"]) >= 128 for r in rows), trainer.log()[-3000:]
+    assert "return_trees" in rows[0] and any(r["return_trees"] not in ("", "nan") for r in rows), rows
+    assert all(r["return_chains"] in ("", "nan") for r in rows), rows  # every body a tree: no chain step
 
 
 # -- the policy node's side: weights adopted, late joiners, bad weights ---------------------------------------------
