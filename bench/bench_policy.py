@@ -8,7 +8,7 @@ torch thread, with the same parameters, measured side by side: the dense layer
 in eager mode, with the loss compiled and autograd's backward, with loss and
 gradient one compiled graph of the flat parameters called through
 ``torch.compile`` and called directly (as training runs it,
-``update.minibatch_gradient`` and ``algo.compiled``), and PyG's NNConv. Then
+``learner.minibatch_gradient`` and ``algo.compiled``), and PyG's NNConv. Then
 the heads' activation alone. Then kinematic trees against chains of the same
 joint counts (random parents), and chains on the trees' general path (gather
 and scatter-add with every sender named) against their own shifted adds:
@@ -27,10 +27,11 @@ import gymnasium
 import torch
 
 import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
+from morph_core.algo.batch import Minibatch
+from morph_core.algo.learner import minibatch_gradient
 from morph_core.algo.param_buffer import FlatParameters
 from morph_core.algo.ppo import ppo_loss
 from morph_core.algo.trust_region import get_rule
-from morph_core.algo.update import minibatch_gradient
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -55,8 +56,9 @@ def main() -> None:
     pyg.load_state_dict(dense.state_dict())
 
     rule = get_rule("compensated")
-    loss_args = (batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
-                 rule.clip_range(0.2, batch.num_joints.to(torch.float32)), None, 0.5, 0.0)  # fmt: skip
+    mb = Minibatch(batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
+                   rule.clip_range(0.2, batch.num_joints.to(torch.float32)))  # fmt: skip
+    loss_args = (mb, 0.5, 0.0)  # the minibatch, vf_coef, ent_coef
 
     def loss_of(net):
         return ppo_loss(net, *loss_args, rule=rule)[0]
@@ -132,8 +134,8 @@ def trees_vs_chains() -> None:
     share = torch.tensor(1.0)
 
     def args(batch):
-        return (batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
-                rule.clip_range(0.2, batch.num_joints.to(torch.float32)), None, 0.5, 0.0)  # fmt: skip
+        return (Minibatch(batch, actions, torch.randn(256) - 5.0, torch.randn(256), torch.randn(256),
+                          rule.clip_range(0.2, batch.num_joints.to(torch.float32))), 0.5, 0.0)  # fmt: skip
 
     numpy_policy = NumpyPolicy(policy)
     six = [0, 1, 2, 3, 4, 5]

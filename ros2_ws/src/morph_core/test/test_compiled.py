@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.algo.batch import Minibatch
 from morph_core.algo.compiled import compiled
+from morph_core.algo.learner import minibatch_gradient
 from morph_core.algo.param_buffer import FlatParameters
 from morph_core.algo.ppo import ppo_loss
 from morph_core.algo.trust_region import get_rule
-from morph_core.algo.update import minibatch_gradient
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
@@ -42,12 +43,14 @@ class _Paths:
 
     def __call__(self, args, kwargs):
         """(loss terms, gradient) by plain autograd; {compile: (gradient, (loss, statistics))}."""
+        *samples, vf_coef, ent_coef = args
+        mb = Minibatch(*samples, **kwargs)  # the samples as the loss reads them
         self.plain_policy.zero_grad()
-        out = self.loss(self.plain_policy, *args, **kwargs)
+        out = self.loss(self.plain_policy, mb, vf_coef, ent_coef)
         out[0].backward()
         plain = (out, torch.cat([p.grad.flatten() for p in self.plain_policy.parameters()]))
         share = torch.tensor(1.0)
-        return plain, {c: fn(self.flat.theta.detach(), share, *args, **kwargs) for c, fn in self.fns.items()}
+        return plain, {c: fn(self.flat.theta.detach(), share, mb, vf_coef, ent_coef) for c, fn in self.fns.items()}
 
 
 def _assert_same(plain, flat_results):
@@ -125,7 +128,7 @@ def test_a_share_scales_the_gradient_and_the_losses():
     torch.manual_seed(0)
     policy = GraphActorCritic()
     flat = FlatParameters(policy)
-    args = (*_minibatch(np.random.default_rng(2), 32, 6, weighted=False), 0.5, 0.01)
+    args = (Minibatch(*_minibatch(np.random.default_rng(2), 32, 6, weighted=False)), 0.5, 0.01)
     fn = minibatch_gradient(policy, flat, get_rule("compensated"), compile=False)
     (g1, (l1, s1)), (g4, (l4, s4)) = (fn(flat.theta.detach(), torch.tensor(s), *args) for s in (1.0, 0.25))
     torch.testing.assert_close(g4, 0.25 * g1)

@@ -11,11 +11,13 @@ import torch
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.data_parallel import HelperError, Helpers, env_bounds
+from morph_core.algo.learner import Learner
+from morph_core.algo.minibatches import part_sizes
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.rollout import collect
 from morph_core.algo.train import TrainConfig, helper_spec, train
 from morph_core.algo.trust_region import get_rule
-from morph_core.algo.update import Learner, part_sizes, update
+from morph_core.algo.update import update
 from morph_core.env.vec_env import SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy

@@ -6,9 +6,9 @@ from itertools import pairwise
 import pytest
 import torch
 
+from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import PerDimensionStats, compute_gae, normalized_advantages, normalized_minibatch_advantages
 from morph_core.algo.trust_region import LossContext, get_rule
-from morph_core.algo.update import minibatch_cuts
 
 
 def clip_range(eps, num_joints, rule):

@@ -5,9 +5,12 @@ import pytest
 import torch
 
 from morph_core.algo import trust_region
+from morph_core.algo.batch import RolloutBatch
+from morph_core.algo.learner import Learner
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.trust_region import ClippedRatio, get_rule, register, unregister
-from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, update
+from morph_core.algo.update import update
+from morph_core.algo.update_config import UpdateConfig
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.theory import clip_analysis as theory
 

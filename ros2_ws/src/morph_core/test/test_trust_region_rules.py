@@ -9,9 +9,13 @@ import pytest
 import torch
 
 from morph_core.algo import trust_region
+from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import load_training_state, save_training_state
+from morph_core.algo.learner import Learner
+from morph_core.algo.off_policy import proximal_log_probs
 from morph_core.algo.trust_region import LossContext, get_rule, joint_log_ratios, kl_per_joint
-from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update
+from morph_core.algo.update import update
+from morph_core.algo.update_config import UpdateConfig
 
 EPS = 0.2
 

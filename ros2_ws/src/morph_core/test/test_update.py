@@ -8,8 +8,12 @@ import math
 import pytest
 import torch
 
+from morph_core.algo.batch import RolloutBatch
+from morph_core.algo.learner import Learner
+from morph_core.algo.off_policy import proximal_log_probs, with_proximal
 from morph_core.algo.train import TrainConfig
-from morph_core.algo.update import Learner, RolloutBatch, UpdateConfig, proximal_log_probs, update, with_proximal
+from morph_core.algo.update import update
+from morph_core.algo.update_config import UpdateConfig
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 
@@ -232,7 +236,7 @@ def test_tree_minibatches_carry_their_parents_and_chain_parents_keep_the_chain_p
 
 
 def test_minibatch_cuts_never_leave_one_sample_alone():
-    from morph_core.algo.update import minibatch_cuts
+    from morph_core.algo.minibatches import minibatch_cuts
 
     assert minibatch_cuts(6144, 256) == list(range(0, 6145, 256))  # the paper's split, unchanged
     assert minibatch_cuts(40, 16) == [0, 16, 32, 40]

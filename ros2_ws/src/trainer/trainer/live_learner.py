@@ -74,11 +74,13 @@ from morph_core.algo.checkpoint import (
     save_training_state,
     sub_dict,
 )
+from morph_core.algo.learner import Learner
+from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
-from morph_core.algo.update import Learner, compile_ahead, update, with_proximal
+from morph_core.algo.update import compile_ahead, update
 from morph_core.msgs.policy_weights import pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.index_plan import chain_parents

@@ -455,7 +455,7 @@ class RunData:
 
 RUN_COLUMNS = ("in_eps_frac", "logr_std", "logr_mean")
 RUN_EPOCHS = {"all": "", "first": "_first", "last": "_last"}
-"""``run_epoch`` -> the column tag of those statistics (``algo.update.EPOCH_TAGS``)"""
+"""``run_epoch`` -> the column tag of those statistics (``algo.update_stats.EPOCH_TAGS``)"""
 
 
 def load_run(path: Path, fallback_eps: float | None = None, epoch: str = "all") -> RunData:

@@ -60,7 +60,7 @@ def save_training_state(
     learner_state: dict[str, torch.Tensor] | None = None,
     more_rngs: dict[str, torch.Tensor] | None = None,
 ) -> None:
-    """``learner_state``: further tensors by their full key (``update.Learner.state_tensors``, e.g. the
+    """``learner_state``: further tensors by their full key (``learner.Learner.state_tensors``, e.g. the
     KL penalty's beta), stored bit for bit and given back by ``load_training_state`` as they are.
     ``more_rngs``: further generator states by name (a helper process's noise), stored as ``rng.<name>``."""
     tensors = {f"policy.{k}": v.detach().contiguous() for k, v in policy.state_dict().items()}

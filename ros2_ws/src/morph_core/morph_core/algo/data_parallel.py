@@ -18,7 +18,7 @@ of every minibatch, and meet once per minibatch step:
   publishes the new parameters, which every helper takes before its next
   part. Every process gathers its next part's samples while the others still
   compute or step, and process 0's part is the smaller
-  (``update.PROCESS0_WEIGHT``), as it alone adds, clips and steps. The update
+  (``minibatches.PROCESS0_WEIGHT``), as it alone adds, clips and steps. The update
   equals the one-process update to float rounding (``test_data_parallel``).
 - Process 0 alone keeps the optimizer, logs and checkpoints; it asks the
   helpers for their swimmers' and generators' states when it saves. The
@@ -52,8 +52,10 @@ from multiprocessing.shared_memory import SharedMemory
 import numpy as np
 import torch
 
+from morph_core.algo.learner import Learner
+from morph_core.algo.minibatches import MinibatchPart, part_gradient, part_inputs, update_terms
 from morph_core.algo.rollout import Rollout, collect, rollout_layout
-from morph_core.algo.update import Learner, MinibatchPart, UpdateConfig, part_gradient, part_inputs, update_terms
+from morph_core.algo.update_config import UpdateConfig
 from morph_core.env.vec_env import SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
@@ -176,7 +178,7 @@ class HelperSpec:
 
 class Helpers:
     """Process 0's side: starts the helpers, shares the rollout with them and takes their parts of every
-    minibatch (an ``update.MinibatchPeers``)."""
+    minibatch (a ``minibatches.MinibatchPeers``)."""
 
     def __init__(self, spec: HelperSpec, learner: Learner):
         self.world = spec.processes
@@ -270,7 +272,7 @@ class Helpers:
         self.shared["advantages"][:] = advantages.numpy()
         self.shared["returns"][:] = returns.numpy()
 
-    # -- the update (update.MinibatchPeers) ------------------------------------
+    # -- the update (minibatches.MinibatchPeers) ------------------------------------
     def begin(self, kl_beta: torch.Tensor | None) -> None:
         self.publish_parameters()
         beta = None if kl_beta is None else kl_beta.clone()
@@ -373,8 +375,7 @@ def _serve(spec: HelperSpec, conn: Connection, done, go) -> None:
     def prepare(k: int):
         """The inputs of this helper's part of the epoch's minibatch k."""
         lo, hi = cuts[k], cuts[k + 1]
-        return part_inputs(terms, batch, spec.update, perm[lo:hi], perm_advantages[lo:hi], spec.rank,
-                           spec.processes)  # fmt: skip
+        return part_inputs(terms, batch, perm[lo:hi], perm_advantages[lo:hi], spec.rank, spec.processes)
 
     def take_parameters():
         learner.params.theta.data.copy_(theta)

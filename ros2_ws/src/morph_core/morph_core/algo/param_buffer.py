@@ -5,7 +5,7 @@ theta, as PPO is written, and cost a few operations per step instead of a few
 per parameter tensor (30 of them here); for a network this small that
 per-tensor overhead was about a tenth of a minibatch step. The update
 differentiates its loss as a function of theta itself (``views``,
-``algo.update.minibatch_gradient``) and copies that gradient into the flat
+``algo.learner.minibatch_gradient``) and copies that gradient into the flat
 buffer; autograd on the module (``backward()``) adds into an existing
 ``.grad`` in place, so its gradients land in the flat buffer too.
 

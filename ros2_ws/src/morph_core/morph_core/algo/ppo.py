@@ -10,54 +10,61 @@ from __future__ import annotations
 
 import math
 from itertools import pairwise
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from morph_core.algo.batch import Minibatch
 from morph_core.algo.trust_region import LossContext, TrustRegionRule, approx_kl
 
 
-def ppo_loss(
-    policy,
-    batch,
-    actions,
-    old_log_prob,
-    advantages,
-    returns,
-    clip_range,
-    weight,
-    vf_coef: float,
-    ent_coef: float,
-    rule: TrustRegionRule,
-    old_mean=None,
-    old_log_std=None,
-    kl_beta=None,
-    normalize_advantages: bool = True,
-):
-    """PPO's loss on one minibatch, with advantages normalised within it (unless
-    ``normalize_advantages`` is False: a part of a minibatch split over processes gets its advantages
-    already normalised over the whole minibatch, ``algo.data_parallel``).
+class LossTerms(NamedTuple):
+    """What ``ppo_loss`` returns for one minibatch of B samples."""
 
-    ``policy`` is a GraphActorCritic, ``batch`` the minibatch's ChainBatch, ``old_log_prob`` the
-    log-probs the ratio is taken against (the proximal policy's, see ``algo.update``), ``clip_range``
-    the rule's per-sample clip ranges, ``weight`` each sample's importance weight on the policy term
-    or None (on-policy data: no weight at all, not a weight of one). ``old_mean`` [B, J] and
-    ``old_log_std``: the proximal policy's Gaussian, for rules that use it per joint; ``kl_beta``: the
-    KL penalty's coefficient (``trust_region.LossContext``). Returns (loss, policy loss, value loss,
-    entropy, log ratio per sample, the rule's clip share per sample or None).
+    loss: torch.Tensor
+    """the loss minimised: policy loss + vf_coef * value loss - ent_coef * entropy"""
+    pg_loss: torch.Tensor
+    v_loss: torch.Tensor
+    entropy: torch.Tensor
+    log_ratio: torch.Tensor
+    """[B] log r of each sample over its joint action"""
+    clip_share: torch.Tensor | None
+    """[B] the rule's clip share per sample (``TrustRegionRule.clip_share``), or None"""
+
+
+def ppo_loss(policy, mb: Minibatch, vf_coef: float, ent_coef: float, rule: TrustRegionRule) -> LossTerms:
+    """PPO's loss on one minibatch ``mb`` (``batch.Minibatch``) under ``rule``, with advantages normalised
+    within it (unless ``mb.normalize_advantages`` is False: a part of a minibatch split over processes gets its
+    advantages already normalised over the whole minibatch, ``algo.minibatches``).
+
+    ``policy`` is a GraphActorCritic. The ratio is taken against ``mb.old_log_prob`` (the proximal policy's,
+    see ``algo.off_policy``); ``mb.weight`` weights each sample's policy term, or is None (on-policy data: no
+    weight at all, not a weight of one). The rule's loss hook gets a ``trust_region.LossContext``.
     """
-    mean, log_std, value = policy(batch)
-    log_ratio = policy.log_prob(batch, actions, mean) - old_log_prob
-    adv = normalized_advantages(advantages) if normalize_advantages else advantages
+    chains, actions = mb.chains, mb.actions
+    mean, log_std, value = policy(chains)
+    log_ratio = policy.log_prob(chains, actions, mean) - mb.old_log_prob
+    adv = normalized_advantages(mb.advantages) if mb.normalize_advantages else mb.advantages
     ctx = LossContext(
-        log_ratio, adv, clip_range, batch.num_joints, mean, log_std, actions, batch.mask, old_mean, old_log_std, kl_beta
+        log_ratio=log_ratio,
+        advantages=adv,
+        clip_range=mb.clip_range,
+        num_joints=chains.num_joints,
+        mean=mean,
+        log_std=log_std,
+        actions=actions,
+        mask=chains.mask,
+        old_mean=mb.old_mean,
+        old_log_std=mb.old_log_std,
+        kl_beta=mb.kl_beta,
     )
     surrogate = rule.surrogate(ctx)
-    pg_loss = -surrogate.mean() if weight is None else -(weight * surrogate).mean()
-    v_loss = torch.nn.functional.mse_loss(value, returns)
-    entropy = policy.entropy(batch).mean()
+    pg_loss = -surrogate.mean() if mb.weight is None else -(mb.weight * surrogate).mean()
+    v_loss = torch.nn.functional.mse_loss(value, mb.returns)
+    entropy = policy.entropy(chains).mean()
     loss = pg_loss + vf_coef * v_loss - ent_coef * entropy
-    return loss, pg_loss, v_loss, entropy, log_ratio, rule.clip_share(ctx)
+    return LossTerms(loss, pg_loss, v_loss, entropy, log_ratio, rule.clip_share(ctx))
 
 
 def normalized_advantages(advantages: torch.Tensor) -> torch.Tensor:

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from morph_core.algo.update import RolloutBatch
+from morph_core.algo.batch import RolloutBatch
 from morph_core.env.vec_env import Episode, PaddedObs, SwimmerVecEnv
 from morph_core.policy.chains import pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy

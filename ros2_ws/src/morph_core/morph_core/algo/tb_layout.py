@@ -81,7 +81,7 @@ def log_ratio_histograms(stats: PerDimensionStats, tag: str = "log_ratio") -> di
 
 
 def update_histograms(stats) -> dict[str, torch.Tensor]:
-    """An update's (``algo.update.UpdateStats``) log-ratio histograms: ``log_ratio/d<d>`` pooled over its
+    """An update's (``algo.update_stats.UpdateStats``) log-ratio histograms: ``log_ratio/d<d>`` pooled over its
     epochs and ``log_ratio_last/d<d>`` of its last epoch alone (the policy furthest from pi_old)."""
     out = log_ratio_histograms(stats.per_dim)
     if stats.last_epoch is not None:

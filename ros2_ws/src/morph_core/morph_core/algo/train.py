@@ -27,11 +27,15 @@ from morph_core.algo.checkpoint import (
     sub_dict,
 )
 from morph_core.algo.data_parallel import Helpers, HelperSpec, env_bounds
+from morph_core.algo.learner import Learner
+from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.trust_region import rule_names
-from morph_core.algo.update import Learner, UpdateConfig, epoch_columns, minibatch_cuts, update
+from morph_core.algo.update import update
+from morph_core.algo.update_config import UpdateConfig
+from morph_core.algo.update_stats import epoch_columns
 from morph_core.env.bodies import BodyMix, is_chain_label, parse_bodies
 from morph_core.env.vec_env import Episode, SwimmerVecEnv, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig

@@ -82,6 +82,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import (
     load_training_state,
     previous_state_path,
@@ -90,10 +91,13 @@ from morph_core.algo.checkpoint import (
     save_training_state,
     sub_dict,
 )
+from morph_core.algo.learner import Learner
+from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.train import TrainConfig
-from morph_core.algo.update import Learner, RolloutBatch, epoch_columns, update, with_proximal
+from morph_core.algo.update import update
+from morph_core.algo.update_stats import epoch_columns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transition_batch import TransitionBatch

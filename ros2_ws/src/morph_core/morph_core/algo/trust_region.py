@@ -38,15 +38,21 @@ every "-per-joint" variant equals its plain rule.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import torch
 
 from morph_core.policy.gaussian import log_density_per_joint
 
-if TYPE_CHECKING:  # the update's config; the update imports this module
-    from morph_core.algo.update import UpdateConfig
+
+class RuleSettings(Protocol):
+    """What a rule reads of the update's settings (``update_config.UpdateConfig`` has them; named here as a
+    protocol so that this module, which the update's modules import, imports none of them)."""
+
+    kl_target: float
+    kl_beta: float
+    kl_adaptive: bool
 
 
 class LossContext(NamedTuple):
@@ -146,17 +152,17 @@ class TrustRegionRule:
         joint); None: the update counts ``clipped`` on the joint ratio."""
         return None
 
-    def stop_after_epoch(self, log_ratio: torch.Tensor, num_joints: torch.Tensor, cfg: UpdateConfig) -> bool:
+    def stop_after_epoch(self, log_ratio: torch.Tensor, num_joints: torch.Tensor, cfg: RuleSettings) -> bool:
         """Whether the update ends after this epoch, given the log ratios [N] its minibatches saw
         (each before its step) and their samples' dimensions [N]."""
         return False
 
-    def initial_state(self, cfg: UpdateConfig) -> dict[str, torch.Tensor]:
+    def initial_state(self, cfg: RuleSettings) -> dict[str, torch.Tensor]:
         """The rule's state as training starts (kept by the learner, checkpointed with it)."""
         return {}
 
     def end_update(
-        self, state: dict[str, torch.Tensor], kl: torch.Tensor, num_joints: torch.Tensor, cfg: UpdateConfig
+        self, state: dict[str, torch.Tensor], kl: torch.Tensor, num_joints: torch.Tensor, cfg: RuleSettings
     ) -> dict[str, torch.Tensor]:
         """The state after an update; ``kl`` [N] each sample's exact KL(pi_prox || pi_new) over its joints
         after the update (only computed for rules that have state)."""
@@ -238,7 +244,7 @@ class KLPenalty(TrustRegionRule):
         kl = self.penalised_kl(kl_per_joint(ctx).sum(1), ctx.num_joints)
         return ctx.log_ratio.exp() * ctx.advantages - ctx.kl_beta * kl
 
-    def initial_state(self, cfg: UpdateConfig) -> dict[str, torch.Tensor]:
+    def initial_state(self, cfg: RuleSettings) -> dict[str, torch.Tensor]:
         return {"kl_beta": torch.tensor(cfg.kl_beta, dtype=torch.float64)}
 
     def end_update(self, state, kl, num_joints, cfg):

@@ -34,7 +34,7 @@ from __future__ import annotations
 import numbers
 from collections.abc import Sequence
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -42,8 +42,6 @@ from morph_core.policy.index_plan import joint_depths
 
 if TYPE_CHECKING:
     import mujoco
-
-    from morph_core.policy.tree import KinematicTree
 
 MIN_JOINTS = 1
 MAX_JOINTS = 64
@@ -111,7 +109,14 @@ def check_num_joints(num_joints: int) -> int:
     return n
 
 
-Body = int | Sequence[int] | np.ndarray
+class HasParents(Protocol):
+    """A tree as its parent array: ``policy.tree.KinematicTree`` (which imports this module, so it is named
+    here by what is read of it)."""
+
+    parents: Sequence[int] | np.ndarray
+
+
+Body = int | Sequence[int] | np.ndarray | HasParents
 """a chain length, or a tree: a ``KinematicTree`` or its parent array"""
 
 
@@ -190,7 +195,7 @@ def rest_angles_deg(parents: Sequence[int]) -> list[float]:
     return angles
 
 
-def swimmer_mjcf(body: Body | KinematicTree) -> str:
+def swimmer_mjcf(body: Body) -> str:
     """MJCF text of a swimmer: ``body`` a chain length (``num_joints`` actuated hinges, num_joints + 1
     segments; the text of the chain is unchanged), or a tree (a ``KinematicTree`` or its parent array;
     a tree that is a chain gives the chain's text)."""
@@ -267,7 +272,7 @@ def _chain_mjcf(num_joints: int) -> str:
     return "".join(parts)
 
 
-def swimmer_model(body: Body | KinematicTree) -> mujoco.MjModel:
+def swimmer_model(body: Body) -> mujoco.MjModel:
     """Compiled model, built from the MJCF string once per shape (a chain length, or a tree's parent
     array: the last ``TREE_CACHE_SIZE`` trees are kept). A tree that is a chain gets the chain's model.
 

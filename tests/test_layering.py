@@ -1,0 +1,307 @@
+"""The workspace's import structure: no import loops anywhere, and the package layering that docs/design.md
+states in its "Structure" table, read from there so that the page cannot drift from the code.
+
+Every module of every package in ``ros2_ws/src`` is parsed with ``ast``; nothing is imported (no torch, no
+ROS needed). An import is an arrow from its module to the workspace module it names (``from a.b import c``
+names ``a.b.c`` when that is a module, else ``a.b``), or to an outside module (its top-level name: ``torch``,
+``rclpy``). Every import counts: at module level, inside functions, and under ``if TYPE_CHECKING:`` (a loop
+there still ties the modules together for a reader, a type checker and the docs). A package's ``__init__``
+that runs on the way to a module counts for what loads at import time (``never imports``) but not as an
+arrow of a loop.
+
+The checks:
+
+- no import loop among the modules (each loop is named, with the file and line of each arrow);
+- the arrows between packages are exactly the table's ``imports`` column;
+- a package's ``never imports`` names (outside modules, or ``ROS``: rclpy, message and interface packages,
+  launch, ament) appear in no import of its modules, and importing any of its modules loads none of them
+  through the workspace modules it imports at import time (module level, outside ``TYPE_CHECKING``).
+  (``tests/test_policy_weights.py`` checks the nodes' imports at run time, beyond the workspace's modules.)
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "ros2_ws" / "src"
+DESIGN = ROOT / "docs" / "design.md"
+ROS_NAMES = {"rclpy", "launch", "launch_ros", "ament_index_python", "rosbag2_py", "message_filters", "tf2_ros"}
+"""outside modules that are ROS beside the ``rosidl*`` ones and the ``*_msgs``, ``*_srvs``, ``*_interfaces``
+packages"""
+
+
+def is_ros(name: str) -> bool:
+    return (
+        name in ROS_NAMES or name.startswith("rosidl") or name.endswith(("_msgs", "_srvs", "_interfaces"))
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Import:
+    source: str
+    """the importing module"""
+    target: str
+    """the workspace module imported, or an outside module's top-level name"""
+    line: int
+    at_import_time: bool
+    """runs when ``source`` is imported: at module or class level, not under ``if TYPE_CHECKING:``"""
+
+
+def workspace_modules() -> dict[str, Path]:
+    """Dotted name -> file of every module of every package in ros2_ws/src (a package is a directory with an
+    ``__init__.py`` beside a ``package.xml``)."""
+    modules = {}
+    for package in sorted(p.parent for p in SRC.glob("*/*/__init__.py") if (p.parents[1] / "package.xml").exists()):
+        for path in sorted(package.rglob("*.py")):
+            name = ".".join(path.relative_to(package.parent).with_suffix("").parts).removesuffix(".__init__")
+            modules[name] = path
+    return modules
+
+
+class _Imports(ast.NodeVisitor):
+    def __init__(self, module: str, is_package: bool, modules: dict[str, Path]):
+        self.module, self.is_package, self.modules = module, is_package, modules
+        self.found: list[Import] = []
+        self._deferred = 0  # inside a function body or under TYPE_CHECKING
+
+    def _resolve(self, name: str) -> str:
+        """The workspace module ``name`` is (or is inside), else the outside module's top-level name."""
+        parts = name.split(".")
+        for k in range(len(parts), 0, -1):
+            if ".".join(parts[:k]) in self.modules:
+                return ".".join(parts[:k])
+        return parts[0]
+
+    def _add(self, name: str, node: ast.AST) -> None:
+        self.found.append(Import(self.module, self._resolve(name), node.lineno, self._deferred == 0))
+
+    def visit_Import(self, node: ast.Import) -> None:
+        for alias in node.names:
+            self._add(alias.name, node)
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> None:
+        base = node.module or ""
+        if node.level:
+            package = self.module.split(".")[: None if self.is_package else -1]
+            package = package[: len(package) - (node.level - 1)]
+            base = ".".join([*package, base] if base else package)
+        for alias in node.names:
+            full = f"{base}.{alias.name}"
+            self._add(full if full in self.modules else base, node)
+
+    def _deferring(self, node: ast.AST) -> None:
+        self._deferred += 1
+        self.generic_visit(node)
+        self._deferred -= 1
+
+    visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _deferring
+
+    def visit_If(self, node: ast.If) -> None:
+        test = node.test
+        if (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+            isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+        ):
+            self.visit(test)
+            self._deferred += 1
+            for child in node.body:
+                self.visit(child)
+            self._deferred -= 1
+            for child in node.orelse:
+                self.visit(child)
+        else:
+            self.generic_visit(node)
+
+
+def all_imports(modules: dict[str, Path]) -> list[Import]:
+    found = []
+    for name, path in modules.items():
+        visitor = _Imports(name, path.name == "__init__.py", modules)
+        visitor.visit(ast.parse(path.read_text(encoding="utf-8"), filename=str(path)))
+        found += [i for i in visitor.found if i.target != name]
+    return found
+
+
+def package_of(module: str) -> str:
+    return module.split(".")[0]
+
+
+def strongly_connected(graph: dict[str, list[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components = []
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(graph[root]))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, edges = work[-1]
+            for nxt in edges:
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(graph[nxt])))
+                    break
+                if nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        components.append(sorted(component))
+    return components
+
+
+def a_loop(component: list[str], imports: list[Import]) -> str:
+    """One loop through the modules of ``component``, each arrow with its file and line."""
+    members = set(component)
+    arrows = {}
+    for i in imports:
+        if i.source in members and i.target in members:
+            arrows.setdefault(i.source, {}).setdefault(i.target, i)
+    start = component[0]
+    parent = {start: None}
+    queue = deque([start])
+    while queue:  # the shortest way back to start
+        node = queue.popleft()
+        for nxt, arrow in arrows.get(node, {}).items():
+            if nxt == start:
+                path = [arrow]
+                while parent[node] is not None:
+                    path.append(parent[node])
+                    node = parent[node].source
+                steps = [f"{a.source} -> {a.target} (line {a.line})" for a in reversed(path)]
+                return "; ".join(steps)
+            if nxt not in parent:
+                parent[nxt] = arrow
+                queue.append(nxt)
+    raise AssertionError(f"no loop found in {component}")
+
+
+def structure_table() -> dict[str, dict[str, set[str]]]:
+    """docs/design.md's "Structure" table: package -> {"imports": {...}, "never imports": {...}}; a cell lists
+    backticked names (or ROS), "—" for none."""
+    text = DESIGN.read_text(encoding="utf-8")
+    section = text.split("\n## Structure\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("|")]
+    header = [cell.strip() for cell in rows[0].strip("|").split("|")]
+    table = {}
+    for row in rows[2:]:
+        cells = dict(zip(header, (cell.strip() for cell in row.strip("|").split("|")), strict=True))
+        names = {column: set(re.findall(r"`([\w.]+)`", cells[column])) for column in ("imports", "never imports")}
+        if re.search(r"(?<!`)\bROS\b", cells["never imports"]):
+            names["never imports"].add("ROS")
+        (package,) = re.findall(r"`(\w+)`", cells["package"])
+        table[package] = names
+    return table
+
+
+def forbidden(name: str, never: set[str]) -> bool:
+    return name in never or ("ROS" in never and is_ros(name))
+
+
+def test_the_parser_sees_every_kind_of_import():
+    modules = workspace_modules()
+    imports = all_imports(modules)
+    assert len(modules) > 80 and {package_of(m) for m in modules} == {
+        "morph_core", "morph_ros_util", "swimmer_sim_node", "morph_policy_node", "trainer",
+    }  # fmt: skip
+    # relative imports would resolve too, but the project has none; every kind it has is found:
+    by_source = {}
+    for i in imports:
+        by_source.setdefault(i.source, []).append(i)
+    # a module-level import of a workspace module, and an outside module's top-level name
+    assert any(
+        i.target == "morph_core.algo.trust_region" and i.at_import_time for i in by_source["morph_core.algo.ppo"]
+    )
+    assert any(i.target == "torch" for i in by_source["morph_core.algo.ppo"])
+    # under TYPE_CHECKING: seen, but not at import time
+    tree = [i for i in by_source["morph_core.env.render"] if i.target == "morph_core.policy.tree"]
+    assert tree and not any(i.at_import_time for i in tree)
+    assert [i.at_import_time for i in by_source["morph_core.env.render"] if i.target == "numpy"] == [True]
+    # inside a function: seen, but not at import time
+    chains = [i for i in by_source["morph_core.msgs.joint_state"] if i.target == "morph_core.policy.chains"]
+    assert chains and not any(i.at_import_time for i in chains)
+
+
+def test_no_import_loops():
+    modules = workspace_modules()
+    imports = all_imports(modules)
+    graph: dict[str, list[str]] = {module: [] for module in modules}
+    for i in imports:
+        if i.target in modules and i.target not in graph[i.source]:
+            graph[i.source].append(i.target)
+    loops = [a_loop(component, imports) for component in strongly_connected(graph)]
+    assert loops == [], "import loops:\n" + "\n".join(loops)
+
+
+def test_the_packages_import_each_other_as_the_design_page_says():
+    table = structure_table()
+    modules = workspace_modules()
+    assert set(table) == {package_of(m) for m in modules}, "docs/design.md's Structure table lists other packages"
+    arrows: dict[tuple[str, str], Import] = {}
+    for i in all_imports(modules):
+        if i.target in modules and package_of(i.target) != package_of(i.source):
+            arrows.setdefault((package_of(i.source), package_of(i.target)), i)
+    stated = {(package, other) for package, row in table.items() for other in row["imports"]}
+    undocumented = [
+        f"{a} -> {b} ({i.source}, line {i.line})" for (a, b), i in sorted(arrows.items()) if (a, b) not in stated
+    ]
+    unused = [f"{a} -> {b}" for a, b in sorted(stated - set(arrows))]
+    assert undocumented == [], "imports docs/design.md's Structure table does not list: " + ", ".join(undocumented)
+    assert unused == [], "docs/design.md's Structure table lists imports no module makes: " + ", ".join(unused)
+
+
+def test_no_package_imports_what_the_design_page_says_it_never_imports():
+    table = structure_table()
+    modules = workspace_modules()
+    imports = all_imports(modules)
+    assert "ROS" in table["morph_core"]["never imports"] and "torch" in table["morph_policy_node"]["never imports"]
+    by_source: dict[str, list[Import]] = {}
+    for i in imports:
+        by_source.setdefault(i.source, []).append(i)
+    offenders = []
+    for module in modules:
+        never = table[package_of(module)]["never imports"]
+        # anywhere in its own source: a direct import, at any level
+        for i in by_source.get(module, []):
+            if forbidden(package_of(i.target), never):
+                offenders.append(f"{module} imports {i.target} (line {i.line})")
+        # at import time, through the workspace modules it loads (and the packages' __init__ on the way)
+        parent = {module: None}
+        queue = deque([module])
+        while queue:
+            node = queue.popleft()
+            ancestors = [".".join(node.split(".")[:k]) for k in range(1, node.count(".") + 1)]
+            loaded = [i.target for i in by_source.get(node, []) if i.at_import_time] + ancestors
+            for target in loaded:
+                if target in modules:
+                    if target not in parent:
+                        parent[target] = node
+                        queue.append(target)
+                elif forbidden(target, never) and node != module:
+                    chain = [target, node]
+                    while parent[chain[-1]] is not None:
+                        chain.append(parent[chain[-1]])
+                    offenders.append("importing " + " -> ".join(reversed(chain)))
+    assert offenders == [], "\n".join(sorted(set(offenders)))
