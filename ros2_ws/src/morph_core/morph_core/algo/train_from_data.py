@@ -35,7 +35,7 @@ the unclipped term), whatever the update does, so the clip bounds the
 distance to pi_behav, not the step from the current policy; the trust
 region is gone. The decoupled objective takes the ratio against the
 proximal policy pi_prox, the policy as the update starts
-(``update.with_proximal``), r = pi_theta / pi_prox, so the clip bounds the
+(``off_policy.with_proximal``), r = pi_theta / pi_prox, so the clip bounds the
 step again, and corrects for the data's origin separately: each sample's
 surrogate is weighted by the importance weight pi_prox / pi_behav,
 truncated at c (``TrainConfig.proximal_weight_cap``, 1 by default, as
