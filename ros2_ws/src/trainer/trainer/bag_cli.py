@@ -43,7 +43,7 @@ from morph_core.protocol.transitions import (
     TransitionAssembler,
     TransitionConfig,
 )
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
 from trainer.bag_io import BagError, BagReader, first_description
 from trainer.bag_messages import DESCRIPTION_TOPIC
 
@@ -211,8 +211,8 @@ def _counts(counts: dict) -> str:
 
 
 # -- command line ---------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
         prog="morph-bag", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     commands = parser.add_subparsers(dest="command", required=True)

@@ -37,7 +37,7 @@ from morph_core.algo.evaluate import Body, evaluate_policy
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
 from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body"]
@@ -169,7 +169,7 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     source = parser.add_mutually_exclusive_group(required=True)

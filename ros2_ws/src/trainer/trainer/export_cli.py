@@ -23,11 +23,12 @@ import torch
 
 from morph_core.policy.onnx_export import TOLERANCE, ExportError, export_checkpoint
 from morph_core.policy.weights import CheckpointError
+from morph_core.util.config_cli import CommandLineParser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="morph-export", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(prog="morph-export", description=__doc__,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     parser.add_argument("checkpoint", nargs="?", metavar="CHECKPOINT",
                         help="the policy checkpoint (.safetensors, its .json beside it)")  # fmt: skip
     parser.add_argument("out", nargs="?", metavar="OUT", help="the ONNX file to write (.onnx)")

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
-
 from morph_core.env.bodies import body_label, parse_bodies
 from morph_core.env.gait import TravellingWave, run_gait
+from morph_core.util.config_cli import CommandLineParser
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = CommandLineParser(prog="morph-gait", description=__doc__)
     parser.add_argument("--joints", type=int, nargs="*", default=[2, 3, 5, 6, 10, 15, 20])
     parser.add_argument("--bodies", default="", help="named trees too, an env.bodies spec (e.g. y:2x2,star:3x2)")
     parser.add_argument("--seconds", type=float, default=40.0, help="sim time per body")

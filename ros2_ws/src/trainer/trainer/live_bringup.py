@@ -19,7 +19,6 @@ pairs; the run directory is ``--out``. Options after ``--`` go to
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -30,6 +29,7 @@ from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import public_key_path, write_key_pair
+from morph_core.util.config_cli import CommandLineParser
 from trainer.bag_messages import DATA_TOPIC_TYPES
 from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
 
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = CommandLineParser(prog="python -m trainer.live_bringup", description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
     ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
     ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")

@@ -51,6 +51,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
+from morph_core.util.config_cli import CommandLineParser
 from trainer.bag_messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
@@ -342,7 +343,7 @@ class RecorderNode(Node):
         )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> CommandLineParser:
     """The recorder's own command line: ``--help`` (its options are ROS parameters, after ``--ros-args``)."""
     width = max(len(name) for name, *_ in PARAMETERS)
     lines = ["parameters (-p NAME:=VALUE after --ros-args; all read-only):"]
@@ -350,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
         shown = "[" + ", ".join(default) + "]" if isinstance(default, list) else repr(default)
         text = f"{name:<{width}}  {description} (default: {shown})"
         lines.append(textwrap.fill(text, 110, initial_indent="  ", subsequent_indent=" " * (width + 4)))
-    return argparse.ArgumentParser(
+    return CommandLineParser(
         prog="morph-record",
         usage="morph-record [-h] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]",
         description=__doc__,
@@ -375,7 +376,7 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except BagWriterError as err:
-        print(f"morph-record: {err}", file=sys.stderr)
+        print(f"morph-record: error: {err}", file=sys.stderr)
         return 1
     except Exception:
         # SIGINT/SIGTERM can shut the context down between rclpy.ok() and the wait in

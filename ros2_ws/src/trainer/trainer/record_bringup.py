@@ -13,13 +13,14 @@ policy answers. Then the nodes are stopped and the bag's contents printed.
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from morph_core.util.config_cli import CommandLineParser
 
 
 def fastdds_profile() -> str | None:
@@ -91,7 +92,7 @@ def run(args) -> int:
 
     out = Path(args.out)
     if out.exists():
-        print(f"record_bringup: {out} exists already: choose a new --out", file=sys.stderr)
+        print(f"record_bringup: error: {out} exists already: choose a new --out", file=sys.stderr)
         return 1
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     recorder_params = {"output": str(out), "storage": args.storage}
@@ -144,7 +145,7 @@ def run(args) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     if recorder.returncode not in (0, None):
-        print(f"record_bringup: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
+        print(f"record_bringup: error: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
         return 1
     return _summarise(out, ns)
 
@@ -157,7 +158,7 @@ def _summarise(out: Path, ns: str) -> int:
         reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
         records = reader.read()
     except BagError as err:
-        print(f"record_bringup: the bag is not usable: {err}", file=sys.stderr)
+        print(f"record_bringup: error: the bag is not usable: {err}", file=sys.stderr)
         return 1
     starts = sum(isinstance(r, EpisodeStartRecord) for r in records)
     counts = ", ".join(f"{k}: {v}" for k, v in sorted(reader.stats.counts.items()))
@@ -177,7 +178,7 @@ def _summarise(out: Path, ns: str) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = CommandLineParser(prog="python -m trainer.record_bringup", description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", required=True, help="bag folder to create")
     ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
     ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")

@@ -32,7 +32,7 @@ from pathlib import Path
 from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.policy.weights import CheckpointError, PolicyWeights, load_checkpoint, untrained_weights
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
 
 LAYOUTS = ("tiled", "sequence")
 CONTROL_HZ = 25  # the env's control period is 0.04 s
@@ -176,7 +176,7 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="morph-render", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     source = parser.add_mutually_exclusive_group(required=True)
@@ -211,10 +211,10 @@ def main(argv: list[str] | None = None) -> None:
         choose_gl_backend()
         render_video(weights, cfg, args.gif, args.mp4, log=lambda text: print(text, file=sys.stderr))
     except (CheckpointError, RenderUnavailable, VideoError) as err:
-        print(f"morph-render: {err}", file=sys.stderr)
+        print(f"morph-render: error: {err}", file=sys.stderr)
         sys.exit(1)
     except ValueError as err:  # e.g. a view larger than MuJoCo's offscreen buffer
-        print(f"morph-render: {err}", file=sys.stderr)
+        print(f"morph-render: error: {err}", file=sys.stderr)
         sys.exit(1)
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from morph_core.algo import trust_region
 from morph_core.theory import clip_analysis as theory
 from morph_core.theory import fisher_scaling
+from morph_core.util.config_cli import CommandLineParser
 
 _FISHER = fisher_scaling.ScalingConfig()  # figure 4's defaults live with the study itself
 
@@ -95,9 +96,9 @@ class TheoryConfig:
 # -- argparse from the dataclass ---------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> CommandLineParser:
     """One argument per :class:`TheoryConfig` field, with the field's default, type and help."""
-    parser = argparse.ArgumentParser(prog="morph-theory", description=__doc__.split("\n\n")[0])
+    parser = CommandLineParser(prog="morph-theory", description=__doc__.split("\n\n")[0])
     hints = typing.get_type_hints(TheoryConfig)
     defaults = TheoryConfig()
     for f in dataclasses.fields(TheoryConfig):

@@ -35,7 +35,13 @@ from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import load_signing_key
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
+from morph_core.util.config_cli import (
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    parse_bool,
+    replace_nested,
+)
 from trainer.bag_cli import bag_robot
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
@@ -49,8 +55,8 @@ class CliError(Exception):
     """A one-line error for the command line."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
         prog="morph-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory")

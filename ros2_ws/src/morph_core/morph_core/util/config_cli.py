@@ -17,6 +17,20 @@ import textwrap
 import typing
 
 
+class CommandLineParser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` as every tool of the project uses it: options are never abbreviated
+    (``--total-timestep`` is refused, not taken for ``--total-timesteps``), and an error is one line,
+    ``prog: error: message``, and a hint ``see prog --help``, not the usage block. Subcommands' parsers
+    (``add_subparsers``) are of this class too."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\nsee {self.prog} --help\n")
+
+
 def field_docs(cls) -> dict[str, str]:
     """Attribute docstrings (a string literal right after a field) of a dataclass."""
     try:
