@@ -31,7 +31,7 @@ from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import public_key_path, write_key_pair
 from morph_core.util.config_cli import CommandLineParser
 from trainer.bag_messages import DATA_TOPIC_TYPES
-from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
+from trainer.record_bringup import BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
 TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
@@ -73,8 +73,9 @@ def run_key_pair(directory: str | Path) -> Path:
     return key
 
 
-def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
-    cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(args.out)]
+def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    """``morph-train``'s arguments (without the program)."""
+    cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
     if signing_key is not None:
         cmd += ["--signing-key", str(signing_key)]
     cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.updates)]
@@ -83,15 +84,24 @@ def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: 
     return cmd + extra
 
 
+def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    return [sys.executable, "-m", "trainer.train_cli", *trainer_arguments(namespaces, args, extra, signing_key)]
+
+
 def run(args, extra: list[str]) -> int:
     import subprocess
 
+    from trainer.train_cli import check_live
+
+    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
+    # What the trainer would refuse (an --out that holds a run, no run to --resume, a bad option after --) it
+    # refuses here, with its own one-line error, before any process starts.
+    check_live(trainer_arguments(namespaces, args, extra))
     profile = fastdds_profile()
     if profile:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
     import rclpy
 
-    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
     keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
     key = run_key_pair(keys)
     rclpy.init()
@@ -162,7 +172,11 @@ def main(argv=None) -> int:
         ap.error("--pairs must be >= 1")
     if not args.real_time_factor >= 0:
         ap.error("--real-time-factor must be >= 0")
-    return run(args, extra)
+    try:
+        return run(args, extra)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

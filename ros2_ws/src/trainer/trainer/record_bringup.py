@@ -23,6 +23,10 @@ from pathlib import Path
 from morph_core.util.config_cli import CommandLineParser
 
 
+class BringupError(RuntimeError):
+    """A node of the bring-up exited or never came up: said in one line (its own error is above), no traceback."""
+
+
 def fastdds_profile() -> str | None:
     """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
     try:
@@ -58,11 +62,11 @@ def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
 
     client = node.create_client(ListParameters, f"{target}/list_parameters")
     if not client.wait_for_service(timeout_sec=timeout):
-        raise RuntimeError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
+        raise BringupError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
     future = client.call_async(ListParameters.Request(names=[name]))
     rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
     if future.result() is None:
-        raise RuntimeError(f"no answer from {target}/list_parameters")
+        raise BringupError(f"no answer from {target}/list_parameters")
     return name in future.result().result.names
 
 
@@ -78,9 +82,12 @@ def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, t
         left = [missing(topics) for topics in alternatives]
         if not all(left):
             return
-        if proc.poll() is not None or time.monotonic() > deadline:
-            said = " or ".join(str(m) for m in left)
-            raise RuntimeError(f"{name} did not subscribe to {said} (exited, or DDS discovery failed)")
+        said = " or ".join(str(m) for m in left)
+        if proc.poll() is not None:
+            raise BringupError(f"{name} exited (code {proc.returncode}) before it subscribed to {said}: see its "
+                               "error above")  # fmt: skip
+        if time.monotonic() > deadline:
+            raise BringupError(f"{name} did not subscribe to {said} within {timeout} s (DDS discovery failed?)")
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
@@ -134,7 +141,7 @@ def run(args) -> int:
         deadline = time.monotonic() + args.timeout
         while recorder.poll() is None:
             if any(p.poll() is not None for p in procs[1:]):
-                raise RuntimeError("a node exited early; see its output above")
+                raise BringupError("a node exited early; see its output above")
             if time.monotonic() > deadline:
                 print(f"record_bringup: timed out after {args.timeout} s: closing the bag early", flush=True)
                 _stop([recorder], signal.SIGINT)
@@ -192,7 +199,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.steps_per_episode < 1:
         ap.error("--episodes and --steps-per-episode must be >= 1")
-    return run(args)
+    try:
+        return run(args)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

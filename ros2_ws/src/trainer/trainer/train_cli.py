@@ -189,9 +189,8 @@ def _train_from_bags(args) -> None:
     )
 
 
-def _train_live(args, parser) -> int:
-    from trainer.live import run_live  # rclpy only here
-
+def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions]:
+    """The live run's config and options, or ``parser.error`` for what the trainer refuses before it starts ROS."""
     if not args.namespaces:
         parser.error("--live needs --namespaces NS [NS ...]")
     if args.from_bags is not None:
@@ -209,8 +208,28 @@ def _train_live(args, parser) -> int:
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key)  # fmt: skip
+    except (TypeError, ValueError) as err:
+        parser.error(str(err))
+    return cfg, options
+
+
+def check_live(argv: list[str]) -> None:
+    """Refuse ``morph-train --live`` arguments (``argv``, without the program) as the trainer would, with its
+    one-line error and exit code 2, before anything starts: a bring-up checks its trainer's command first."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.live:
+        parser.error("check_live: a command without --live")
+    _live_config(args, parser)
+
+
+def _train_live(args, parser) -> int:
+    from trainer.live import run_live  # rclpy only here
+
+    cfg, options = _live_config(args, parser)
+    try:
         signer = None if args.signing_key is None else load_signing_key(args.signing_key)
-    except (TypeError, ValueError) as err:  # KeyFileError is a ValueError
+    except ValueError as err:  # KeyFileError is a ValueError
         parser.error(str(err))
     return run_live(cfg, options, signer=signer)
 
