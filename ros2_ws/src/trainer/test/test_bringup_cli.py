@@ -38,3 +38,19 @@ def test_live_resume_without_a_run_and_bad_trainer_options_are_refused_first(tmp
     err = _refused([*LIVE, "--out", str(tmp_path / "new"), "--", "--learning-rate", "fast"], tmp_path)
     assert err[0] == "morph-train: error: argument --learning-rate: invalid float value: 'fast'"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_live_resume_of_a_finished_run_says_so_and_starts_nothing(tmp_path):
+    from morph_core.algo.train import TrainConfig, train
+
+    small = dict(num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, total_timesteps=128,
+                 tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+    run = train(TrainConfig(**small), tmp_path / "run")  # a training state at its total_timesteps
+    files = sorted(p.name for p in run.iterdir())
+    done = subprocess.run([*LIVE, "--out", str(run), "--resume"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [
+        f"morph-train: {run} already finished at step 128 (total_timesteps 128): nothing to do; "
+        "raise --total-timesteps to go on"
+    ]
+    assert sorted(p.name for p in run.iterdir()) == files

@@ -6,6 +6,7 @@ SIGKILL equal to an uninterrupted run, the refusal of bags without policy_info, 
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -166,6 +167,29 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
         assert torch.equal(w_ref[k], w_run[k]), k  # weights, Adam moments, generator, pass order
     assert [r["global_step"] for r in _rows(run)] == [r["global_step"] for r in _rows(ref)]
     assert [r["policy_loss"] for r in _rows(run)] == [r["policy_loss"] for r in _rows(ref)]
+
+
+def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_path, init, sampled, capsys):
+    bag = write_bag(tmp_path / "bag", sampled)
+    run = tmp_path / "run"
+    config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
+    assert main(["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", *SMALL]) == 0
+    capsys.readouterr()
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume"]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        f"morph-train: {run} already finished at update 2 (2 updates on these bags): nothing to do; raise "
+        "--iterations to go on, or train on new bags with --resume --new-data"
+    ]
+    assert run_state(run)["done"] == 2
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--iterations", "3",
+                 "--minibatch-size", "8"]) == 0  # fmt: skip
+    assert "morph-train: resumed with minibatch_size 16 -> 8" in capsys.readouterr().out
+    assert config()["minibatch_size"] == 8 and run_state(run)["done"] == 3
+    # The optimizer's hyper-parameters come back with its state: a new learning rate would not be applied.
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--iterations", "4",
+                 "--learning-rate", "0.003"]) == 1  # fmt: skip
+    assert "--learning-rate 0.003 with --resume would not be applied" in _error(capsys)
+    assert config()["learning_rate"] == 0.01 and run_state(run)["done"] == 3
 
 
 # -- bad input -----------------------------------------------------------------------------------

@@ -2,8 +2,11 @@
 
 Every TrainConfig field is an option (``--clip-mode``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...). ``--resume`` continues the run in ``--out``
-from its last checkpoint, with the config it was started with (options
-given again override it, e.g. a larger ``--total-timesteps``).
+from its last checkpoint, with the config it was started with; options
+given again override it (e.g. a larger ``--total-timesteps``) and are
+written back to its config.json. The optimizer's ``--learning-rate`` and
+``--adam-eps`` come back with its state: a resume refuses new ones. A run
+that reached its ``--total-timesteps`` says so and does nothing.
 
 From recorded topics instead of the simulator (``morph_core.algo.train_from_data``):
 
@@ -24,11 +27,12 @@ on is refused.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
-from morph_core.algo.train import TrainConfig, load_run_config, train
+from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -45,6 +49,7 @@ from morph_core.util.config_cli import (
 from trainer.bag_cli import bag_robot
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
+from trainer.train_session import ResumedConfig, ResumeError, finished_data_message, finished_message
 
 PPO_TOPICS = ("joint_states", "odom")
 """topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
@@ -146,10 +151,16 @@ def _train_from_bags(args) -> None:
             GraphActorCritic.load(args.init)
         except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
             raise CliError(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})") from None
+    source = [str(Path(b).resolve()) for b in args.from_bags]
+    resumed = None
     if args.resume:
         if not (args.out / "config.json").exists():
             raise CliError(f"--resume: no run to resume in {args.out} (config.json missing)")
-        cfg = load_run_config(args.out, overrides)
+        resumed = ResumedConfig(args.out, overrides)
+        cfg = resumed.cfg
+        if not args.new_data and (done := finished_data_message(args.out, source, args.iterations)):
+            print(f"morph-train: {done}")
+            return
     else:
         if (args.out / "state.safetensors").exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
@@ -177,20 +188,24 @@ def _train_from_bags(args) -> None:
         f"update(s) of up to {cfg.batch_size} samples into {args.out}",
         flush=True,
     )
-    train_from_data(
-        cfg,
-        data,
-        args.out,
-        iterations=args.iterations,
-        init=args.init,
-        resume=args.resume,
-        new_data=args.new_data,
-        source=[str(Path(b).resolve()) for b in args.from_bags],
-    )
+    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        if resumed:
+            resumed.write_back()
+        train_from_data(
+            cfg,
+            data,
+            args.out,
+            iterations=args.iterations,
+            init=args.init,
+            resume=args.resume,
+            new_data=args.new_data,
+            source=source,
+        )
 
 
-def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions]:
-    """The live run's config and options, or ``parser.error`` for what the trainer refuses before it starts ROS."""
+def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
+    """The live run's config, options and (on ``--resume``) what changes in its config.json; ``parser.error``
+    for what the trainer refuses before it starts ROS, and a finished run resumed is said and exits 0."""
     if not args.namespaces:
         parser.error("--live needs --namespaces NS [NS ...]")
     if args.from_bags is not None:
@@ -200,17 +215,21 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions]:
         if args.resume:
             if not (args.out / "state.safetensors").exists():
                 parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
-            cfg = load_run_config(args.out, overrides)
+            resumed = ResumedConfig(args.out, overrides)
+            cfg = resumed.cfg
         else:
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg = replace_nested(live_train_config(), overrides)
+            cfg, resumed = replace_nested(live_train_config(), overrides), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key)  # fmt: skip
-    except (TypeError, ValueError) as err:
+    except (OSError, TypeError, ValueError) as err:
         parser.error(str(err))
-    return cfg, options
+    if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):
+        print(f"morph-train: {done}")
+        parser.exit(0)
+    return cfg, options, resumed
 
 
 def check_live(argv: list[str]) -> None:
@@ -226,12 +245,16 @@ def check_live(argv: list[str]) -> None:
 def _train_live(args, parser) -> int:
     from trainer.live import run_live  # rclpy only here
 
-    cfg, options = _live_config(args, parser)
+    cfg, options, resumed = _live_config(args, parser)
     try:
         signer = None if args.signing_key is None else load_signing_key(args.signing_key)
     except ValueError as err:  # KeyFileError is a ValueError
         parser.error(str(err))
-    return run_live(cfg, options, signer=signer)
+    if resumed is None:
+        return run_live(cfg, options, signer=signer)
+    with resumed.kept_unless_trained(args.out / "state.safetensors"):
+        resumed.write_back()
+        return run_live(cfg, options, signer=signer)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -258,14 +281,21 @@ def main(argv: list[str] | None = None) -> int:
     if given:
         parser.error(f"{', '.join(given)}: only with --from-bags")
     overrides = overrides_from_args(args, TrainConfig)
+    resumed = None
     if args.resume:
         if not (args.out / "config.json").exists():
             parser.error(f"--resume: no run to resume in {args.out} (config.json missing)")
         try:
-            cfg = load_run_config(args.out, overrides)
+            resumed = ResumedConfig(args.out, overrides)
+        except ResumeError as err:
+            parser.error(str(err))
         except (OSError, TypeError, ValueError) as err:  # a hand-edited config.json: said before anything runs
             print(f"morph-train: error: {args.out / 'config.json'}: {err}", file=sys.stderr)
             return 1
+        cfg = resumed.cfg
+        if done := finished_message(args.out, cfg):
+            print(f"morph-train: {done}")
+            return 0
     else:
         if (args.out / "state.safetensors").exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
@@ -274,7 +304,10 @@ def main(argv: list[str] | None = None) -> int:
         except (TypeError, ValueError) as err:
             parser.error(str(err))
     try:
-        train(cfg, args.out, resume=args.resume)
+        with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+            if resumed:
+                resumed.write_back()
+            train(cfg, args.out, resume=args.resume)
     except TrainingStateError as err:
         print(f"morph-train: error: {err}", file=sys.stderr)
         return 1
