@@ -94,8 +94,13 @@ def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_pat
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
     run = tmp_path / "run"
     config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
-    assert main(["--out", str(run), "--total-timesteps", "128", *args]) == 0
-    capsys.readouterr()
+    assert main(["--out", str(run), "--total-timesteps", "128", "--kl-target", "1", *args]) == 0
+    assert capsys.readouterr().out.splitlines() == [  # without the progress bar, still a summary
+        f"morph-train: done: step 128 (update 1); no episode finished yet; last update's approximate KL "
+        f"{float(_rows(run)[-1]['approx_kl']):.3g}",
+        f"morph-train: files in {run}: config.json, progress.csv, checkpoints/ (1, the last "
+        "policy_00000128.safetensors), state.safetensors (for --resume)",
+    ]
     rows = (run / "progress.csv").read_text()
     assert main(["--out", str(run), "--resume"]) == 0
     assert capsys.readouterr().out.splitlines()[0] == (

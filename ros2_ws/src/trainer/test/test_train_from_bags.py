@@ -192,6 +192,35 @@ def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_p
     assert config()["learning_rate"] == 0.01 and run_state(run)["done"] == 3
 
 
+def test_updates_far_above_the_kl_target_are_warned_about_and_the_run_summed_up(tmp_path, init, sampled, capsys):
+    bag = write_bag(tmp_path / "bag", sampled)
+    run = tmp_path / "run"
+    # The warning's limit is 10 x --kl-target (a target the compensated rule does not use: the updates are
+    # the same as at the default): these updates' KL is above 1e-7, far below the default's 0.1.
+    args = ["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", "--kl-target", "1e-8"]
+    assert main([*args, *SMALL]) == 0
+    out, err = capsys.readouterr()
+    rows = _rows(run)
+    warnings = [line for line in err.splitlines() if line.startswith("morph-train: warning: update")]
+    assert warnings == [
+        f"morph-train: warning: update {r['iteration']} (step {r['global_step']}): approximate KL "
+        f"{float(r['approx_kl']):.3g} > 1e-07 (10x kl_target): the policy moved far from the one that acted; a "
+        "lower --learning-rate keeps it closer (a trained policy given with --init: e.g. --learning-rate 0.001)"
+        for r in rows
+    ]
+    top = max(float(r["approx_kl"]) for r in rows)
+    assert out.splitlines()[-2:] == [
+        f"morph-train: done: step 60 (update 2); return of the recorded episodes {float(rows[-1]['return_mean']):.1f}"
+        f"; last update's approximate KL {float(rows[-1]['approx_kl']):.3g}; 2 of 2 updates above KL 1e-07 (max "
+        f"{top:.3g})",
+        f"morph-train: files in {run}: config.json, progress.csv, checkpoints/ (1, the last "
+        "policy_00000060.safetensors), state.safetensors (for --resume)",
+    ]
+    assert main(["--from-bags", str(bag), "--out", str(tmp_path / "quiet"), "--init", str(init), "--iterations", "2",
+                 "--kl-target", "1", *SMALL]) == 0  # fmt: skip
+    assert "warning" not in capsys.readouterr().err and max(float(r["approx_kl"]) for r in rows) < 10
+
+
 # -- bad input -----------------------------------------------------------------------------------
 def test_a_bag_without_policy_info_is_refused_naming_what_is_missing(tmp_path, init, capsys):
     records = record_episodes(MeanController(GraphActorCritic.load(init)), ((3, 20),))
