@@ -234,9 +234,16 @@ def test_cli_end_to_end_writes_figures_csvs_and_overlay(tmp_path, capsys):
 
 def test_run_csv_missing_columns_is_a_clear_error(tmp_path, capsys):
     bad = write_synthetic_run(tmp_path / "bad", drop="logr_std_d3")
-    assert main(["--no-fisher", *SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(bad)]) == 2
+    good = write_synthetic_run(tmp_path / "good")
+    assert (
+        main(["--no-fisher", *SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(good), "--run-csv", str(bad)]) == 2
+    )
     err = capsys.readouterr().err
-    assert "missing columns logr_std_d3" in err
+    assert err.startswith("morph-theory: error: ") and "missing columns logr_std_d3" in err
+    assert not (tmp_path / "o").exists()  # checked before any figure is made
+    assert main([*SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(tmp_path / "nowhere")]) == 2
+    assert capsys.readouterr().err == f"morph-theory: error: run CSV not found: {tmp_path / 'nowhere'}\n"
+    assert not (tmp_path / "o").exists()
     with pytest.raises(ValueError, match="no in_eps_frac"):
         (tmp_path / "empty.csv").write_text("global_step,return_mean\n1,2\n")
         load_run(tmp_path / "empty.csv")

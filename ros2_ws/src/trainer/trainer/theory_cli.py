@@ -586,6 +586,17 @@ def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
 # -- entry point -------------------------------------------------------------------------------------
 
 
+def check_inputs(cfg: TheoryConfig) -> None:
+    """Raise ``ValueError`` for inputs the figures would fail on, before any is made: every ``--run-csv`` is
+    read (columns, rows, clip_eps) and must give the overlay a dimension with data."""
+    if not 0 < cfg.run_tail <= 1:
+        raise ValueError(f"run_tail must be in (0, 1], got {cfg.run_tail}")
+    for path in cfg.run_csv:
+        run = load_run(path, fallback_eps=cfg.eps, epoch=cfg.run_epoch)
+        if not run_overlay_rows(run, cfg.run_tail):
+            raise ValueError(f"{run.name}: every row of every dimension is empty")
+
+
 def run(cfg: TheoryConfig) -> dict[str, float]:
     """Make every figure of ``cfg``; returns (and writes) the summary numbers."""
     import torch
@@ -610,6 +621,7 @@ def run(cfg: TheoryConfig) -> dict[str, float]:
 def main(argv: Sequence[str] | None = None) -> int:
     cfg = parse_config(argv)
     try:
+        check_inputs(cfg)  # a bad --run-csv is said before minutes of figures, not after
         summary = run(cfg)
     except ValueError as exc:
         print(f"morph-theory: error: {exc}", file=sys.stderr)
