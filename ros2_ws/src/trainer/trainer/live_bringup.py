@@ -1,6 +1,7 @@
 """Live training on this machine: K lockstep sim+policy pairs in namespaces plus the live trainer.
 
-    python -m trainer.live_bringup --pairs 4 --out runs/live [--updates N] [--resume] [-- TRAIN OPTIONS]
+    bash scripts/live.sh --pairs 4 --out runs/live [--updates N] [--resume] [-- MORPH-TRAIN OPTIONS]
+    python -m trainer.live_bringup --out runs/live ...      (the same, without set-up or network namespace)
 
 What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
 machines without ``launch``. The trainer starts first (``morph-train --live``,
@@ -24,14 +25,15 @@ import os
 import shutil
 import sys
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import public_key_path, write_key_pair
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
 from trainer.bag_messages import DATA_TOPIC_TYPES
-from trainer.record_bringup import BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
+from trainer.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
 TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
@@ -148,7 +150,18 @@ def main(argv=None) -> int:
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    ap = CommandLineParser(prog="python -m trainer.live_bringup", description=__doc__.split("\n\n")[0])
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.live_bringup"),
+        usage="%(prog)s [-h] --out DIR [options] [-- MORPH-TRAIN OPTIONS]",
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog=textwrap.fill(
+            "Everything after -- goes to the trainer, morph-train --live (.venv/bin/morph-train --help lists its "
+            "options), e.g. -- --num-steps 256 --seed 3 --learning-rate 0.003. A relative --out or --checkpoint "
+            "is taken from the folder the command runs in.",
+            100,
+        ),
+    )
     ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
     ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
     ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
@@ -161,12 +174,12 @@ def main(argv=None) -> int:
         help="the sims' pace (1: real time, as robots run; 0: as fast as the loop goes). Unpaced pairs "
         "can outrun the trainer's ingest on a loaded machine, which then cuts their episodes",
     )
-    ap.add_argument("--min-joints", type=int, default=2)
-    ap.add_argument("--max-joints", type=int, default=10)
+    ap.add_argument("--min-joints", type=int, default=2, help="shortest chain a sim draws at a reset")
+    ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
     ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
                     "weights replace it)")  # fmt: skip
     ap.add_argument("--timeout", type=float, default=24 * 3600.0, help="wall seconds before stopping")
-    ap.add_argument("--startup-timeout", type=float, default=60.0)
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for each node")
     args = ap.parse_args(argv)
     if args.pairs < 1:
         ap.error("--pairs must be >= 1")

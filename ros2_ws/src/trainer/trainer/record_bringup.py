@@ -1,6 +1,7 @@
 """Record episodes of the sampling policy on the simulated swimmer into a bag: sim + policy + recorder.
 
-    python -m trainer.record_bringup --episodes 10 --out bags/run1 [--joints 6] [--storage mcap]
+    bash scripts/record.sh --out bags/run1 --episodes 10 [--joints 6] [--storage mcap]
+    python -m trainer.record_bringup --out bags/run1 ...      (the same, without set-up or network namespace)
 
 What a launch file would do on a Jazzy install, for machines without
 ``launch``: the recorder starts first (so it sees the first episode), then the
@@ -20,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
 
 
 class BringupError(RuntimeError):
@@ -184,16 +185,25 @@ def _summarise(out: Path, ns: str) -> int:
     return 0
 
 
+PROG_ENV = "MORPH_PROG"
+"""the name a wrapper script runs a bring-up under (its help and errors name the script)"""
+
+
 def main(argv=None) -> int:
-    ap = CommandLineParser(prog="python -m trainer.record_bringup", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="bag folder to create")
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.record_bringup"),
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog="A relative --out or --checkpoint is taken from the folder the command runs in.",
+    )
+    ap.add_argument("--out", required=True, help="bag folder to create (must not exist)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
     ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")
     ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
-    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="the bag's storage format")
     ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the sim's resets and the policy's sampling")
-    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes")
+    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes ('': the root)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds before closing the bag early")
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the sim")
     args = ap.parse_args(argv)

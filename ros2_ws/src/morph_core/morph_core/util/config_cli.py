@@ -31,6 +31,24 @@ class CommandLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\nsee {self.prog} --help\n")
 
 
+class DefaultsHelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help with each option's default shown (``(default: X)``) unless its help shows it already, it has none
+    (None, a required option, a flag) or it is positional; the description kept as written."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (
+            "%(default)" in text
+            or "(default:" in text
+            or action.default in (None, argparse.SUPPRESS)
+            or action.required
+            or action.nargs == 0
+            or not action.option_strings
+        ):
+            return text
+        return f"{text} (default: {action.default!r})" if action.default == "" else f"{text} (default: %(default)s)"
+
+
 def field_docs(cls) -> dict[str, str]:
     """Attribute docstrings (a string literal right after a field) of a dataclass."""
     try:
