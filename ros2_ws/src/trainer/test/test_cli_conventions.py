@@ -67,3 +67,38 @@ def test_a_missing_argument_is_one_line_too(capsys):
         "morph-train: error: argument --total-timesteps: invalid int value: 'five'",
         "see morph-train --help",
     ]
+
+
+def test_every_boolean_is_flag_true_or_false_and_a_bare_flag_takes_no_positional():
+    from trainer import bag_cli, export_cli, train_cli
+
+    parse = train_cli.build_parser().parse_args
+    for given, compile_, resume in (([], None, False), (["--compile"], True, False),
+                                    (["--compile", "FALSE", "--resume"], False, True),
+                                    (["--compile", "no", "--resume", "true"], False, True)):  # fmt: skip
+        args = parse(["--out", "run", *given])
+        assert (args.compile, args.resume) == (compile_, resume), given
+    args = export_cli.build_parser().parse_args(["--tree", "p.safetensors", "p.onnx", "--with-value", "false"])
+    assert (args.tree, args.checkpoint, args.out, args.with_value) == (True, "p.safetensors", "p.onnx", False)
+    args = bag_cli.build_parser().parse_args(["info", "--json", "bag"])
+    assert args.json is True and args.bags == ["bag"]
+
+
+def test_no_tool_declares_a_boolean_another_way():
+    from pathlib import Path
+
+    import trainer
+
+    for path in sorted(Path(trainer.__file__).parent.glob("*.py")):
+        text = path.read_text()
+        for other in ('"store_true"', '"store_false"', "BooleanOptionalAction", "type=parse_bool"):
+            assert other not in text, f"{path.name}: {other}; use config_cli.BoolAction (--flag [true|false])"
+
+
+def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_path, capsys):
+    from trainer.eval_cli import main
+
+    (tmp_path / "config.json").write_text("{}")
+    main(["--run", str(tmp_path), "--no-eval"])  # nothing to evaluate, nothing to plot
+    assert capsys.readouterr().err == "morph-eval: warning: --no-eval is deprecated: write --eval false\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]

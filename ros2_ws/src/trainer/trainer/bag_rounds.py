@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 from trainer.record_bringup import fastdds_profile
 
 DIMS = range(2, 11)
@@ -485,7 +485,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="start no round that would end after this many minutes from now (0: none)")  # fmt: skip
     ap.add_argument("--compare-with", default="docs/results_data/compensated-s*",
                     help="simulator run directories (a glob) to compare with")  # fmt: skip
-    ap.add_argument("--report-only", action="store_true", help="only write the comparison of the rounds done")
+    ap.add_argument(
+        "--report-only", action=BoolAction, default=False, help="only write the comparison of the rounds done"
+    )
     args = ap.parse_args(argv)
     if not args.report_only:
         if args.rounds < 1 or args.episodes_per_round < 1 or args.episode_steps < 1:

@@ -37,7 +37,13 @@ from morph_core.algo.evaluate import Body, evaluate_policy
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
 from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body"]
@@ -176,7 +182,9 @@ def main(argv: list[str] | None = None) -> None:
     source.add_argument("--run", type=Path, nargs="+", help="training run directories")
     source.add_argument("--checkpoint", type=Path, help="one policy file: print its returns, write nothing")
     parser.add_argument("--plots", type=Path, default=None, help="write comparison figures here")
-    parser.add_argument("--no-eval", action="store_true", help="only plot what eval.csv already holds")
+    parser.add_argument("--eval", action=BoolAction, default=True,
+                        help="evaluate checkpoints not yet in eval.csv (false: only plot what it holds)")  # fmt: skip
+    parser.add_deprecated_alias("--no-eval", "--eval", value=False, shown="--eval false")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
     parser.add_argument(
         "--lengths", type=int, nargs="*", default=None, help="chain lengths (default: 2..10 15 20; none: trees only)"
@@ -207,7 +215,7 @@ def main(argv: list[str] | None = None) -> None:
             load_runs(args.run)
         except ValueError as e:
             parser.error(str(e))
-    if not args.no_eval:
+    if args.eval:
         for run in args.run:
             evaluate_run(run, cfg)
     if args.plots is not None:

@@ -23,7 +23,7 @@ import torch
 
 from morph_core.policy.onnx_export import TOLERANCE, ExportError, export_checkpoint
 from morph_core.policy.weights import CheckpointError
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 
 
 def build_parser() -> CommandLineParser:
@@ -34,8 +34,10 @@ def build_parser() -> CommandLineParser:
     parser.add_argument("out", nargs="?", metavar="OUT", help="the ONNX file to write (.onnx)")
     parser.add_argument("--onnx", nargs=2, metavar=("CHECKPOINT", "OUT"), default=None,
                         help="deprecated: the same as the two paths without it")  # fmt: skip
-    parser.add_argument("--with-value", action="store_true", help="add the critic's value as a second output")
-    parser.add_argument("--tree", action="store_true",
+    parser.add_argument(
+        "--with-value", action=BoolAction, default=False, help="add the critic's value as a second output"
+    )
+    parser.add_argument("--tree", action=BoolAction, default=False,
                         help="for kinematic trees: a fourth input, parents [N] int64 (-1: the torso)")  # fmt: skip
     return parser
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import public_key_path, write_key_pair
-from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
+from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
 from trainer.bag_messages import DATA_TOPIC_TYPES
 from trainer.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
 
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
     ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
     ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
     ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
-    ap.add_argument("--resume", action="store_true", help="continue the run in --out")
+    ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
     ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
     ap.add_argument(
         "--real-time-factor",

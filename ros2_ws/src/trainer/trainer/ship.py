@@ -36,7 +36,7 @@ import numpy as np
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 from trainer.runs import body_eval_means, load_run
 
 
@@ -105,8 +105,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--dest", type=Path, required=True, help="where to write the policy (.safetensors, with its .json beside it)"
     )
-    parser.add_argument("--replace", action="store_true", help="write the best run's checkpoint even if the policy "
-                        "already at --dest scored higher")  # fmt: skip
+    parser.add_argument(
+        "--replace",
+        action=BoolAction,
+        default=False,
+        help="write the best run's checkpoint even if the policy already at --dest scored higher",
+    )
     args = parser.parse_args(argv)
     scored = []
     for run in args.run:

@@ -17,7 +17,6 @@ Numbers quoted in docs/theory.md come from ``summary.json``.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -34,7 +33,7 @@ import numpy as np
 from morph_core.algo import trust_region
 from morph_core.theory import clip_analysis as theory
 from morph_core.theory import fisher_scaling
-from morph_core.util.config_cli import CommandLineParser
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 
 _FISHER = fisher_scaling.ScalingConfig()  # figure 4's defaults live with the study itself
 
@@ -107,7 +106,7 @@ def build_parser() -> CommandLineParser:
         kwargs: dict[str, typing.Any] = {"help": f"{f.metadata['help']} (default: {default})", "dest": f.name}
         origin = typing.get_origin(hint)
         if hint is bool:
-            kwargs.update(action=argparse.BooleanOptionalAction, default=default)
+            kwargs.update(action=BoolAction, default=default)
         elif origin is tuple:
             kwargs.update(nargs="+", type=typing.get_args(hint)[0], default=default)
         elif origin is list:
@@ -117,6 +116,9 @@ def build_parser() -> CommandLineParser:
         else:
             kwargs.update(type=hint, default=default)
         parser.add_argument(flag, **kwargs)
+        if hint is bool:  # the tool's --no-flag form of before
+            no = "--no-" + f.name.replace("_", "-")
+            parser.add_deprecated_alias(no, flag, value=False, shown=f"{flag} false")
     return parser
 
 

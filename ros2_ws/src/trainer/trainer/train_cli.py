@@ -58,10 +58,10 @@ from morph_core.protocol.transition_batch import MissingPolicyInfoError, Transit
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
+    BoolAction,
     CommandLineParser,
     add_dataclass_options,
     overrides_from_args,
-    parse_bool,
     replace_nested,
 )
 from trainer.bag_cli import bag_robot
@@ -84,7 +84,9 @@ def build_parser() -> CommandLineParser:
         prog="morph-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument(
+        "--resume", action=BoolAction, default=False, help="continue the run in --out from its last checkpoint"
+    )
     bags = parser.add_argument_group("training from recorded bags")
     bags.add_argument(
         "--from-bags",
@@ -107,13 +109,14 @@ def build_parser() -> CommandLineParser:
     )
     bags.add_argument(
         "--new-data",
-        action="store_true",
+        action=BoolAction,
+        default=False,
         help="with --resume: the bags are new data for the run, trained on after what it has done "
         "(policy, critic, optimizer and generator carry over)",
     )
     bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
     live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live)")
-    live.add_argument("--live", action="store_true",
+    live.add_argument("--live", action=BoolAction, default=False,
                       help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
                       f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
     live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
@@ -132,8 +135,8 @@ def build_parser() -> CommandLineParser:
     live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
                       help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
                       "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
-    live.add_argument("--stream-chunks", type=parse_bool, nargs="?", const=True, default=LiveOptions.stream_chunks,
-                      metavar="BOOL", help="take each pair's messages from its policy node's stream_chunks instead "
+    live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
+                      help="take each pair's messages from its policy node's stream_chunks instead "
                       f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
