@@ -4,7 +4,7 @@
 # (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up (trainer.live_bringup;
 # --help lists them with their defaults), options after -- to morph-train; relative paths are taken from
 # the folder it runs in, e.g.
-#   bash scripts/live.sh --pairs 4 --out runs/live --updates 50
+#   bash scripts/live.sh --pairs 4 --out runs/live --max-updates 50
 #   bash scripts/live.sh --pairs 4 --out runs/live --resume -- --num-steps 512
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)

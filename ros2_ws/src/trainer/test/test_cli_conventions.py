@@ -102,3 +102,19 @@ def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_pa
     main(["--run", str(tmp_path), "--no-eval"])  # nothing to evaluate, nothing to plot
     assert capsys.readouterr().err == "morph-eval: warning: --no-eval is deprecated: write --eval false\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+
+
+def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
+    from trainer import eval_cli, live_bringup
+
+    (tmp_path / "config.json").write_text("{}")
+    eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--threads", "2"])  # as morph-train: --env-threads
+    assert capsys.readouterr().err == "morph-eval: warning: --threads is deprecated: write --env-threads\n"
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "state.safetensors").write_bytes(b"")
+    with pytest.raises(SystemExit):  # refused (a run there), but --updates was read as --max-updates first
+        live_bringup.main(["--out", str(run), "--updates", "3"])
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "python -m trainer.live_bringup: warning: --updates is deprecated: write --max-updates"
+    assert err[1].startswith("morph-train: error:")

@@ -66,8 +66,8 @@ class EvalConfig:
     """only checkpoints at or after this global step (of those the stride picks; the last one always)"""
     seed: int = 10_000
     """reset seed of episode 0 (episode k uses seed + k)"""
-    threads: int = 1
-    """threads stepping the swimmers of one checkpoint"""
+    env_threads: int = 1
+    """threads stepping the swimmers of one checkpoint (morph-train's --env-threads)"""
     processes: int = 1
     """checkpoints evaluated at a time, each in its own process (2 uses both cores of a 2-core machine)"""
 
@@ -142,7 +142,7 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
 
 def evaluate_checkpoint(path: Path, bodies: list[Body], cfg: EvalConfig) -> dict[Body, np.ndarray]:
     """The returns of the checkpoint at ``path`` per body (its weights read without torch)."""
-    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.env_threads)
 
 
 def one_blas_thread() -> None:
@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="evaluate checkpoints not yet in eval.csv (false: only plot what it holds)")  # fmt: skip
     parser.add_deprecated_alias("--no-eval", "--eval", value=False, shown="--eval false")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
+    parser.add_deprecated_alias("--threads", "--env-threads")
     parser.add_argument(
         "--lengths", type=int, nargs="*", default=None, help="chain lengths (default: 2..10 15 20; none: trees only)"
     )

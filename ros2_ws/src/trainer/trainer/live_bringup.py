@@ -1,6 +1,6 @@
 """Live training on this machine: K lockstep sim+policy pairs in namespaces plus the live trainer.
 
-    bash scripts/live.sh --pairs 4 --out runs/live [--updates N] [--resume] [-- MORPH-TRAIN OPTIONS]
+    bash scripts/live.sh --pairs 4 --out runs/live [--max-updates N] [--resume] [-- MORPH-TRAIN OPTIONS]
     python -m trainer.live_bringup --out runs/live ...      (the same, without set-up or network namespace)
 
 What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
@@ -13,7 +13,7 @@ length redrawn from 2..10 at each reset, seed i) and, once the trainer listens t
 trainer signs its weights with the private key, and every policy node trusts
 the public key and no other. The trainer pushes its weights to every policy
 node and sets each sim's episode length. The bring-up ends when the
-trainer does (``--updates``, or the config's total_timesteps) and stops the
+trainer does (``--max-updates``, or the config's total_timesteps) and stops the
 pairs; the run directory is ``--out``. Options after ``--`` go to
 ``morph-train`` (e.g. ``-- --num-steps 256 --seed 3``).
 """
@@ -80,7 +80,7 @@ def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key
     cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
     if signing_key is not None:
         cmd += ["--signing-key", str(signing_key)]
-    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.updates)]
+    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
     if args.resume:
         cmd.append("--resume")
     return cmd + extra
@@ -164,7 +164,9 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
     ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
-    ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
+    ap.add_argument("--max-updates", type=int, default=0,
+                    help="stop after this many updates (0: at the run's total_timesteps)")  # fmt: skip
+    ap.add_deprecated_alias("--updates", "--max-updates")
     ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
     ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
     ap.add_argument(
