@@ -35,7 +35,7 @@ from threadpoolctl import threadpool_limits
 
 from morph_core.algo.evaluate import Body, evaluate_policy
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
-from morph_core.policy.weights import load_checkpoint
+from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import (
     BoolAction,
@@ -174,7 +174,7 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = CommandLineParser(
         prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -204,8 +204,18 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as e:
         parser.error(str(e))
     if args.checkpoint is not None:
+        if args.plots is not None or not args.eval or cfg.stride != 1 or cfg.from_step or cfg.processes != 1:
+            parser.error("--plots, --eval, --stride, --from-step and --processes are for --run: --checkpoint "
+                         "evaluates one file and writes nothing")  # fmt: skip
+        try:
+            load_checkpoint(args.checkpoint)  # a file that is no policy is said before any episode
+        except CheckpointError as err:
+            print(f"morph-eval: error: {err}", file=sys.stderr)
+            return 1
+        print(f"morph-eval: {args.checkpoint}: {cfg.episodes} deterministic episodes (the policy's mean action) "
+              f"on each of {len(eval_bodies(cfg))} bodies", file=sys.stderr, flush=True)  # fmt: skip
         print(checkpoint_table(args.checkpoint, cfg))
-        return
+        return 0
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")
@@ -218,13 +228,18 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(str(e))
     if args.eval:
         for run in args.run:
-            evaluate_run(run, cfg)
+            try:
+                evaluate_run(run, cfg)
+            except (CheckpointError, FileNotFoundError) as err:  # a damaged checkpoint, or a run without any
+                print(f"morph-eval: error: {err}", file=sys.stderr)
+                return 1
     if args.plots is not None:
         from trainer.plots import plot_all
 
         for path in plot_all(args.run, args.plots):
             print(f"wrote {path}", file=sys.stderr)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
