@@ -1,11 +1,19 @@
 #!/usr/bin/env bash
 # Set everything up, then train live: K lockstep sim+policy pairs (chains of 2..10 joints) in namespaces
 # /swimmer0.. plus morph-train --live, all ROS 2 processes in a private network namespace
-# (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up, e.g.
-#   bash scripts/live.sh --pairs 4 --out runs/live --updates 50
+# (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up (trainer.live_bringup;
+# --help lists them with their defaults), options after -- to morph-train; relative paths are taken from
+# the folder it runs in, e.g.
+#   bash scripts/live.sh --pairs 4 --out runs/live --max-updates 50
 #   bash scripts/live.sh --pairs 4 --out runs/live --resume -- --num-steps 512
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-cd "$root"
-bash scripts/setup.sh
-exec bash scripts/in_netns.sh .venv/bin/python -m trainer.live_bringup "$@"
+bash "$root/scripts/setup.sh"
+export MORPH_PROG="$0"  # the bring-up's help and errors name this script
+for arg in "$@"; do  # help needs no network namespace
+    [ "$arg" = "--" ] && break
+    if [ "$arg" = "-h" ] || [ "$arg" = "--help" ]; then
+        exec "$root/.venv/bin/python" -m trainer.live_bringup "$@"
+    fi
+done
+exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.live_bringup "$@"

@@ -30,5 +30,5 @@ for s in $(seq 1 "$seeds"); do for m in $rules; do echo "$m $s"; done; done |
             > "$run.log" 2>&1 && echo "done $run"' "$out"
 # shellcheck disable=SC2086  # EVAL holds several options
 ls -d "$out"/*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 24 --episodes 10 $eval_args
-.venv/bin/morph-eval --run "$out"/*-s*/ --no-eval --plots "$out/figures"
+.venv/bin/morph-eval --run "$out"/*-s*/ --eval false --plots "$out/figures"
 .venv/bin/python -m trainer.summary --run "$out"/*-s*/ | tee "$out/summary.md"

@@ -18,7 +18,11 @@ fi
 echo "setup: installing into .venv (once; about a minute)" >&2
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 .venv/bin/python -m pip install --quiet --upgrade "pip>=24"
-.venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
+# setuptools' notes from each editable install (a screenful in all) ask nothing of whoever sets up: the
+# "Editable installation" caveat (a folder named like a package may shadow it) and that
+# morph_policy_node/models, read from the source tree, is no listed package. Other warnings still show.
+quiet="ignore:Editable installation,ignore:Package 'morph_policy_node.models' is absent"
+PYTHONWARNINGS="$quiet" .venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
     -e ros2_ws/src/morph_core -e ros2_ws/src/morph_ros_util -e ros2_ws/src/swimmer_sim_node \
     -e ros2_ws/src/morph_policy_node -e "ros2_ws/src/trainer[onnx]"
 echo "$want" > "$stamp"

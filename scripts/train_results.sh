@@ -18,4 +18,4 @@ for s in $(seq 1 "$seeds"); do for m in compensated fixed; do echo "$m $s"; done
         .venv/bin/morph-train --clip-mode "$1" --seed "$2" --out "$run" --progress-bar false $resume \
             > "$run.log" 2>&1 && echo "done $run"' "$out"
 ls -d "$out"/*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 24 --episodes 10
-.venv/bin/morph-eval --run "$out"/*-s*/ --no-eval --plots docs/figures/results
+.venv/bin/morph-eval --run "$out"/*-s*/ --eval false --plots docs/figures/results

@@ -136,7 +136,7 @@ def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path
     ends the bring-up."""
     out = tmp_path / "run"
     trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")] + reads(listen)
-    cmd = [sys.executable, "-m", "trainer.live_bringup", "--pairs", "2", "--out", str(out), "--updates", "2",
+    cmd = [sys.executable, "-m", "trainer.live_bringup", "--pairs", "2", "--out", str(out), "--max-updates", "2",
            "--episode-steps", "60", "--startup-timeout", str(STARTUP), "--timeout", "200",
            "--", *trainer_options]  # fmt: skip
     bringup = Proc(cmd, tmp_path / "bringup.log")

@@ -201,9 +201,17 @@ def write_synthetic_run(run_dir, eps=0.111, dims=(2, 3, 5), rows=6, with_config=
 
 def test_parser_is_generated_from_the_dataclass():
     assert parse_config([]) == TheoryConfig()
-    cfg = parse_config(["--eps", "0.1", "--mc-eta", "0.95", "1.05", "--no-fisher", "--run-csv", "a", "--run-csv", "b"])
+    cfg = parse_config(
+        ["--eps", "0.1", "--mc-eta", "0.95", "1.05", "--fisher", "false", "--run-csv", "a", "--run-csv", "b"]
+    )
     assert cfg.eps == 0.1 and cfg.mc_eta == (0.95, 1.05) and cfg.fisher is False
     assert [str(p) for p in cfg.run_csv] == ["a", "b"]
+    assert parse_config(["--fisher"]).fisher is True
+
+
+def test_the_no_flag_form_of_before_still_works_and_says_it_is_deprecated(capsys):
+    assert parse_config(["--no-fisher", "--eps", "0.1"]).fisher is False
+    assert capsys.readouterr().err == "morph-theory: warning: --no-fisher is deprecated: write --fisher false\n"
 
 
 def test_cli_end_to_end_writes_figures_csvs_and_overlay(tmp_path, capsys):
@@ -234,9 +242,17 @@ def test_cli_end_to_end_writes_figures_csvs_and_overlay(tmp_path, capsys):
 
 def test_run_csv_missing_columns_is_a_clear_error(tmp_path, capsys):
     bad = write_synthetic_run(tmp_path / "bad", drop="logr_std_d3")
-    assert main(["--no-fisher", *SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(bad)]) == 2
+    good = write_synthetic_run(tmp_path / "good")
+    assert (
+        main(["--fisher", "false", *SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(good), "--run-csv", str(bad)])
+        == 2
+    )
     err = capsys.readouterr().err
-    assert "missing columns logr_std_d3" in err
+    assert err.startswith("morph-theory: error: ") and "missing columns logr_std_d3" in err
+    assert not (tmp_path / "o").exists()  # checked before any figure is made
+    assert main([*SMALL, "--out", str(tmp_path / "o"), "--run-csv", str(tmp_path / "nowhere")]) == 2
+    assert capsys.readouterr().err == f"morph-theory: error: run CSV not found: {tmp_path / 'nowhere'}\n"
+    assert not (tmp_path / "o").exists()
     with pytest.raises(ValueError, match="no in_eps_frac"):
         (tmp_path / "empty.csv").write_text("global_step,return_mean\n1,2\n")
         load_run(tmp_path / "empty.csv")

@@ -250,11 +250,20 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
     from trainer.eval_cli import main
 
     ckpt = run / "checkpoints" / "policy_00000256.safetensors"
-    main(["--checkpoint", str(ckpt), "--lengths", "--bodies", "y:1x1", "--episodes", "1"])
-    table = capsys.readouterr().out
+    assert main(["--checkpoint", str(ckpt), "--lengths", "--bodies", "y:1x1", "--episodes", "1"]) == 0
+    table, said = capsys.readouterr()
     want = next(float(r["return"]) for r in evaluate_run(run, cfg, log=lambda _: None)
                 if r["body"] == "y-1x1" and int(r["global_step"]) == 256)  # fmt: skip
     assert f"| y-1x1 | 3 | {want:.1f} ± 0.0 |" in table and "chain-" not in table
+    assert said == f"morph-eval: {ckpt}: 1 deterministic episodes (the policy's mean action) on each of 1 bodies\n"
+    # A file that is no policy: one line, before any episode; options of --run: refused.
+    assert main(["--checkpoint", str(run / "config.json"), "--episodes", "1"]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("morph-eval: error: ") and len(err.splitlines()) == 1
+    with pytest.raises(SystemExit):
+        main(["--checkpoint", str(ckpt), "--plots", str(run / "figures")])
+    assert "are for --run: --checkpoint evaluates one file and writes nothing" in capsys.readouterr().err
+    assert not (run / "figures").exists()
 
 
 def test_a_tree_run_is_shipped_by_its_chains_and_trees_a_chain_run_by_its_chains_alone():

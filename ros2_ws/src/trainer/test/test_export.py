@@ -172,9 +172,10 @@ def test_the_check_detects_a_graph_of_other_weights():
 def test_cli_exports_the_actor_alone_by_default(tmp_path):
     ckpt = _save(trained_shaped(PolicyConfig(), seed=5), tmp_path / "p.safetensors")
     out = tmp_path / "sub" / "actor.onnx"
-    run = subprocess.run([*CLI, "--onnx", str(ckpt), str(out)], capture_output=True, text=True, timeout=300)
+    run = subprocess.run([*CLI, str(ckpt), str(out)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "wrote" in run.stdout and "1, 2, 3, 7, 10, 20, 64 joints" in run.stdout
+    assert "deprecated" not in run.stderr
     session = _session(out)
     assert [o.name for o in session.get_outputs()] == ["action"]
     pos, vel, glob = _chain(np.random.default_rng(0), 9)
@@ -272,7 +273,7 @@ def test_tree_graph_carries_its_format_and_the_check_detects_other_weights(tree_
 def test_cli_exports_the_tree_graph(tmp_path):
     ckpt = _save(trained_shaped(PolicyConfig(), seed=5), tmp_path / "p.safetensors")
     out = tmp_path / "tree.onnx"
-    run = subprocess.run([*CLI, "--onnx", str(ckpt), str(out), "--tree"], capture_output=True, text=True, timeout=300)
+    run = subprocess.run([*CLI, str(ckpt), str(out), "--tree"], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "parents [N]" in run.stdout and "star and chain trees" in run.stdout
     session = _session(out)
@@ -314,7 +315,7 @@ def test_bad_checkpoints_are_refused_with_the_reason_and_nothing_is_written(tmp_
             export_checkpoint(ckpt, out)
         assert str(ckpt) in str(err.value), what
         assert not out.exists(), what
-        assert export_cli.main(["--onnx", str(ckpt), str(out)]) == 1, what
+        assert export_cli.main([str(ckpt), str(out)]) == 1, what
         stderr = capsys.readouterr().err
         assert stderr.startswith("morph-export: error: ") and str(ckpt) in stderr, what
         assert not out.exists(), what
@@ -324,9 +325,22 @@ def test_output_must_be_an_onnx_file(tmp_path, capsys):
     ckpt = _save(trained_shaped(PolicyConfig(), seed=7), tmp_path / "p.safetensors")
     with pytest.raises(ExportError, match=r"\.onnx"):
         export_checkpoint(ckpt, tmp_path / "p.safetensors.out")
-    assert export_cli.main(["--onnx", str(ckpt), str(tmp_path / "p.out")]) == 1
+    assert export_cli.main([str(ckpt), str(tmp_path / "p.out")]) == 1
     assert "must be a .onnx file" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exit_:
-        export_cli.main(["--onnx", str(ckpt)])  # argparse: two paths needed
-    assert exit_.value.code == 2 and "--onnx" in capsys.readouterr().err
+    for argv in ([str(ckpt)], ["--onnx", str(ckpt)]):  # two paths needed
+        with pytest.raises(SystemExit) as exit_:
+            export_cli.main(argv)
+        assert exit_.value.code == 2 and "morph-export: error:" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.json", "p.safetensors"]
+
+
+def test_the_deprecated_onnx_option_still_exports_and_says_so_once(tmp_path, capsys):
+    ckpt = _save(trained_shaped(PolicyConfig(), seed=8), tmp_path / "p.safetensors")
+    assert export_cli.main(["--onnx", str(ckpt), str(tmp_path / "p.onnx")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("--onnx is deprecated: write morph-export CHECKPOINT OUT") == 1
+    assert (tmp_path / "p.onnx").is_file()
+    with pytest.raises(SystemExit) as exit_:  # both forms at once: which paths were meant?
+        export_cli.main(["--onnx", str(ckpt), str(tmp_path / "q.onnx"), str(ckpt), str(tmp_path / "r.onnx")])
+    assert exit_.value.code == 2 and "not both" in capsys.readouterr().err
+    assert not (tmp_path / "q.onnx").exists() and not (tmp_path / "r.onnx").exists()

@@ -8,7 +8,7 @@ from trainer.gait_cli import main
 
 
 def test_morph_gait_prints_each_bodys_speed(capsys):
-    main(["--joints", "3", "--bodies", "y:1x1,star:3x1", "--seconds", "4"])
+    main(["--lengths", "3", "--bodies", "y:1x1,star:3x1", "--seconds", "4"])
     rows = {line.split()[0]: float(line.split()[1]) for line in capsys.readouterr().out.splitlines()[2:]}
     y, star = parse_bodies("y:1x1,star:3x1").members()
     assert rows == pytest.approx(
@@ -26,3 +26,10 @@ def test_morph_gait_refuses_a_random_family_and_a_bad_spec(capsys):
         with pytest.raises(SystemExit):
             main(["--bodies", spec, "--seconds", "1"])
     assert "random family" in capsys.readouterr().err
+
+
+def test_the_joints_option_of_before_still_works_and_says_it_is_deprecated(capsys):
+    main(["--joints", "2", "--seconds", "1"])
+    out, err = capsys.readouterr()
+    assert err == "morph-gait: warning: --joints is deprecated: write --lengths\n"
+    assert [line.split()[0] for line in out.splitlines()[2:]] == ["chain-2"]

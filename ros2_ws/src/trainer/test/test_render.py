@@ -141,7 +141,7 @@ def test_a_broken_backend_is_one_clear_line(tmp_path):
     env = dict(os.environ, MUJOCO_GL="egl", __EGL_VENDOR_LIBRARY_FILENAMES=str(tmp_path / "none.json"))
     done = _render("--untrained", "--seconds", "0.2", "--gif", str(tmp_path / "x.gif"), env=env)
     assert done.returncode == 1
-    assert done.stderr.strip().startswith("morph-render: MUJOCO_GL=egl cannot render offscreen here")
+    assert done.stderr.strip().startswith("morph-render: error: MUJOCO_GL=egl cannot render offscreen here")
     assert len(done.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.gif").exists()
 

@@ -87,6 +87,46 @@ def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
     assert bad.returncode != 0 and "no run to resume" in bad.stderr
 
 
+def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_path, capsys):
+    from trainer.train_cli import main
+
+    args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
+    args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
+    run = tmp_path / "run"
+    config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
+    assert main(["--out", str(run), "--total-timesteps", "128", "--kl-target", "1", *args]) == 0
+    assert capsys.readouterr().out.splitlines() == [  # without the progress bar, still a summary
+        f"morph-train: done: step 128 (update 1); no episode finished yet; last update's approximate KL "
+        f"{float(_rows(run)[-1]['approx_kl']):.3g}",
+        f"morph-train: files in {run}: config.json, progress.csv, checkpoints/ (1, the last "
+        "policy_00000128.safetensors), state.safetensors (for --resume)",
+    ]
+    rows = (run / "progress.csv").read_text()
+    assert main(["--out", str(run), "--resume"]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == (
+        f"morph-train: {run} already finished at step 128 (total_timesteps 128): nothing to do; "
+        "raise --total-timesteps to go on"
+    )
+    assert (run / "progress.csv").read_text() == rows
+    assert main(["--out", str(run), "--resume", "--total-timesteps", "256", "--processes", "2"]) == 0
+    said = capsys.readouterr().out
+    assert (
+        f"morph-train: resumed with total_timesteps 128 -> 256, processes 1 -> 2 (written to {run / 'config.json'})"
+        in said
+    )
+    assert config()["total_timesteps"] == 256 and config()["processes"] == 2
+    assert _final_weights(run)[1] == 256
+    # A plain resume goes on with what config.json says now; nothing changed, nothing said or written.
+    assert main(["--out", str(run), "--resume"]) == 0
+    assert "already finished at step 256 (total_timesteps 256)" in capsys.readouterr().out
+    # Options given to a resume that fails before it trains (no usable state) are not kept.
+    for name in ("state.safetensors", "state.prev.safetensors"):
+        (run / name).write_bytes(b"damaged")
+    assert main(["--out", str(run), "--resume", "--total-timesteps", "512"]) == 1
+    assert "morph-train: error:" in capsys.readouterr().err
+    assert config()["total_timesteps"] == 256
+
+
 def test_logs_hold_per_dimension_diagnostics(tmp_path):
     run = train(TrainConfig(total_timesteps=256, clip_mode="fixed", seed=0, **SMALL), tmp_path / "r")
     cfg = json.loads((run / "config.json").read_text())

@@ -6,6 +6,7 @@ SIGKILL equal to an uninterrupted run, the refusal of bags without policy_info, 
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -166,6 +167,58 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
         assert torch.equal(w_ref[k], w_run[k]), k  # weights, Adam moments, generator, pass order
     assert [r["global_step"] for r in _rows(run)] == [r["global_step"] for r in _rows(ref)]
     assert [r["policy_loss"] for r in _rows(run)] == [r["policy_loss"] for r in _rows(ref)]
+
+
+def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_path, init, sampled, capsys):
+    bag = write_bag(tmp_path / "bag", sampled)
+    run = tmp_path / "run"
+    config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
+    assert main(["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", *SMALL]) == 0
+    capsys.readouterr()
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume"]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        f"morph-train: {run} already finished at update 2 (2 updates on these bags): nothing to do; raise "
+        "--iterations to go on, or train on new bags with --resume --new-data"
+    ]
+    assert run_state(run)["done"] == 2
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--iterations", "3",
+                 "--minibatch-size", "8"]) == 0  # fmt: skip
+    assert "morph-train: resumed with minibatch_size 16 -> 8" in capsys.readouterr().out
+    assert config()["minibatch_size"] == 8 and run_state(run)["done"] == 3
+    # The optimizer's hyper-parameters come back with its state: a new learning rate would not be applied.
+    assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--iterations", "4",
+                 "--learning-rate", "0.003"]) == 1  # fmt: skip
+    assert "--learning-rate 0.003 with --resume would not be applied" in _error(capsys)
+    assert config()["learning_rate"] == 0.01 and run_state(run)["done"] == 3
+
+
+def test_updates_far_above_the_kl_target_are_warned_about_and_the_run_summed_up(tmp_path, init, sampled, capsys):
+    bag = write_bag(tmp_path / "bag", sampled)
+    run = tmp_path / "run"
+    # The warning's limit is 10 x --kl-target (a target the compensated rule does not use: the updates are
+    # the same as at the default): these updates' KL is above 1e-7, far below the default's 0.1.
+    args = ["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", "--kl-target", "1e-8"]
+    assert main([*args, *SMALL]) == 0
+    out, err = capsys.readouterr()
+    rows = _rows(run)
+    warnings = [line for line in err.splitlines() if line.startswith("morph-train: warning: update")]
+    assert warnings == [
+        f"morph-train: warning: update {r['iteration']} (step {r['global_step']}): approximate KL "
+        f"{float(r['approx_kl']):.3g} > 1e-07 (10x kl_target): the policy moved far from the one that acted; a "
+        "lower --learning-rate keeps it closer (a trained policy given with --init: e.g. --learning-rate 0.001)"
+        for r in rows
+    ]
+    top = max(float(r["approx_kl"]) for r in rows)
+    assert out.splitlines()[-2:] == [
+        f"morph-train: done: step 60 (update 2); return of the recorded episodes {float(rows[-1]['return_mean']):.1f}"
+        f"; last update's approximate KL {float(rows[-1]['approx_kl']):.3g}; 2 of 2 updates above KL 1e-07 (max "
+        f"{top:.3g})",
+        f"morph-train: files in {run}: config.json, progress.csv, checkpoints/ (1, the last "
+        "policy_00000060.safetensors), state.safetensors (for --resume)",
+    ]
+    assert main(["--from-bags", str(bag), "--out", str(tmp_path / "quiet"), "--init", str(init), "--iterations", "2",
+                 "--kl-target", "1", *SMALL]) == 0  # fmt: skip
+    assert "warning" not in capsys.readouterr().err and max(float(r["approx_kl"]) for r in rows) < 10
 
 
 # -- bad input -----------------------------------------------------------------------------------

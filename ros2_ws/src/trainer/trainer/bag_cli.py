@@ -43,7 +43,13 @@ from morph_core.protocol.transitions import (
     TransitionAssembler,
     TransitionConfig,
 )
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
 from trainer.bag_io import BagError, BagReader, first_description
 from trainer.bag_messages import DESCRIPTION_TOPIC
 
@@ -211,8 +217,8 @@ def _counts(counts: dict) -> str:
 
 
 # -- command line ---------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
         prog="morph-bag", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     commands = parser.add_subparsers(dest="command", required=True)
@@ -222,11 +228,12 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("bags", nargs="+", metavar="BAG", help="bag folder, metadata.yaml or storage file")
         sub.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
         add_dataclass_options(sub, TransitionConfig)
-    info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    info.add_argument("--json", action=BoolAction, default=False, help="print JSON instead of text")
     export.add_argument("--out", required=True, type=Path, help="the .npz to write (replaced atomically)")
     export.add_argument(
         "--require-policy-info",
-        action="store_true",
+        action=BoolAction,
+        default=False,
         help="refuse (write nothing) if any step lacks its behaviour log-prob, as PPO needs",
     )
     return parser

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.util.atomic import atomic_writer
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 from trainer.record_bringup import fastdds_profile
 
 DIMS = range(2, 11)
@@ -467,9 +468,7 @@ def main(argv: list[str] | None = None) -> int:
     if "--" in argv:
         i = argv.index("--")
         argv, train_args = argv[:i], argv[i + 1 :]
-    ap = argparse.ArgumentParser(
-        prog="bag_rounds", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    ap = CommandLineParser(prog="bag_rounds", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="experiment directory (continued if it exists)")
     ap.add_argument("--rounds", type=int, default=0, help="rounds to have done in all")
     ap.add_argument("--episodes-per-round", type=int, default=RoundsConfig.episodes_per_round)
@@ -486,7 +485,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="start no round that would end after this many minutes from now (0: none)")  # fmt: skip
     ap.add_argument("--compare-with", default="docs/results_data/compensated-s*",
                     help="simulator run directories (a glob) to compare with")  # fmt: skip
-    ap.add_argument("--report-only", action="store_true", help="only write the comparison of the rounds done")
+    ap.add_argument(
+        "--report-only", action=BoolAction, default=False, help="only write the comparison of the rounds done"
+    )
     args = ap.parse_args(argv)
     if not args.report_only:
         if args.rounds < 1 or args.episodes_per_round < 1 or args.episode_steps < 1:
@@ -509,7 +510,7 @@ def main(argv: list[str] | None = None) -> int:
             run_rounds(cfg)
         except RoundFailed as err:
             done = len(read_rows(cfg.out / "rounds.csv"))
-            print(f"bag_rounds: {err}", file=sys.stderr)
+            print(f"bag_rounds: error: {err}", file=sys.stderr)
             print(f"bag_rounds: stopped; {done} rounds are in {cfg.out / 'rounds.csv'}; the same command continues",
                   file=sys.stderr)  # fmt: skip
             _report(args.out, args.compare_with)

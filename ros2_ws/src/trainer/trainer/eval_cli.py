@@ -35,9 +35,15 @@ from threadpoolctl import threadpool_limits
 
 from morph_core.algo.evaluate import Body, evaluate_policy
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
-from morph_core.policy.weights import load_checkpoint
+from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body"]
@@ -60,8 +66,8 @@ class EvalConfig:
     """only checkpoints at or after this global step (of those the stride picks; the last one always)"""
     seed: int = 10_000
     """reset seed of episode 0 (episode k uses seed + k)"""
-    threads: int = 1
-    """threads stepping the swimmers of one checkpoint"""
+    env_threads: int = 1
+    """threads stepping the swimmers of one checkpoint (morph-train's --env-threads)"""
     processes: int = 1
     """checkpoints evaluated at a time, each in its own process (2 uses both cores of a 2-core machine)"""
 
@@ -136,7 +142,7 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
 
 def evaluate_checkpoint(path: Path, bodies: list[Body], cfg: EvalConfig) -> dict[Body, np.ndarray]:
     """The returns of the checkpoint at ``path`` per body (its weights read without torch)."""
-    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.threads)
+    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.env_threads)
 
 
 def one_blas_thread() -> None:
@@ -168,16 +174,19 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+def main(argv: list[str] | None = None) -> int:
+    parser = CommandLineParser(
         prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--run", type=Path, nargs="+", help="training run directories")
     source.add_argument("--checkpoint", type=Path, help="one policy file: print its returns, write nothing")
     parser.add_argument("--plots", type=Path, default=None, help="write comparison figures here")
-    parser.add_argument("--no-eval", action="store_true", help="only plot what eval.csv already holds")
+    parser.add_argument("--eval", action=BoolAction, default=True,
+                        help="evaluate checkpoints not yet in eval.csv (false: only plot what it holds)")  # fmt: skip
+    parser.add_deprecated_alias("--no-eval", "--eval", value=False, shown="--eval false")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
+    parser.add_deprecated_alias("--threads", "--env-threads")
     parser.add_argument(
         "--lengths", type=int, nargs="*", default=None, help="chain lengths (default: 2..10 15 20; none: trees only)"
     )
@@ -195,8 +204,18 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as e:
         parser.error(str(e))
     if args.checkpoint is not None:
+        if args.plots is not None or not args.eval or cfg.stride != 1 or cfg.from_step or cfg.processes != 1:
+            parser.error("--plots, --eval, --stride, --from-step and --processes are for --run: --checkpoint "
+                         "evaluates one file and writes nothing")  # fmt: skip
+        try:
+            load_checkpoint(args.checkpoint)  # a file that is no policy is said before any episode
+        except CheckpointError as err:
+            print(f"morph-eval: error: {err}", file=sys.stderr)
+            return 1
+        print(f"morph-eval: {args.checkpoint}: {cfg.episodes} deterministic episodes (the policy's mean action) "
+              f"on each of {len(eval_bodies(cfg))} bodies", file=sys.stderr, flush=True)  # fmt: skip
         print(checkpoint_table(args.checkpoint, cfg))
-        return
+        return 0
     for run in args.run:
         if not (run / "config.json").exists():
             parser.error(f"{run} is not a training run (config.json missing)")
@@ -207,15 +226,20 @@ def main(argv: list[str] | None = None) -> None:
             load_runs(args.run)
         except ValueError as e:
             parser.error(str(e))
-    if not args.no_eval:
+    if args.eval:
         for run in args.run:
-            evaluate_run(run, cfg)
+            try:
+                evaluate_run(run, cfg)
+            except (CheckpointError, FileNotFoundError) as err:  # a damaged checkpoint, or a run without any
+                print(f"morph-eval: error: {err}", file=sys.stderr)
+                return 1
     if args.plots is not None:
         from trainer.plots import plot_all
 
         for path in plot_all(args.run, args.plots):
             print(f"wrote {path}", file=sys.stderr)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,6 +1,6 @@
 """``morph-export``: a policy checkpoint's deterministic actor as an ONNX graph, for C++ controllers.
 
-    morph-export --onnx CHECKPOINT.safetensors OUT.onnx [--with-value] [--tree]
+    morph-export CHECKPOINT.safetensors OUT.onnx [--with-value] [--tree]
 
 The graph takes one chain of any length N (joint_pos [N], joint_vel [N],
 global [4], float32) and returns the mean action [N] (and, with
@@ -10,7 +10,8 @@ joint, -1 for the torso). See ``morph_core.policy.onnx_export`` and
 docs/onnx.md. It is checked against the torch policy with ONNX Runtime at
 1..64 joints (trees: random, star and chain at each) before it is written
 (atomically); an unusable checkpoint or a graph that differs is refused with
-exit code 1 and nothing is written.
+exit code 1 and nothing is written. (``--onnx CHECKPOINT OUT``, the form before,
+still works for now and says it is deprecated.)
 """
 
 from __future__ import annotations
@@ -22,22 +23,37 @@ import torch
 
 from morph_core.policy.onnx_export import TOLERANCE, ExportError, export_checkpoint
 from morph_core.policy.weights import CheckpointError
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="morph-export", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    parser.add_argument("--onnx", nargs=2, metavar=("CHECKPOINT", "OUT"), required=True,
-                        help="export CHECKPOINT (.safetensors, its .json beside it) to OUT (.onnx)")  # fmt: skip
-    parser.add_argument("--with-value", action="store_true", help="add the critic's value as a second output")
-    parser.add_argument("--tree", action="store_true",
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(prog="morph-export", description=__doc__,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser.add_argument("checkpoint", nargs="?", metavar="CHECKPOINT",
+                        help="the policy checkpoint (.safetensors, its .json beside it)")  # fmt: skip
+    parser.add_argument("out", nargs="?", metavar="OUT", help="the ONNX file to write (.onnx)")
+    parser.add_argument("--onnx", nargs=2, metavar=("CHECKPOINT", "OUT"), default=None,
+                        help="deprecated: the same as the two paths without it")  # fmt: skip
+    parser.add_argument(
+        "--with-value", action=BoolAction, default=False, help="add the critic's value as a second output"
+    )
+    parser.add_argument("--tree", action=BoolAction, default=False,
                         help="for kinematic trees: a fourth input, parents [N] int64 (-1: the torso)")  # fmt: skip
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    checkpoint, out = args.onnx
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.onnx is not None:
+        if args.checkpoint is not None:
+            parser.error("give CHECKPOINT OUT, or the deprecated --onnx CHECKPOINT OUT, not both")
+        print("morph-export: warning: --onnx is deprecated: write morph-export CHECKPOINT OUT", file=sys.stderr)
+        checkpoint, out = args.onnx
+    elif args.out is None:
+        parser.error("give the checkpoint and the ONNX file to write: morph-export CHECKPOINT OUT")
+    else:
+        checkpoint, out = args.checkpoint, args.out
     torch.set_num_threads(1)  # a network this small gains nothing from threads; the machine is shared
     try:
         result = export_checkpoint(checkpoint, out, with_value=args.with_value, tree=args.tree)

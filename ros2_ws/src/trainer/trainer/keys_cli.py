@@ -23,16 +23,17 @@ from morph_core.msgs.policy_weights import weights_header
 from morph_core.policy.weights import CheckpointError, SignedWeights, load_checkpoint, write_checkpoint
 from morph_core.protocol.policy_updates import checkpoint_trust
 from morph_core.protocol.trust import KeyFileError, load_signing_key, load_trusted_keys, write_key_pair
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="morph-keys", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(prog="morph-keys", description=__doc__,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True)
     new = sub.add_parser("new", help="make an Ed25519 key pair: KEY (private, mode 0600) and KEY.pub")
     new.add_argument("key", type=Path)
     new.add_argument("--comment", default="morph-policy-signing", help="one word, written in KEY.pub")
-    new.add_argument("--force", action="store_true", help="replace an existing key pair")
+    new.add_argument("--force", action=BoolAction, default=False, help="replace an existing key pair")
     sign = sub.add_parser("sign", help="sign a checkpoint (.safetensors, its .json beside it) with a private key")
     sign.add_argument("checkpoint", type=Path)
     sign.add_argument("--key", type=Path, required=True)

@@ -1,6 +1,7 @@
 """Live training on this machine: K lockstep sim+policy pairs in namespaces plus the live trainer.
 
-    python -m trainer.live_bringup --pairs 4 --out runs/live [--updates N] [--resume] [-- TRAIN OPTIONS]
+    bash scripts/live.sh --pairs 4 --out runs/live [--max-updates N] [--resume] [-- MORPH-TRAIN OPTIONS]
+    python -m trainer.live_bringup --out runs/live ...      (the same, without set-up or network namespace)
 
 What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
 machines without ``launch``. The trainer starts first (``morph-train --live``,
@@ -12,26 +13,27 @@ length redrawn from 2..10 at each reset, seed i) and, once the trainer listens t
 trainer signs its weights with the private key, and every policy node trusts
 the public key and no other. The trainer pushes its weights to every policy
 node and sets each sim's episode length. The bring-up ends when the
-trainer does (``--updates``, or the config's total_timesteps) and stops the
+trainer does (``--max-updates``, or the config's total_timesteps) and stops the
 pairs; the run directory is ``--out``. Options after ``--`` go to
 ``morph-train`` (e.g. ``-- --num-steps 256 --seed 3``).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
 import sys
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import public_key_path, write_key_pair
+from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
 from trainer.bag_messages import DATA_TOPIC_TYPES
-from trainer.record_bringup import _start, _stop, _wait_for_subscriber, fastdds_profile
+from trainer.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
 
 TRAINER_NODE = "morph_live_trainer"
 TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
@@ -73,25 +75,35 @@ def run_key_pair(directory: str | Path) -> Path:
     return key
 
 
-def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
-    cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(args.out)]
+def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    """``morph-train``'s arguments (without the program)."""
+    cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
     if signing_key is not None:
         cmd += ["--signing-key", str(signing_key)]
-    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.updates)]
+    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
     if args.resume:
         cmd.append("--resume")
     return cmd + extra
 
 
+def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    return [sys.executable, "-m", "trainer.train_cli", *trainer_arguments(namespaces, args, extra, signing_key)]
+
+
 def run(args, extra: list[str]) -> int:
     import subprocess
 
+    from trainer.train_cli import check_live
+
+    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
+    # What the trainer would refuse (an --out that holds a run, no run to --resume, a bad option after --) it
+    # refuses here, with its own one-line error, before any process starts.
+    check_live(trainer_arguments(namespaces, args, extra))
     profile = fastdds_profile()
     if profile:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
     import rclpy
 
-    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
     keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
     key = run_key_pair(keys)
     rclpy.init()
@@ -138,11 +150,24 @@ def main(argv=None) -> int:
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.live_bringup"),
+        usage="%(prog)s [-h] --out DIR [options] [-- MORPH-TRAIN OPTIONS]",
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog=textwrap.fill(
+            "Everything after -- goes to the trainer, morph-train --live (.venv/bin/morph-train --help lists its "
+            "options), e.g. -- --num-steps 256 --seed 3 --learning-rate 0.003. A relative --out or --checkpoint "
+            "is taken from the folder the command runs in.",
+            100,
+        ),
+    )
     ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
     ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
-    ap.add_argument("--updates", type=int, default=0, help="stop after this many updates (0: total_timesteps)")
-    ap.add_argument("--resume", action="store_true", help="continue the run in --out")
+    ap.add_argument("--max-updates", type=int, default=0,
+                    help="stop after this many updates (0: at the run's total_timesteps)")  # fmt: skip
+    ap.add_deprecated_alias("--updates", "--max-updates")
+    ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
     ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
     ap.add_argument(
         "--real-time-factor",
@@ -151,18 +176,22 @@ def main(argv=None) -> int:
         help="the sims' pace (1: real time, as robots run; 0: as fast as the loop goes). Unpaced pairs "
         "can outrun the trainer's ingest on a loaded machine, which then cuts their episodes",
     )
-    ap.add_argument("--min-joints", type=int, default=2)
-    ap.add_argument("--max-joints", type=int, default=10)
+    ap.add_argument("--min-joints", type=int, default=2, help="shortest chain a sim draws at a reset")
+    ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
     ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
                     "weights replace it)")  # fmt: skip
     ap.add_argument("--timeout", type=float, default=24 * 3600.0, help="wall seconds before stopping")
-    ap.add_argument("--startup-timeout", type=float, default=60.0)
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for each node")
     args = ap.parse_args(argv)
     if args.pairs < 1:
         ap.error("--pairs must be >= 1")
     if not args.real_time_factor >= 0:
         ap.error("--real-time-factor must be >= 0")
-    return run(args, extra)
+    try:
+        return run(args, extra)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.util.config_cli import CommandLineParser
 from trainer.runs import Run, load_run, series, smooth
 
 SMOOTHING = 5  # updates, as trainer.summary
@@ -112,8 +113,8 @@ def plot(groups: dict[str, list[Run]], path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m trainer.live_compare", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    ap = CommandLineParser(prog="python -m trainer.live_compare", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     ap.add_argument("live", type=Path, nargs="+", help="live run directories (morph-train --live --out)")
     ap.add_argument("--simulator", type=Path, nargs="*", default=[], help="simulator run directories")
     ap.add_argument("--marks", type=int, nargs="+", default=[100_000, 200_000, 300_000], help="steps to compare at")

@@ -38,7 +38,7 @@ from morph_core.algo.train import TrainConfig
 from morph_core.msgs.records import JointStateRecord
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import Transition, TransitionAssembler
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
 from trainer.live_learner import LiveLearner, NonFiniteUpdate, live_train_config
 
 
@@ -105,7 +105,7 @@ def train_in_process(cfg: TrainConfig, options: InProcessOptions, out: Path, log
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="python -m trainer.live_in_process",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,

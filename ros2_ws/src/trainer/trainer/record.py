@@ -34,20 +34,24 @@ process exits: a bring-up can record N episodes and wait for it.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import sys
+import textwrap
 import time
 from datetime import datetime
 from pathlib import Path
 
 import rclpy
+import rclpy.utilities
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
+from morph_core.util.config_cli import CommandLineParser
 from trainer.bag_messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 
@@ -63,6 +67,36 @@ DEFAULT_TOPICS = [EPISODE_TOPIC, DESCRIPTION_TOPIC, *DATA_TOPIC_TYPES, CLOCK[0]]
 LATCHED_TOPICS = (EPISODE_TOPIC, DESCRIPTION_TOPIC)
 KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*TOPIC_TYPES.items(), CLOCK)]
 _LOG_THROTTLE = 5.0
+
+PARAMETERS = (
+    ("output", "", "bag folder to create (must not exist); '' = rosbag2_<date>-<time> here", None),
+    ("topics", DEFAULT_TOPICS, "topics to record (relative: in the node's namespace)", None),
+    ("episode_topic", EPISODE_TOPIC, "the topic announcing episodes (counted by max_episodes)", None),
+    (
+        "topic_types",
+        KNOWN_TYPES,
+        "topic=pkg/msg/Type pairs subscribed at once (reliable), before any publisher exists, so a node that "
+        "starts later is recorded from its first message; other topics are subscribed once discovered, with the "
+        "type and QoS the graph shows",
+        None,
+    ),
+    ("storage", "mcap", "mcap or sqlite3", None),
+    ("max_bag_size", 0, "bytes per storage file before splitting; 0 = no split", (0, 2**62)),
+    ("max_bag_duration", 0.0, "seconds of log time per storage file before splitting; 0 = no split", (0.0, 1e9)),
+    (
+        "chunk_size",
+        WriterOptions.chunk_size,
+        "MCAP chunk size in bytes: a kill loses at most the chunk being filled",
+        (1, 2**20),
+    ),
+    ("flush_period", 1.0, "wall seconds between flushes (MCAP: close the chunk; sqlite3: commit)", (0.01, 3600.0)),
+    ("queue_depth", 1000, "keep-last depth of each subscription", (1, 100000)),
+    ("max_messages", 0, "stop after writing this many messages (of count_topic, or of all); 0 = no limit", (0, 2**62)),
+    ("count_topic", "", "topic counted by max_messages; '' = every topic", None),
+    ("max_duration", 0.0, "stop this many wall seconds after the first message; 0 = no limit", (0.0, 1e9)),
+    ("max_episodes", 0, "stop when episode max_episodes+1 is announced (not recorded); 0 = no limit", (0, 2**62)),
+)
+"""the node's parameters: (name, default, description, (min, max) or None), all read-only"""
 
 
 def subscription_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
@@ -141,111 +175,18 @@ def ensure_type(typestore, msgtype: str) -> None:
 class RecorderNode(Node):
     def __init__(self):
         super().__init__("morph_record")
-        self.declare_parameter(
-            "output",
-            "",
-            ParameterDescriptor(
-                description="bag folder to create (must not exist); '' = rosbag2_<date>-<time> here", read_only=True
-            ),
-        )
-        self.declare_parameter(
-            "topics",
-            DEFAULT_TOPICS,
-            ParameterDescriptor(description="topics to record (relative: in the node's namespace)", read_only=True),
-        )
-        self.declare_parameter(
-            "episode_topic",
-            EPISODE_TOPIC,
-            ParameterDescriptor(description="the topic announcing episodes (counted by max_episodes)", read_only=True),
-        )
-        self.declare_parameter(
-            "topic_types",
-            KNOWN_TYPES,
-            ParameterDescriptor(
-                description="topic=pkg/msg/Type pairs subscribed at once (reliable), before any publisher "
-                "exists, so a node that starts later is recorded from its first message; other topics "
-                "are subscribed once discovered, with the type and QoS the graph shows",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter("storage", "mcap", ParameterDescriptor(description="mcap or sqlite3", read_only=True))
-        self.declare_parameter(
-            "max_bag_size",
-            0,
-            ParameterDescriptor(
-                description="bytes per storage file before splitting; 0 = no split",
-                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "max_bag_duration",
-            0.0,
-            ParameterDescriptor(
-                description="seconds of log time per storage file before splitting; 0 = no split",
-                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e9, step=0.0)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "chunk_size",
-            WriterOptions.chunk_size,
-            ParameterDescriptor(
-                description="MCAP chunk size in bytes: a kill loses at most the chunk being filled",
-                integer_range=[IntegerRange(from_value=1, to_value=2**20, step=1)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "flush_period",
-            1.0,
-            ParameterDescriptor(
-                description="wall seconds between flushes (MCAP: close the chunk; sqlite3: commit)",
-                floating_point_range=[FloatingPointRange(from_value=0.01, to_value=3600.0, step=0.0)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "queue_depth",
-            1000,
-            ParameterDescriptor(
-                description="keep-last depth of each subscription",
-                integer_range=[IntegerRange(from_value=1, to_value=100000, step=1)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "max_messages",
-            0,
-            ParameterDescriptor(
-                description="stop after writing this many messages (of count_topic, or of all); 0 = no limit",
-                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "count_topic",
-            "",
-            ParameterDescriptor(description="topic counted by max_messages; '' = every topic", read_only=True),
-        )
-        self.declare_parameter(
-            "max_duration",
-            0.0,
-            ParameterDescriptor(
-                description="stop this many wall seconds after the first message; 0 = no limit",
-                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e9, step=0.0)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "max_episodes",
-            0,
-            ParameterDescriptor(
-                description="stop when episode max_episodes+1 is announced (not recorded); 0 = no limit",
-                integer_range=[IntegerRange(from_value=0, to_value=2**62, step=1)],
-                read_only=True,
-            ),
-        )
+        for name, default, description, bounds in PARAMETERS:
+            ranges = {}
+            if bounds is not None:
+                if isinstance(default, int):
+                    ranges["integer_range"] = [IntegerRange(from_value=bounds[0], to_value=bounds[1], step=1)]
+                else:
+                    ranges["floating_point_range"] = [
+                        FloatingPointRange(from_value=bounds[0], to_value=bounds[1], step=0.0)
+                    ]
+            self.declare_parameter(
+                name, default, ParameterDescriptor(description=description, read_only=True, **ranges)
+            )
         p = lambda name: self.get_parameter(name).value  # noqa: E731
         output = p("output") or datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
         options = WriterOptions(
@@ -402,8 +343,29 @@ class RecorderNode(Node):
         )
 
 
+def build_parser() -> CommandLineParser:
+    """The recorder's own command line: ``--help`` (its options are ROS parameters, after ``--ros-args``)."""
+    width = max(len(name) for name, *_ in PARAMETERS)
+    lines = ["parameters (-p NAME:=VALUE after --ros-args; all read-only):"]
+    for name, default, description, _ in PARAMETERS:
+        shown = "[" + ", ".join(default) + "]" if isinstance(default, list) else repr(default)
+        text = f"{name:<{width}}  {description} (default: {shown})"
+        lines.append(textwrap.fill(text, 110, initial_indent="  ", subsequent_indent=" " * (width + 4)))
+    return CommandLineParser(
+        prog="morph-record",
+        usage="morph-record [-h] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]",
+        description=__doc__,
+        epilog="\n".join(lines),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
 def main(args=None) -> int:
-    rclpy.init(args=args)
+    argv = list(sys.argv if args is None else args)
+    # Arguments outside --ros-args are the recorder's own: --help prints it and exits before anything is
+    # created; anything else is refused (it used to be ignored, and the recorder started in this folder).
+    build_parser().parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
     node = None
     executor = SingleThreadedExecutor()  # one for the run: rclpy.spin_once(node) rebuilds the wait set per call
     try:
@@ -414,7 +376,7 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except BagWriterError as err:
-        print(f"morph-record: {err}", file=sys.stderr)
+        print(f"morph-record: error: {err}", file=sys.stderr)
         return 1
     except Exception:
         # SIGINT/SIGTERM can shut the context down between rclpy.ok() and the wait in

@@ -1,6 +1,7 @@
 """Record episodes of the sampling policy on the simulated swimmer into a bag: sim + policy + recorder.
 
-    python -m trainer.record_bringup --episodes 10 --out bags/run1 [--joints 6] [--storage mcap]
+    bash scripts/record.sh --out bags/run1 --episodes 10 [--joints 6] [--storage mcap]
+    python -m trainer.record_bringup --out bags/run1 ...      (the same, without set-up or network namespace)
 
 What a launch file would do on a Jazzy install, for machines without
 ``launch``: the recorder starts first (so it sees the first episode), then the
@@ -13,13 +14,18 @@ policy answers. Then the nodes are stopped and the bag's contents printed.
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
+
+
+class BringupError(RuntimeError):
+    """A node of the bring-up exited or never came up: said in one line (its own error is above), no traceback."""
 
 
 def fastdds_profile() -> str | None:
@@ -57,11 +63,11 @@ def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
 
     client = node.create_client(ListParameters, f"{target}/list_parameters")
     if not client.wait_for_service(timeout_sec=timeout):
-        raise RuntimeError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
+        raise BringupError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
     future = client.call_async(ListParameters.Request(names=[name]))
     rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
     if future.result() is None:
-        raise RuntimeError(f"no answer from {target}/list_parameters")
+        raise BringupError(f"no answer from {target}/list_parameters")
     return name in future.result().result.names
 
 
@@ -77,9 +83,12 @@ def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, t
         left = [missing(topics) for topics in alternatives]
         if not all(left):
             return
-        if proc.poll() is not None or time.monotonic() > deadline:
-            said = " or ".join(str(m) for m in left)
-            raise RuntimeError(f"{name} did not subscribe to {said} (exited, or DDS discovery failed)")
+        said = " or ".join(str(m) for m in left)
+        if proc.poll() is not None:
+            raise BringupError(f"{name} exited (code {proc.returncode}) before it subscribed to {said}: see its "
+                               "error above")  # fmt: skip
+        if time.monotonic() > deadline:
+            raise BringupError(f"{name} did not subscribe to {said} within {timeout} s (DDS discovery failed?)")
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
@@ -91,7 +100,7 @@ def run(args) -> int:
 
     out = Path(args.out)
     if out.exists():
-        print(f"record_bringup: {out} exists already: choose a new --out", file=sys.stderr)
+        print(f"record_bringup: error: {out} exists already: choose a new --out", file=sys.stderr)
         return 1
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     recorder_params = {"output": str(out), "storage": args.storage}
@@ -133,7 +142,7 @@ def run(args) -> int:
         deadline = time.monotonic() + args.timeout
         while recorder.poll() is None:
             if any(p.poll() is not None for p in procs[1:]):
-                raise RuntimeError("a node exited early; see its output above")
+                raise BringupError("a node exited early; see its output above")
             if time.monotonic() > deadline:
                 print(f"record_bringup: timed out after {args.timeout} s: closing the bag early", flush=True)
                 _stop([recorder], signal.SIGINT)
@@ -144,7 +153,7 @@ def run(args) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     if recorder.returncode not in (0, None):
-        print(f"record_bringup: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
+        print(f"record_bringup: error: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
         return 1
     return _summarise(out, ns)
 
@@ -157,7 +166,7 @@ def _summarise(out: Path, ns: str) -> int:
         reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
         records = reader.read()
     except BagError as err:
-        print(f"record_bringup: the bag is not usable: {err}", file=sys.stderr)
+        print(f"record_bringup: error: the bag is not usable: {err}", file=sys.stderr)
         return 1
     starts = sum(isinstance(r, EpisodeStartRecord) for r in records)
     counts = ", ".join(f"{k}: {v}" for k, v in sorted(reader.stats.counts.items()))
@@ -176,22 +185,35 @@ def _summarise(out: Path, ns: str) -> int:
     return 0
 
 
+PROG_ENV = "MORPH_PROG"
+"""the name a wrapper script runs a bring-up under (its help and errors name the script)"""
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", required=True, help="bag folder to create")
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.record_bringup"),
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog="A relative --out or --checkpoint is taken from the folder the command runs in.",
+    )
+    ap.add_argument("--out", required=True, help="bag folder to create (must not exist)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
     ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")
     ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
-    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="the bag's storage format")
     ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the sim's resets and the policy's sampling")
-    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes")
+    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes ('': the root)")
     ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds before closing the bag early")
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the sim")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.steps_per_episode < 1:
         ap.error("--episodes and --steps-per-episode must be >= 1")
-    return run(args)
+    try:
+        return run(args)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -32,7 +32,13 @@ from pathlib import Path
 from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.policy.weights import CheckpointError, PolicyWeights, load_checkpoint, untrained_weights
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, replace_nested
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
 
 LAYOUTS = ("tiled", "sequence")
 CONTROL_HZ = 25  # the env's control period is 0.04 s
@@ -176,18 +182,20 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="morph-render", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", type=Path, help="policy checkpoint (.safetensors, its .json beside it)")
-    source.add_argument("--untrained", action="store_true", help="a freshly initialised policy instead")
+    source.add_argument("--untrained", action=BoolAction, default=False, help="a freshly initialised policy instead")
     parser.add_argument("--policy-seed", type=int, default=0, help="seed of the untrained policy's weights")
     parser.add_argument("--gif", type=Path, default=None, help="write an animated GIF here")
     parser.add_argument("--mp4", type=Path, default=None, help="write an H.264 MP4 here")
     add_dataclass_options(parser, VideoConfig, skip=("lengths",))
     parser.add_argument("--lengths", type=int, nargs="+", default=None, help="chain lengths (default: 2 6 10 20)")
     args = parser.parse_args(argv)
+    if not args.untrained and args.checkpoint is None:
+        parser.error("give --checkpoint PATH or --untrained")
     if args.gif is None and args.mp4 is None:
         parser.error("give --gif PATH, --mp4 PATH or both")
     overrides = overrides_from_args(args, VideoConfig)
@@ -211,10 +219,10 @@ def main(argv: list[str] | None = None) -> None:
         choose_gl_backend()
         render_video(weights, cfg, args.gif, args.mp4, log=lambda text: print(text, file=sys.stderr))
     except (CheckpointError, RenderUnavailable, VideoError) as err:
-        print(f"morph-render: {err}", file=sys.stderr)
+        print(f"morph-render: error: {err}", file=sys.stderr)
         sys.exit(1)
     except ValueError as err:  # e.g. a view larger than MuJoCo's offscreen buffer
-        print(f"morph-render: {err}", file=sys.stderr)
+        print(f"morph-render: error: {err}", file=sys.stderr)
         sys.exit(1)
 
 

@@ -27,7 +27,6 @@ and the shipped policy need not come from a run whose checkpoints are kept.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -37,6 +36,7 @@ import numpy as np
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 from trainer.runs import body_eval_means, load_run
 
 
@@ -100,13 +100,17 @@ def _text(value) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m trainer.ship", description=__doc__)
+    parser = CommandLineParser(prog="python -m trainer.ship", description=__doc__)
     parser.add_argument("--run", type=Path, nargs="+", required=True)
     parser.add_argument(
         "--dest", type=Path, required=True, help="where to write the policy (.safetensors, with its .json beside it)"
     )
-    parser.add_argument("--replace", action="store_true", help="write the best run's checkpoint even if the policy "
-                        "already at --dest scored higher")  # fmt: skip
+    parser.add_argument(
+        "--replace",
+        action=BoolAction,
+        default=False,
+        help="write the best run's checkpoint even if the policy already at --dest scored higher",
+    )
     args = parser.parse_args(argv)
     scored = []
     for run in args.run:

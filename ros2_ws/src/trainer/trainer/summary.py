@@ -19,12 +19,12 @@ per tree and the last training returns on chains and on trees.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 from morph_core.env.bodies import is_chain_label
+from morph_core.util.config_cli import CommandLineParser
 from trainer.runs import Run, body_eval_means, eval_means, load_runs, series, smooth
 
 COLLAPSE = 0.5
@@ -32,7 +32,7 @@ COLLAPSE = 0.5
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m trainer.summary", description=__doc__)
+    parser = CommandLineParser(prog="python -m trainer.summary", description=__doc__)
     parser.add_argument("--run", type=Path, nargs="+", required=True)
     args = parser.parse_args(argv)
     try:

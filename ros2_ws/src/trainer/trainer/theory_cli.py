@@ -17,7 +17,6 @@ Numbers quoted in docs/theory.md come from ``summary.json``.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -34,6 +33,7 @@ import numpy as np
 from morph_core.algo import trust_region
 from morph_core.theory import clip_analysis as theory
 from morph_core.theory import fisher_scaling
+from morph_core.util.config_cli import BoolAction, CommandLineParser
 
 _FISHER = fisher_scaling.ScalingConfig()  # figure 4's defaults live with the study itself
 
@@ -95,9 +95,9 @@ class TheoryConfig:
 # -- argparse from the dataclass ---------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> CommandLineParser:
     """One argument per :class:`TheoryConfig` field, with the field's default, type and help."""
-    parser = argparse.ArgumentParser(prog="morph-theory", description=__doc__.split("\n\n")[0])
+    parser = CommandLineParser(prog="morph-theory", description=__doc__.split("\n\n")[0])
     hints = typing.get_type_hints(TheoryConfig)
     defaults = TheoryConfig()
     for f in dataclasses.fields(TheoryConfig):
@@ -106,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
         kwargs: dict[str, typing.Any] = {"help": f"{f.metadata['help']} (default: {default})", "dest": f.name}
         origin = typing.get_origin(hint)
         if hint is bool:
-            kwargs.update(action=argparse.BooleanOptionalAction, default=default)
+            kwargs.update(action=BoolAction, default=default)
         elif origin is tuple:
             kwargs.update(nargs="+", type=typing.get_args(hint)[0], default=default)
         elif origin is list:
@@ -116,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             kwargs.update(type=hint, default=default)
         parser.add_argument(flag, **kwargs)
+        if hint is bool:  # the tool's --no-flag form of before
+            no = "--no-" + f.name.replace("_", "-")
+            parser.add_deprecated_alias(no, flag, value=False, shown=f"{flag} false")
     return parser
 
 
@@ -585,6 +588,17 @@ def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
 # -- entry point -------------------------------------------------------------------------------------
 
 
+def check_inputs(cfg: TheoryConfig) -> None:
+    """Raise ``ValueError`` for inputs the figures would fail on, before any is made: every ``--run-csv`` is
+    read (columns, rows, clip_eps) and must give the overlay a dimension with data."""
+    if not 0 < cfg.run_tail <= 1:
+        raise ValueError(f"run_tail must be in (0, 1], got {cfg.run_tail}")
+    for path in cfg.run_csv:
+        run = load_run(path, fallback_eps=cfg.eps, epoch=cfg.run_epoch)
+        if not run_overlay_rows(run, cfg.run_tail):
+            raise ValueError(f"{run.name}: every row of every dimension is empty")
+
+
 def run(cfg: TheoryConfig) -> dict[str, float]:
     """Make every figure of ``cfg``; returns (and writes) the summary numbers."""
     import torch
@@ -609,6 +623,7 @@ def run(cfg: TheoryConfig) -> dict[str, float]:
 def main(argv: Sequence[str] | None = None) -> int:
     cfg = parse_config(argv)
     try:
+        check_inputs(cfg)  # a bad --run-csv is said before minutes of figures, not after
         summary = run(cfg)
     except ValueError as exc:
         print(f"morph-theory: error: {exc}", file=sys.stderr)

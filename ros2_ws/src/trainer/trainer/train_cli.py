@@ -2,8 +2,11 @@
 
 Every TrainConfig field is an option (``--clip-mode``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...). ``--resume`` continues the run in ``--out``
-from its last checkpoint, with the config it was started with (options
-given again override it, e.g. a larger ``--total-timesteps``).
+from its last checkpoint, with the config it was started with; options
+given again override it (e.g. a larger ``--total-timesteps``) and are
+written back to its config.json. The optimizer's ``--learning-rate`` and
+``--adam-eps`` come back with its state: a resume refuses new ones. A run
+that reached its ``--total-timesteps`` says so and does nothing.
 
 From recorded topics instead of the simulator (``morph_core.algo.train_from_data``):
 
@@ -18,27 +21,54 @@ record with ``morph_policy_node`` ``deterministic:=false`` (scripts/record.sh
 does). ``--iterations`` defaults to one pass over the data. Without
 ``--init`` the policy starts fresh from ``--seed``. The run directory is laid
 out as for simulator training; a resume on other bags than the run trains
-on is refused.
+on is refused. The learning rate is the paper's 0.01, at which a fresh
+policy's updates on bags stayed near the KL target; a trained policy given
+with ``--init`` wants a lower one: the shipped policy, on a bag of its own
+episodes, reached approximate KL 17.6 on its first update at 0.01 (and then
+diverged), 0.19 at 0.003 and 0.05 at 0.001.
+
+What it says: the progress bar shows ``ret`` (simulator: the mean return of
+the last 50 episodes), ``sps`` (steps per second) and ``kl`` (the last
+update's approximate KL); from bags ``kl`` and ``w``, the mean truncated
+importance weight min(pi_prox / pi_behav, proximal_weight_cap) of the
+update's samples (1 while the data are the policy's own, lower as it moves
+away from the policy that acted). An update whose approximate KL exceeds 10
+x ``--kl-target`` (0.1 by default) is warned about (the first 3; the
+summary counts them all). At the end, two lines: the steps and updates, the
+final training return (from bags: the recorded episodes' return) and where
+the run's files are. Every file is in ``--out``: config.json (the config,
+options given with ``--resume`` written back), progress.csv (a row per
+update), tb/ (TensorBoard), checkpoints/policy_<step>.safetensors (the
+policy) and state.safetensors (what ``--resume`` continues from).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
-from morph_core.algo.train import TrainConfig, load_run_config, train
+from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import load_signing_key
-from morph_core.util.config_cli import add_dataclass_options, overrides_from_args, parse_bool, replace_nested
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
 from trainer.bag_cli import bag_robot
 from trainer.bag_io import BagError, BagReader
 from trainer.live_learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
+from trainer.train_report import KL_WARN_FACTOR, ProgressFollower
+from trainer.train_session import ResumedConfig, ResumeError, finished_data_message, finished_message, saved_counters
 
 PPO_TOPICS = ("joint_states", "odom")
 """topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
@@ -49,12 +79,14 @@ class CliError(Exception):
     """A one-line error for the command line."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
         prog="morph-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--out", type=Path, required=True, help="run directory")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument(
+        "--resume", action=BoolAction, default=False, help="continue the run in --out from its last checkpoint"
+    )
     bags = parser.add_argument_group("training from recorded bags")
     bags.add_argument(
         "--from-bags",
@@ -77,13 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bags.add_argument(
         "--new-data",
-        action="store_true",
+        action=BoolAction,
+        default=False,
         help="with --resume: the bags are new data for the run, trained on after what it has done "
         "(policy, critic, optimizer and generator carry over)",
     )
     bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
     live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live)")
-    live.add_argument("--live", action="store_true",
+    live.add_argument("--live", action=BoolAction, default=False,
                       help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
                       f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
     live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
@@ -102,8 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
                       help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
                       "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
-    live.add_argument("--stream-chunks", type=parse_bool, nargs="?", const=True, default=LiveOptions.stream_chunks,
-                      metavar="BOOL", help="take each pair's messages from its policy node's stream_chunks instead "
+    live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
+                      help="take each pair's messages from its policy node's stream_chunks instead "
                       f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
@@ -140,10 +173,16 @@ def _train_from_bags(args) -> None:
             GraphActorCritic.load(args.init)
         except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
             raise CliError(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})") from None
+    source = [str(Path(b).resolve()) for b in args.from_bags]
+    resumed = None
     if args.resume:
         if not (args.out / "config.json").exists():
             raise CliError(f"--resume: no run to resume in {args.out} (config.json missing)")
-        cfg = load_run_config(args.out, overrides)
+        resumed = ResumedConfig(args.out, overrides)
+        cfg = resumed.cfg
+        if not args.new_data and (done := finished_data_message(args.out, source, args.iterations)):
+            print(f"morph-train: {done}")
+            return
     else:
         if (args.out / "state.safetensors").exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
@@ -171,21 +210,31 @@ def _train_from_bags(args) -> None:
         f"update(s) of up to {cfg.batch_size} samples into {args.out}",
         flush=True,
     )
-    train_from_data(
-        cfg,
-        data,
-        args.out,
-        iterations=args.iterations,
-        init=args.init,
-        resume=args.resume,
-        new_data=args.new_data,
-        source=[str(Path(b).resolve()) for b in args.from_bags],
-    )
+    follower = _follower(args.out, cfg, args.resume, args.init)
+    if cfg.progress_bar:
+        print(f"morph-train: progress bar: kl = the update's approximate KL (warned above {follower.kl_limit:g}), "
+              "w = its samples' mean importance weight min(pi_prox / pi_behav, proximal_weight_cap): 1 on the "
+              "policy's own data, lower as it moves away from the policy that acted", file=sys.stderr)  # fmt: skip
+    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        if resumed:
+            resumed.write_back()
+        with follower:
+            train_from_data(
+                cfg,
+                data,
+                args.out,
+                iterations=args.iterations,
+                init=args.init,
+                resume=args.resume,
+                new_data=args.new_data,
+                source=source,
+            )
+    print("\n".join(follower.summary(args.out, data=True)), flush=True)
 
 
-def _train_live(args, parser) -> int:
-    from trainer.live import run_live  # rclpy only here
-
+def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
+    """The live run's config, options and (on ``--resume``) what changes in its config.json; ``parser.error``
+    for what the trainer refuses before it starts ROS, and a finished run resumed is said and exits 0."""
     if not args.namespaces:
         parser.error("--live needs --namespaces NS [NS ...]")
     if args.from_bags is not None:
@@ -195,18 +244,59 @@ def _train_live(args, parser) -> int:
         if args.resume:
             if not (args.out / "state.safetensors").exists():
                 parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
-            cfg = load_run_config(args.out, overrides)
+            resumed = ResumedConfig(args.out, overrides)
+            cfg = resumed.cfg
         else:
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg = replace_nested(live_train_config(), overrides)
+            cfg, resumed = replace_nested(live_train_config(), overrides), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key)  # fmt: skip
-        signer = None if args.signing_key is None else load_signing_key(args.signing_key)
-    except (TypeError, ValueError) as err:  # KeyFileError is a ValueError
+    except (OSError, TypeError, ValueError) as err:
         parser.error(str(err))
-    return run_live(cfg, options, signer=signer)
+    if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):
+        print(f"morph-train: {done}")
+        parser.exit(0)
+    return cfg, options, resumed
+
+
+def check_live(argv: list[str]) -> None:
+    """Refuse ``morph-train --live`` arguments (``argv``, without the program) as the trainer would, with its
+    one-line error and exit code 2, before anything starts: a bring-up checks its trainer's command first."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.live:
+        parser.error("check_live: a command without --live")
+    _live_config(args, parser)
+
+
+def _train_live(args, parser) -> int:
+    from trainer.live import run_live  # rclpy only here
+
+    cfg, options, resumed = _live_config(args, parser)
+    try:
+        signer = None if args.signing_key is None else load_signing_key(args.signing_key)
+    except ValueError as err:  # KeyFileError is a ValueError
+        parser.error(str(err))
+    follower = _follower(args.out, cfg, args.resume)
+    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        if resumed:
+            resumed.write_back()
+        with follower:
+            code = run_live(cfg, options, signer=signer)
+    print("\n".join(follower.summary(args.out)), flush=True)
+    return code
+
+
+def _follower(out: Path, cfg: TrainConfig, resume: bool, init: Path | None = None) -> ProgressFollower:
+    """The reader of the run's progress.csv that warns of high KL while it trains and sums the session up."""
+    counters = saved_counters(out) if resume else None
+    start = 0 if counters is None else counters["global_step"]
+    hint = "a lower --learning-rate keeps it closer"
+    if init is not None:
+        hint += " (a trained policy given with --init: e.g. --learning-rate 0.001)"
+    return ProgressFollower(out, KL_WARN_FACTOR * cfg.kl_target, start_step=start, hint=hint)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -233,14 +323,21 @@ def main(argv: list[str] | None = None) -> int:
     if given:
         parser.error(f"{', '.join(given)}: only with --from-bags")
     overrides = overrides_from_args(args, TrainConfig)
+    resumed = None
     if args.resume:
         if not (args.out / "config.json").exists():
             parser.error(f"--resume: no run to resume in {args.out} (config.json missing)")
         try:
-            cfg = load_run_config(args.out, overrides)
+            resumed = ResumedConfig(args.out, overrides)
+        except ResumeError as err:
+            parser.error(str(err))
         except (OSError, TypeError, ValueError) as err:  # a hand-edited config.json: said before anything runs
             print(f"morph-train: error: {args.out / 'config.json'}: {err}", file=sys.stderr)
             return 1
+        cfg = resumed.cfg
+        if done := finished_message(args.out, cfg):
+            print(f"morph-train: {done}")
+            return 0
     else:
         if (args.out / "state.safetensors").exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
@@ -248,14 +345,24 @@ def main(argv: list[str] | None = None) -> int:
             cfg = replace_nested(TrainConfig(), overrides)
         except (TypeError, ValueError) as err:
             parser.error(str(err))
+    follower = _follower(args.out, cfg, args.resume)
+    if cfg.progress_bar:
+        print("morph-train: progress bar: ret = the mean return of the last 50 episodes, sps = steps per second, "
+              f"kl = the last update's approximate KL (warned above {follower.kl_limit:g})",
+              file=sys.stderr)  # fmt: skip
     try:
-        train(cfg, args.out, resume=args.resume)
+        with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+            if resumed:
+                resumed.write_back()
+            with follower:
+                train(cfg, args.out, resume=args.resume)
     except TrainingStateError as err:
         print(f"morph-train: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:  # a full disk: every file is written atomically, so the last checkpoint is intact
         print(f"morph-train: error: {err}; the run stopped, its last complete checkpoint is kept", file=sys.stderr)
         return 1
+    print("\n".join(follower.summary(args.out)), flush=True)
     return 0
 
 

@@ -13,8 +13,114 @@ import dataclasses
 import inspect
 import math
 import numbers
+import sys
 import textwrap
 import typing
+
+BOOL_WORDS = ("true", "false", "1", "0", "yes", "no", "on", "off")
+"""what a boolean option takes (any case)"""
+
+
+class BoolAction(argparse.Action):
+    """A boolean option, one style for every tool: ``--flag`` or ``--flag true`` is true, ``--flag false`` is
+    false (``parse_bool``'s words). ``CommandLineParser`` makes the value explicit before parsing, so a flag
+    alone never takes the next argument (a positional) for its value."""
+
+    def __init__(self, option_strings, dest, default=None, required=False, help=None, metavar="BOOL"):
+        super().__init__(option_strings, dest, nargs="?", const=True, default=default, type=parse_bool,
+                         required=required, help=help, metavar=metavar)  # fmt: skip
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old spelling of an option, kept for a release: it sets what the new one sets (``value``: a fixed
+    value, for ``--no-flag``) and says once, on stderr, how to write it now."""
+
+    def __init__(self, option_strings, dest, new: str, value=None, nargs=None, **kwargs):
+        self.new, self.value = new, value
+        super().__init__(option_strings, dest, nargs=0 if value is not None else nargs, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        said = getattr(parser, "_deprecations_said", set())
+        if option_string not in said:
+            said.add(option_string)
+            parser._deprecations_said = said
+            print(f"{parser.prog}: warning: {option_string} is deprecated: write {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, self.value if self.value is not None else values)
+
+
+class CommandLineParser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` as every tool of the project uses it: options are never abbreviated
+    (``--total-timestep`` is refused, not taken for ``--total-timesteps``), and an error is one line,
+    ``prog: error: message``, and a hint ``see prog --help``, not the usage block. Booleans are
+    ``BoolAction``s: ``--flag [true|false]``. Subcommands' parsers (``add_subparsers``) are of this class too."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\nsee {self.prog} --help\n")
+
+    def add_deprecated_alias(self, old: str, new: str, value=None, shown: str | None = None) -> None:
+        """Accept ``old`` for the option ``new`` (with ``value``: ``old`` alone sets it, as ``--no-x`` sets
+        ``--x false``), not shown in the help; ``shown``: how the warning writes the new form."""
+        target = next(a for a in self._actions if new in a.option_strings)
+        kwargs = {} if value is not None else {"nargs": target.nargs, "type": target.type, "metavar": target.metavar}
+        self.add_argument(old, dest=target.dest, action=DeprecatedAlias, new=shown or new, value=value,
+                          help=argparse.SUPPRESS, **kwargs)  # fmt: skip
+
+    def parse_known_args(self, args=None, namespace=None):
+        args = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(self._explicit_booleans(args), namespace)
+
+    def _boolean_flags(self) -> set[str]:
+        flags = set()
+        for action in self._actions:
+            if isinstance(action, BoolAction):
+                flags.update(action.option_strings)
+            elif isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    if isinstance(sub, CommandLineParser):
+                        flags |= sub._boolean_flags()
+        return flags
+
+    def _explicit_booleans(self, args: list[str]) -> list[str]:
+        """``--flag`` -> ``--flag=true``, ``--flag no`` -> ``--flag=no`` (up to ``--``)."""
+        flags, out, i = self._boolean_flags(), [], 0
+        while i < len(args):
+            arg = args[i]
+            if arg == "--":
+                return out + args[i:]
+            if arg in flags:
+                following = args[i + 1] if i + 1 < len(args) else None
+                if following is not None and following.strip().lower() in BOOL_WORDS:
+                    arg, i = f"{arg}={following}", i + 1
+                else:
+                    arg = f"{arg}=true"
+            out.append(arg)
+            i += 1
+        return out
+
+
+class DefaultsHelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help with each option's default shown (``(default: X)``) unless its help shows it already, it has none
+    (None, a required option, a flag) or it is positional; the description kept as written."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (
+            "%(default)" in text
+            or "(default:" in text
+            or action.default in (None, argparse.SUPPRESS)
+            or action.required
+            or action.nargs == 0
+            or not action.option_strings
+        ):
+            return text
+        return f"{text} (default: {action.default!r})" if action.default == "" else f"{text} (default: %(default)s)"
 
 
 def field_docs(cls) -> dict[str, str]:
@@ -64,15 +170,12 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = ""
             default = getattr(defaults, f.name)
         else:
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        conv = parse_bool if kind is bool else kind
-        parser.add_argument(
-            f"--{prefix}{f.name}".replace("_", "-"),
-            dest=f"{prefix}{f.name}".replace("-", "__"),
-            type=conv,
-            default=None,
-            metavar=kind.__name__.upper(),
-            help=f"{docs.get(f.name, '')} (default: {default})",
-        )
+        flag, dest = f"--{prefix}{f.name}".replace("_", "-"), f"{prefix}{f.name}".replace("-", "__")
+        text = f"{docs.get(f.name, '')} (default: {default})"
+        if kind is bool:
+            parser.add_argument(flag, dest=dest, action=BoolAction, default=None, help=text)
+        else:
+            parser.add_argument(flag, dest=dest, type=kind, default=None, metavar=kind.__name__.upper(), help=text)
 
 
 def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict:

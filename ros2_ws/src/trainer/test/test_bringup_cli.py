@@ -1,0 +1,103 @@
+"""The bring-ups (``scripts/live.sh``, ``scripts/record.sh``) refuse what their trainer or recorder would
+refuse before starting anything: one line, the tool's own error, no traceback blaming DDS. No DDS here: each
+is refused before a node starts (a subprocess with a timeout, so a bring-up that started nodes would fail)."""
+
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+LIVE = [sys.executable, "-m", "trainer.live_bringup"]
+ROOT = Path(__file__).resolve().parents[4]
+
+
+def _set_up() -> bool:
+    """Whether scripts/setup.sh has nothing to do (the wrappers run it first: not a reinstall in a test)."""
+    stamp = ROOT / ".venv" / ".installed"
+    files = [ROOT / "constraints.txt", ROOT / "requirements-dev.txt", *sorted(ROOT.glob("ros2_ws/src/*/setup.py"))]
+    want = hashlib.sha256(b"".join(f.read_bytes() for f in files)).hexdigest()
+    return stamp.is_file() and stamp.read_text().strip() == want
+
+
+needs_setup = pytest.mark.skipif(not _set_up(), reason="the project venv is not set up (bash scripts/setup.sh)")
+
+
+def _refused(cmd, cwd) -> list[str]:
+    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and done.stdout == ""
+    return done.stderr.splitlines()
+
+
+def test_live_on_a_run_without_resume_says_the_trainer_s_one_line(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "state.safetensors").write_bytes(b"")  # what the trainer looks for
+    assert _refused([*LIVE, "--out", str(run)], tmp_path) == [
+        f"morph-train: error: {run} already holds a run; pass --resume to continue it or choose another --out",
+        "see morph-train --help",
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    assert sorted(p.name for p in run.iterdir()) == ["state.safetensors"]
+
+
+def test_live_resume_without_a_run_and_bad_trainer_options_are_refused_first(tmp_path):
+    err = _refused([*LIVE, "--out", str(tmp_path / "none"), "--resume"], tmp_path)
+    assert (
+        err[0]
+        == f"morph-train: error: --resume: no live run to resume in {tmp_path / 'none'} (state.safetensors missing)"
+    )
+    err = _refused([*LIVE, "--out", str(tmp_path / "new"), "--", "--total-timestep", "5"], tmp_path)
+    assert err == ["morph-train: error: unrecognized arguments: --total-timestep 5", "see morph-train --help"]
+    err = _refused([*LIVE, "--out", str(tmp_path / "new"), "--", "--learning-rate", "fast"], tmp_path)
+    assert err[0] == "morph-train: error: argument --learning-rate: invalid float value: 'fast'"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_live_resume_of_a_finished_run_says_so_and_starts_nothing(tmp_path):
+    from morph_core.algo.train import TrainConfig, train
+
+    small = dict(num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, total_timesteps=128,
+                 tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+    run = train(TrainConfig(**small), tmp_path / "run")  # a training state at its total_timesteps
+    files = sorted(p.name for p in run.iterdir())
+    done = subprocess.run([*LIVE, "--out", str(run), "--resume"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == [
+        f"morph-train: {run} already finished at step 128 (total_timesteps 128): nothing to do; "
+        "raise --total-timesteps to go on"
+    ]
+    assert sorted(p.name for p in run.iterdir()) == files
+
+
+@needs_setup
+@pytest.mark.parametrize("script", ["live.sh", "record.sh"])
+def test_the_wrappers_help_names_the_script_and_shows_defaults(tmp_path, script):
+    wrapper = ROOT / "scripts" / script
+    done = subprocess.run(["bash", str(wrapper), "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"usage: {wrapper} [-h]")
+    assert "bring-up" not in done.stdout.splitlines()[0] and "(default: 10)" in done.stdout
+    text = " ".join(done.stdout.split())  # the epilog wrapped
+    assert "A relative --out or --checkpoint is taken from the folder the command runs in." in text
+    if script == "live.sh":
+        assert "[-- MORPH-TRAIN OPTIONS]" in done.stdout and "Everything after -- goes to the trainer" in text
+    assert list(tmp_path.iterdir()) == []
+
+
+@needs_setup
+def test_the_wrappers_take_a_relative_out_from_the_caller_s_folder(tmp_path):
+    (tmp_path / "rel").mkdir()
+    (tmp_path / "rel" / "state.safetensors").write_bytes(b"")
+    live = subprocess.run(["bash", str(ROOT / "scripts" / "live.sh"), "--out", "rel"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert live.returncode == 2
+    assert live.stderr.splitlines()[0] == (
+        "morph-train: error: rel already holds a run; pass --resume to continue it or choose another --out"
+    )
+    record = subprocess.run(["bash", str(ROOT / "scripts" / "record.sh"), "--out", "rel"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert record.returncode == 1 and "rel exists already" in record.stderr
+    assert not (ROOT / "rel").exists()

@@ -1,0 +1,120 @@
+"""Every command line of the project parses the same way (``config_cli.CommandLineParser``): an error is one
+line ``tool: error: ...`` and a hint ``see tool --help`` (no usage block), exit code 2; an option is never
+abbreviated (``--total-timestep`` is refused, not taken for ``--total-timesteps``)."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+# module, prog, arguments that parse, a truncated option of the tool (with its value, if it takes one)
+TOOLS = [
+    ("train_cli", "morph-train", ["--out", "run"], ["--total-timestep", "5"]),
+    ("eval_cli", "morph-eval", ["--checkpoint", "p.safetensors"], ["--episode", "3"]),
+    ("export_cli", "morph-export", ["p.safetensors", "p.onnx"], ["--with-val"]),
+    ("render_cli", "morph-render", ["--untrained", "--gif", "x.gif"], ["--second", "2"]),
+    ("gait_cli", "morph-gait", [], ["--second", "2"]),
+    ("keys_cli", "morph-keys", ["new", "key"], ["--forc"]),
+    ("bag_cli", "morph-bag", ["info", "bag"], ["--jso"]),
+    ("theory_cli", "morph-theory", ["--out", "th"], ["--run-cs", "x.csv"]),
+    ("record", "morph-record", [], ["--hel"]),
+    ("record_bringup", "python -m trainer.record_bringup", ["--out", "bag"], ["--episode", "3"]),
+    ("live_bringup", "python -m trainer.live_bringup", ["--out", "run"], ["--pair", "2"]),
+    ("live_in_process", "python -m trainer.live_in_process", ["--out", "run"], ["--total-timestep", "5"]),
+    ("live_compare", "python -m trainer.live_compare", ["run"], ["--simulato", "sim"]),
+    ("bag_rounds", "bag_rounds", ["--out", "rounds"], ["--round", "3"]),
+    ("ship", "python -m trainer.ship", ["--run", "run", "--dest", "p.safetensors"], ["--replac"]),
+    ("summary", "python -m trainer.summary", ["--run", "run"], ["--ru", "run"]),
+]
+
+
+def _fails(module: str, argv: list[str], capsys) -> tuple[int, str]:
+    main = importlib.import_module(f"trainer.{module}").main
+    if module == "record":  # a ROS node's main takes the whole argv, its program name first
+        argv = ["morph-record", *argv]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert out == ""
+    return exit_.value.code, err
+
+
+@pytest.mark.parametrize("module, prog, good, truncated", TOOLS, ids=[t[0] for t in TOOLS])
+def test_a_bad_option_is_one_line_and_a_hint(module, prog, good, truncated, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # nothing may be created: checked below
+    code, err = _fails(module, [*good, "--no-such-option"], capsys)
+    assert code == 2
+    assert err == f"{prog}: error: unrecognized arguments: --no-such-option\nsee {prog} --help\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("module, prog, good, truncated", TOOLS, ids=[t[0] for t in TOOLS])
+def test_an_abbreviated_option_is_refused(module, prog, good, truncated, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = _fails(module, [*good, *truncated], capsys)
+    assert code == 2
+    assert err == f"{prog}: error: unrecognized arguments: {' '.join(truncated)}\nsee {prog} --help\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_missing_argument_is_one_line_too(capsys):
+    code, err = _fails("train_cli", ["--total-timesteps", "5"], capsys)
+    assert code == 2
+    assert err == "morph-train: error: the following arguments are required: --out\nsee morph-train --help\n"
+    code, err = _fails("train_cli", ["--out", "run", "--total-timesteps", "five"], capsys)
+    assert err.splitlines() == [
+        "morph-train: error: argument --total-timesteps: invalid int value: 'five'",
+        "see morph-train --help",
+    ]
+
+
+def test_every_boolean_is_flag_true_or_false_and_a_bare_flag_takes_no_positional():
+    from trainer import bag_cli, export_cli, train_cli
+
+    parse = train_cli.build_parser().parse_args
+    for given, compile_, resume in (([], None, False), (["--compile"], True, False),
+                                    (["--compile", "FALSE", "--resume"], False, True),
+                                    (["--compile", "no", "--resume", "true"], False, True)):  # fmt: skip
+        args = parse(["--out", "run", *given])
+        assert (args.compile, args.resume) == (compile_, resume), given
+    args = export_cli.build_parser().parse_args(["--tree", "p.safetensors", "p.onnx", "--with-value", "false"])
+    assert (args.tree, args.checkpoint, args.out, args.with_value) == (True, "p.safetensors", "p.onnx", False)
+    args = bag_cli.build_parser().parse_args(["info", "--json", "bag"])
+    assert args.json is True and args.bags == ["bag"]
+
+
+def test_no_tool_declares_a_boolean_another_way():
+    from pathlib import Path
+
+    import trainer
+
+    for path in sorted(Path(trainer.__file__).parent.glob("*.py")):
+        text = path.read_text()
+        for other in ('"store_true"', '"store_false"', "BooleanOptionalAction", "type=parse_bool"):
+            assert other not in text, f"{path.name}: {other}; use config_cli.BoolAction (--flag [true|false])"
+
+
+def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_path, capsys):
+    from trainer.eval_cli import main
+
+    (tmp_path / "config.json").write_text("{}")
+    main(["--run", str(tmp_path), "--no-eval"])  # nothing to evaluate, nothing to plot
+    assert capsys.readouterr().err == "morph-eval: warning: --no-eval is deprecated: write --eval false\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+
+
+def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
+    from trainer import eval_cli, live_bringup
+
+    (tmp_path / "config.json").write_text("{}")
+    eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--threads", "2"])  # as morph-train: --env-threads
+    assert capsys.readouterr().err == "morph-eval: warning: --threads is deprecated: write --env-threads\n"
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "state.safetensors").write_bytes(b"")
+    with pytest.raises(SystemExit):  # refused (a run there), but --updates was read as --max-updates first
+        live_bringup.main(["--out", str(run), "--updates", "3"])
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "python -m trainer.live_bringup: warning: --updates is deprecated: write --max-updates"
+    assert err[1].startswith("morph-train: error:")
