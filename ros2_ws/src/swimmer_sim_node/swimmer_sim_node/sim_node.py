@@ -347,12 +347,11 @@ class SwimmerSimNode(Node):
         self._longest_name = max(map(len, self.sim.tree.names)) if self.sim.robot else len("motor64_rot")
         if prefix_error(self._prefix, self._longest_name) is not None:
             raise ValueError(f"joint_prefix {prefix_error(self._prefix, self._longest_name)}")
-        self._names = self.sim.joint_names(self._prefix)
+        self._follow_body()
         self._shuffle = p("shuffle_joints").value
         self._order_rng = np.random.default_rng([SHUFFLE_STREAM, p("seed").value])
         self._sent: OrderedDict[int, tuple[str, ...]] = OrderedDict()  # stamp -> the names as published
         self._latest_names: tuple[str, ...] = tuple(self._names)
-        self._joint_map: tuple[tuple[tuple[str, ...], bytes], JointMap] | None = None
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -423,7 +422,7 @@ class SwimmerSimNode(Node):
                 self.sim.episode_steps = param.value
             elif param.name == "joint_prefix":
                 self._prefix = param.value
-                self._names = self.sim.joint_names(self._prefix)
+                self._follow_body()
                 self._sent.clear()  # orders under the old names: a state published again gets one of the new
             elif param.name == "real_time_factor":
                 self._rtf = self._pacer.real_time_factor = param.value
@@ -458,7 +457,7 @@ class SwimmerSimNode(Node):
 
     def _announce(self, stamp_ns: int) -> None:
         self._announced = self.sim.episode
-        self._names = self.sim.joint_names(self._prefix)
+        self._follow_body()
         label, data = pack_episode_start(self.sim.episode, stamp_ns, self.sim.num_joints, self.sim.episode_cause)
         msg = Int64MultiArray(data=data)
         msg.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=len(data))]
@@ -545,7 +544,7 @@ class SwimmerSimNode(Node):
         except EffortNamesError as err:
             self._reject("names", err)
             return
-        body = self._names_map().robot.tree
+        body = self._body.robot.tree
         if layout is not None and layout != body.layout_hash:
             # Computed on another joint layout: typically a new body's first state answered before its
             # robot_description reached the controller (names alone cannot tell two trees apart).
@@ -588,16 +587,15 @@ class SwimmerSimNode(Node):
                 )
             if len(names) != len(msg.data):
                 return msg.data  # SwimmerSim.command refuses it with the counts
-        return self._names_map().order(names).to_tree(np.asarray(msg.data, dtype=np.float64))
+        return self._body.order(names).to_tree(np.asarray(msg.data, dtype=np.float64))
 
-    def _names_map(self) -> JointMap:
-        """The body's joints by their published names (``protocol.joint_map``), rebuilt when the names or the
-        tree change (two trees may have the same names: the map's tree gives the layout answers are checked on)."""
-        names = (tuple(self._names), self.sim.tree.parents.tobytes())
-        if self._joint_map is None or self._joint_map[0] != names:
-            tree = KinematicTree(names[0], self.sim.tree.parents, self._prefix + (self.sim.tree.root_link or ""))
-            self._joint_map = (names, JointMap(UrdfRobot(tree, frozenset())))
-        return self._joint_map[1]
+    def _follow_body(self) -> None:
+        """The published joint names and the body's joints by those names (``protocol.joint_map``), set when
+        either can change: a new episode (two bodies may share names: the map's tree is the layout answers are
+        checked on) and a new prefix."""
+        self._names = self.sim.joint_names(self._prefix)
+        tree = KinematicTree(self._names, self.sim.tree.parents, self._prefix + (self.sim.tree.root_link or ""))
+        self._body = JointMap(UrdfRobot(tree, frozenset()))
 
     def _reject(self, reason: str, err: Exception) -> None:
         self.counts.rejected(EFFORTS, reason, str(err))
@@ -638,7 +636,7 @@ class SwimmerSimNode(Node):
                 self._sent[stamp_ns] = names
                 if len(self._sent) > REMEMBERED_ORDERS:
                     self._sent.popitem(last=False)
-            order = self._names_map().order(names)
+            order = self._body.order(names)
             positions, velocities, efforts = (order.to_message(v) for v in (positions, velocities, efforts))
             self._latest_names = names
             state.name = list(names)

@@ -24,6 +24,7 @@ input raises ``TreeError`` with a one-line reason, never another exception.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import numbers
 import xml.etree.ElementTree as ET
@@ -99,7 +100,7 @@ class KinematicTree:
     def is_chain(self) -> bool:
         return bool(np.array_equal(self.parents, chain_parents(self.num_joints)))
 
-    @property
+    @functools.cached_property  # the tree is immutable; a node checks it on every answer
     def topology_hash(self) -> str:
         """16 hex digits of SHA-256 over the parent array alone: equal for equal parents whatever the names.
 
@@ -108,7 +109,7 @@ class KinematicTree:
         """
         return hashlib.sha256(_HASH_PREFIX + self.parents.astype("<i8").tobytes()).hexdigest()[:16]
 
-    @property
+    @functools.cached_property
     def layout_hash(self) -> str:
         """16 hex digits of SHA-256 over the joint names in order and the parent array: equal for two trees
         that put the same joints in the same places (what a policy's answer depends on), whatever the root's

@@ -20,6 +20,7 @@ message's order: the convention of a chain robot, and the fallback.
 
 from __future__ import annotations
 
+import functools
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -51,10 +52,15 @@ class JointOrder:
     index: np.ndarray
     in_message_order: bool
 
-    @property
+    # Cached: an order is made once per list of names (``JointMap`` keeps it) and used on every state.
+    @functools.cached_property
+    def _message_index(self) -> np.ndarray:
+        return np.argsort(self.index, kind="stable")
+
+    @functools.cached_property
     def message_names(self) -> tuple[str, ...]:
         """The tree's joints in the order the message lists them (its unactuated joints left out)."""
-        return tuple(self.tree.names[j] for j in np.argsort(self.index, kind="stable"))
+        return tuple(self.tree.names[j] for j in self._message_index)
 
     def to_tree(self, values: np.ndarray) -> np.ndarray:
         """Per-joint values of the message (one per name it carries) in the tree's order."""
@@ -62,7 +68,7 @@ class JointOrder:
 
     def to_message(self, values: np.ndarray) -> np.ndarray:
         """Per-joint values in the tree's order, in ``message_names``' order."""
-        return values if self.in_message_order else values[np.argsort(self.index, kind="stable")]
+        return values if self.in_message_order else values[self._message_index]
 
 
 class JointMap:
