@@ -25,7 +25,7 @@ on is refused. The learning rate is the paper's 0.01, at which a fresh
 policy's updates on bags stayed near the KL target; a trained policy given
 with ``--init`` wants a lower one: the shipped policy, on a bag of its own
 episodes, reached approximate KL 17.6 on its first update at 0.01 (and then
-diverged), 0.19 at 0.003 and 0.05 at 0.001.
+diverged), 0.19 at 0.003 and 0.05 at 0.001 (a one-off check: docs/guides/bags.md).
 
 What it says: the progress bar shows ``ret`` (simulator: the mean return of
 the last 50 episodes), ``sps`` (steps per second) and ``kl`` (the last
