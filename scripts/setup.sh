@@ -24,5 +24,5 @@ echo "setup: installing into .venv (once; about a minute)" >&2
 quiet="ignore:Editable installation,ignore:Package 'morph_policy_node.models' is absent"
 PYTHONWARNINGS="$quiet" .venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
     -e ros2_ws/src/morph_core -e ros2_ws/src/morph_ros_util -e ros2_ws/src/swimmer_sim_node \
-    -e ros2_ws/src/morph_policy_node -e "ros2_ws/src/trainer[onnx]"
+    -e ros2_ws/src/morph_policy_node -e "ros2_ws/src/trainer[onnx,ray]"
 echo "$want" > "$stamp"

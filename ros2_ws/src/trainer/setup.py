@@ -15,7 +15,8 @@ setup(
     ],
     install_requires=["morph_core", "matplotlib", "numpy", "rosbags", "pillow", "imageio-ffmpeg", "threadpoolctl"],
     # morph-export: torch's ONNX exporter (onnxscript) and ONNX Runtime to check the graph it writes.
-    extras_require={"onnx": ["onnx", "onnxruntime", "onnxscript"]},
+    # morph-sweep and --rollout-workers: Ray Tune trials and Ray actors (Ray is never a node's dependency).
+    extras_require={"onnx": ["onnx", "onnxruntime", "onnxscript"], "ray": ["ray[tune]"]},
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",
