@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -45,6 +46,9 @@ from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import check_field_types, replace_nested
 
 log = logging.getLogger(__name__)
+
+RowHook = Callable[[dict, bool], None]
+"""hears a run's progress row and whether that step's state was saved: ``on_row(row, saved)``"""
 
 
 @dataclass
@@ -214,8 +218,10 @@ def log_columns(cfg: TrainConfig) -> list[str]:
     ]  # fmt: skip
 
 
-def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
-    """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors)."""
+def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False, on_row: RowHook | None = None) -> Path:
+    """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors). ``on_row(row,
+    saved)`` hears each progress row once it is written and, when ``saved``, the state of its step too (a Ray
+    Tune trial reports it, with the run's own state files as its checkpoint)."""
     run_dir = Path(run_dir)
     state_path = run_dir / "state.safetensors"
     ckpt_dir = run_dir / "checkpoints"
@@ -251,7 +257,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
             run_dir.mkdir(parents=True, exist_ok=True)
             with atomic_writer(run_dir / "config.json") as f:
                 json.dump(cfg.to_dict(), f, indent=2)
-        _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, (global_step, iteration, last_ckpt))
+        _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, (global_step, iteration, last_ckpt), on_row)
     finally:
         envs.close()
         if helpers is not None:
@@ -259,7 +265,7 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False) -> Path:
     return run_dir
 
 
-def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> None:
+def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters, on_row) -> None:
     state_path, ckpt_dir = run_dir / "state.safetensors", run_dir / "checkpoints"
     policy, optimizer = learner.policy, learner.optimizer
     global_step, iteration, last_ckpt = counters
@@ -345,6 +351,8 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters) -> 
             save_training_state(
                 state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors(), more_rngs
             )
+        if on_row is not None:
+            on_row(row, checkpoint)
         if bar is not None:
             bar.update(T * E)
             ret = _mean_return(recent)
