@@ -3,8 +3,9 @@
 Feature extractor (the paper's, 4,376 parameters, with ``bidirectional=False``): two NNConv layers
 (24 and 16 channels) over the joint graph, whose link nodes start from a
 constant 1 and whose edges carry the joint states; a global MLP 4 -> 128 -> 16
-on (yaw, yaw rate, vx, vy); the global embedding is added to every joint's
-embedding (the embedding of the link behind that joint). ReLU throughout.
+on (yaw, yaw rate, vx, vy) (its input ``PolicyConfig.global_features`` wide: 4, the swimmer's, by
+default); the global embedding is added to every joint's embedding (the embedding of the link behind
+that joint). ReLU throughout.
 By default messages also flow tail-to-torso, through a second edge network
 per layer (5,600 parameters; see chain_conv for why direction matters).
 
@@ -28,7 +29,7 @@ from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
 from morph_core.policy.chain_conv import BACKENDS, ChainConv
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.policy.chains import ChainBatch
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.gaussian import entropy_per_joint, log_density_per_joint
 from morph_core.policy.weights import write_checkpoint
@@ -81,10 +82,15 @@ class GraphFeatureExtractor(nn.Module):
         bi = config.bidirectional
         self.conv1 = ChainConv(1, config.conv1_channels, bi, backend)
         self.conv2 = ChainConv(config.conv1_channels, config.embed_channels, bi, backend)
-        self.global_mlp = _mlp([NUM_GLOBAL_FEATURES, config.global_hidden, config.embed_channels], nn.ReLU, True)
+        self.global_mlp = _mlp([config.global_features, config.global_hidden, config.embed_channels], nn.ReLU, True)
 
     def forward(self, batch: ChainBatch) -> torch.Tensor:
         """[V, embed_channels]: one row per joint of the batch, in the padded batch's row-major order."""
+        if batch.global_feats.shape[1] != self.config.global_features:  # else a matmul's shape error
+            raise ValueError(
+                f"this policy reads {self.config.global_features} global features, the batch has "
+                f"{batch.global_feats.shape[1]}"
+            )
         chains = batch.packed
         e, m, s = chains.edge_attr, chains.slot_mask, chains.sender
         x = e.new_ones(chains.num_links, 1)  # links carry no state of their own

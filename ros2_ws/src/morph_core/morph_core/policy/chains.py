@@ -25,7 +25,7 @@ import torch
 
 from morph_core.policy.index_plan import IndexPlan, chain_parents, check_parents, is_chain
 
-NUM_GLOBAL_FEATURES = 4  # yaw, yaw rate, vx, vy of the torso frame
+NUM_GLOBAL_FEATURES = 4  # yaw, yaw rate, vx, vy of the swimmer's torso frame (a policy's width: its config's)
 NUM_EDGE_FEATURES = 2  # joint angle, joint angular velocity
 
 
@@ -34,7 +34,7 @@ class ChainBatch:
     """B chains or trees padded to J joints.
 
     joint_pos, joint_vel: [B, J] float32, zero beyond each sample's last joint.
-    global_feats: [B, 4] float32.
+    global_feats: [B, G] float32 (G = 4 for swimmers; the policy checks it is its config's width).
     num_joints: [B] int64.
     mask: [B, J] bool, True where the joint exists.
     parents: [B, J] int64 parent joint of each joint (-1: the torso; -1 at padding), checked
@@ -74,10 +74,10 @@ class ChainBatch:
         n = torch.as_tensor(num_joints, dtype=torch.int64)
         if pos.ndim != 2 or vel.shape != pos.shape:
             raise ValueError(f"joint_pos/joint_vel must both be [B, J], got {tuple(pos.shape)}, {tuple(vel.shape)}")
-        if glob.shape != (pos.shape[0], NUM_GLOBAL_FEATURES) or n.shape != (pos.shape[0],):
+        if glob.ndim != 2 or glob.shape[0] != pos.shape[0] or glob.shape[1] < 1 or n.shape != (pos.shape[0],):
             raise ValueError(
-                f"global_feats must be [B, {NUM_GLOBAL_FEATURES}] and num_joints [B] for B={pos.shape[0]}, "
-                f"got {tuple(glob.shape)}, {tuple(n.shape)}"
+                f"global_feats must be [B, G] (G >= 1, {NUM_GLOBAL_FEATURES} for swimmers) and num_joints [B] for "
+                f"B={pos.shape[0]}, got {tuple(glob.shape)}, {tuple(n.shape)}"
             )
         counts = n.numpy()  # checks and mask in NumPy: a fraction of torch's per-operation cost
         if counts.size and (counts.min() < 1 or counts.max() > pos.shape[1]):
@@ -136,7 +136,8 @@ def _tree_parents(parents, mask: np.ndarray, width: int) -> torch.Tensor | None:
 def pad_observations(observations: Sequence[dict], width: int | None = None, with_parents: bool = False):
     """Graph-mode observations as float32 arrays zero-padded to ``width`` joints (default: the largest).
 
-    Returns joint_pos [B, width], joint_vel [B, width], global_feats [B, 4], num_joints [B], and with
+    Returns joint_pos [B, width], joint_vel [B, width], global_feats [B, G] (G the observations' one global
+    width: 4 for swimmers; ValueError when they differ), num_joints [B], and with
     ``with_parents`` parents [B, width] int64 (an observation's "parents", a chain's without; -1 at
     padding) or None when no observation carries "parents".
     """
@@ -145,7 +146,11 @@ def pad_observations(observations: Sequence[dict], width: int | None = None, wit
     pos, vel = np.zeros((len(n), width), np.float32), np.zeros((len(n), width), np.float32)
     for i, o in enumerate(observations):
         pos[i, : n[i]], vel[i, : n[i]] = o["joint_pos"], o["joint_vel"]
-    glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), NUM_GLOBAL_FEATURES)
+    widths = {np.shape(o["global"]) for o in observations}
+    if len(widths) > 1:
+        raise ValueError(f"observations' global features differ in shape: {sorted(widths)}")
+    g = widths.pop()[0] if widths else NUM_GLOBAL_FEATURES
+    glob = np.array([o["global"] for o in observations], dtype=np.float32).reshape(len(n), g)
     if not with_parents:
         return pos, vel, glob, n
     if not any("parents" in o for o in observations):

@@ -12,7 +12,10 @@ from dataclasses import dataclass, fields
 NUM_EDGE_FEATURES = 2
 """per joint: angle, angular velocity (the same as ``chains.NUM_EDGE_FEATURES``, which needs torch)"""
 NUM_GLOBAL_FEATURES = 4
-"""of the torso: yaw, yaw rate, vx, vy (the same as ``chains.NUM_GLOBAL_FEATURES``)"""
+"""the swimmer's global input: the torso's yaw, yaw rate, vx, vy (the same as ``chains.NUM_GLOBAL_FEATURES``);
+the default of ``PolicyConfig.global_features``"""
+MAX_GLOBAL_FEATURES = 256
+"""widest global input a config may ask for (a checkpoint's JSON comes off the network)"""
 BACKENDS = ("dense", "pyg")
 """how the torch policy's chain convolutions execute (``chain_conv``); not part of the architecture"""
 
@@ -37,6 +40,10 @@ class PolicyConfig:
     ortho_init: bool = True
     """orthogonal init as in Stable-Baselines3 (the reference's base): gain sqrt(2) for hidden
     linear layers, 0.01 for the action output (initial means ~0), 1 for the value output"""
+    global_features: int = NUM_GLOBAL_FEATURES
+    """width of the global input (the global MLP's first layer): 4 for swimmers (yaw, yaw rate, vx, vy), the
+    default, so checkpoints written before the field existed load as they were; a body in 3-D has more
+    (``env.centipede.GLOBAL_FEATURES``)"""
 
     def __post_init__(self):
         for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
@@ -44,6 +51,9 @@ class PolicyConfig:
             # bool is an int subclass: True would pass as a width of 1.
             if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{f} must be an integer >= 1, got {value!r}")
+        g = self.global_features
+        if not isinstance(g, numbers.Integral) or isinstance(g, bool) or not 1 <= g <= MAX_GLOBAL_FEATURES:
+            raise ValueError(f"global_features must be an integer in 1..{MAX_GLOBAL_FEATURES}, got {g!r}")
         for f in ("bidirectional", "ortho_init"):
             if not isinstance(getattr(self, f), bool):
                 raise ValueError(f"{f} must be true or false, got {getattr(self, f)!r}")

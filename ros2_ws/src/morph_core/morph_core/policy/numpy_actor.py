@@ -224,6 +224,8 @@ class NumpyPolicy:
 
     def _global(self, global_feats: np.ndarray) -> np.ndarray:
         (w1, b1), (w2, b2) = self.global_mlp
+        if global_feats.shape[-1] != w1.shape[0]:  # else a matmul's shape error
+            raise ValueError(f"this policy reads {w1.shape[0]} global features, got {global_feats.shape[-1]}")
         return np.maximum(np.maximum(global_feats.astype(np.float32) @ w1 + b1, 0.0) @ w2 + b2, 0.0)
 
 

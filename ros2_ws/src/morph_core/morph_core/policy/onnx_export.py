@@ -41,7 +41,6 @@ from torch import nn
 
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
 
@@ -168,7 +167,7 @@ def export_model(
     onnx = _require("onnx")
     _require("onnxscript")  # torch's exporter imports it itself; fail here with the install hint
     module = (SingleTreePolicy if tree else SingleChainPolicy)(policy, with_value).eval()
-    example = (torch.zeros(3), torch.zeros(3), torch.zeros(NUM_GLOBAL_FEATURES))
+    example = (torch.zeros(3), torch.zeros(3), torch.zeros(policy.config.global_features))
     n = torch.export.Dim(NUM_JOINTS_AXIS, min=1)
     dynamic: tuple = ({0: n}, {0: n}, None)
     if tree:

@@ -25,7 +25,7 @@ import numpy as np
 import safetensors.numpy
 from safetensors import SafetensorError
 
-from morph_core.policy.config import NUM_EDGE_FEATURES, NUM_GLOBAL_FEATURES, PolicyConfig
+from morph_core.policy.config import NUM_EDGE_FEATURES, PolicyConfig
 from morph_core.util.atomic import atomic_write_bytes, atomic_writer
 
 SIGNED_KEY = "signed_weights"
@@ -84,7 +84,7 @@ def parameter_shapes(config: PolicyConfig) -> dict[str, tuple[int, ...]]:
     g = config.global_hidden
     shapes.update(
         {
-            "features.global_mlp.0.weight": (g, NUM_GLOBAL_FEATURES),
+            "features.global_mlp.0.weight": (g, config.global_features),
             "features.global_mlp.0.bias": (g,),
             "features.global_mlp.2.weight": (config.embed_channels, g),
             "features.global_mlp.2.bias": (config.embed_channels,),

@@ -1,0 +1,288 @@
+"""Gymnasium environment ``MorphCentipede-v0``: Ant-v5's locomotion task for centipedes of any size.
+
+``leg_pairs`` is an int (a fixed body) or an inclusive range ``(lo, hi)``
+from which the size is drawn at every reset with the env's seeded generator,
+as the swimmer's chain length is (``env.centipede_model`` builds the bodies,
+``env.reward.ant_reward`` pays them). ``layout="ant"`` runs the same env on
+Gymnasium's Ant body instead (``centipede_model.ant_mjcf``): with
+``observation_mode="flat"`` it is Ant-v5, step for step (``test_centipede``).
+
+Step: the action (4 per leg pair, in the tree's order) goes to the motors
+(``ctrl``; MuJoCo clamps it to [-1, 1], the cost is charged on it as given,
+as Ant-v5 does), then ``mj_step`` over ``ANT_FRAME_SKIP`` = 5 steps of 0.01 s
+in one call, then ``mj_rnePostConstraint`` for the contact forces (skipped
+when neither the contact cost nor a flat observation reads them). The episode
+ends (``terminated``) when the body is unhealthy (root z outside
+``ANT_HEALTHY_Z_RANGE`` or a state not finite: it fell, flipped or jumped), or
+when MuJoCo had to reset a state that blew up (``info["physics_unstable"]``).
+
+Reset: ``qpos0`` (the root 0.75 m up, every joint at 0) plus uniform(-0.1,
+0.1) on every qpos entry, velocities 0.1 x standard normal: Ant-v5's noise,
+drawn in its order from the same generator, after the size's draw.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import gymnasium
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from morph_core.env.centipede_model import (
+    ANT_ACTUATOR_ORDER,
+    ant_model,
+    centipede_model,
+    check_leg_pairs,
+)
+from morph_core.env.mjcf_robot import DIVERGENCE_WARNINGS
+from morph_core.env.reward import (
+    ANT_CONTACT_COST_WEIGHT,
+    ANT_CONTACT_FORCE_RANGE,
+    ANT_CTRL_COST_WEIGHT,
+    ANT_FORWARD_REWARD_WEIGHT,
+    ANT_FRAME_SKIP,
+    ANT_HEALTHY_REWARD,
+    ANT_HEALTHY_Z_RANGE,
+    ANT_RESET_NOISE_SCALE,
+    ant_reward,
+)
+from morph_core.policy.tree import KinematicTree
+
+OBSERVATION_MODES = ("graph", "flat")
+LAYOUTS = ("centipede", "ant")
+GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy", "vz", "z", "gravity_x", "gravity_y", "gravity_z", "wx", "wy", "wz")
+"""the root segment's state: the swimmer's four first (heading about z, its rate, world-frame velocity in x
+and y), then world vz, height, the unit gravity direction in the root's frame (tilt: roll and pitch without
+yaw, no angle wraps) and the root's angular velocity in its own frame (what a gyroscope reads)"""
+NUM_GLOBAL_FEATURES = len(GLOBAL_FEATURES)
+
+
+def check_leg_pair_range(leg_pairs) -> tuple[int, int]:
+    """``leg_pairs`` (an int, or a (lo, hi) pair) as an inclusive range, or ValueError saying why not."""
+    if isinstance(leg_pairs, numbers.Integral) and not isinstance(leg_pairs, bool):
+        n = check_leg_pairs(leg_pairs)
+        return n, n
+    if isinstance(leg_pairs, str | bytes) or not isinstance(leg_pairs, tuple | list):
+        raise ValueError(f"leg_pairs must be an integer or a (lo, hi) pair of integers, got {leg_pairs!r:.60}")
+    if len(leg_pairs) != 2:
+        raise ValueError(f"leg_pairs range must be (lo, hi), got {len(leg_pairs)} entries: {leg_pairs!r:.60}")
+    lo, hi = check_leg_pairs(leg_pairs[0]), check_leg_pairs(leg_pairs[1])
+    if lo > hi:
+        raise ValueError(f"leg_pairs range is empty: lo={lo} > hi={hi}")
+    return lo, hi
+
+
+def write_global_features(qpos, qvel, out) -> None:
+    """``GLOBAL_FEATURES`` of a free-floating root (qpos[0:7], qvel[0:6]: MuJoCo's free joint, quaternion w x y z,
+    angular velocity in the body frame) into ``out`` [12]. The quaternion is normalised first: reset noise
+    leaves it off unit length, and MuJoCo uses it normalised."""
+    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w * s, x * s, y * s, z * s
+    # the rotation matrix's first column (x axis) and third row (world z in body coordinates)
+    r00, r10 = 1 - 2 * (y * y + z * z), 2 * (x * y + z * w)
+    r20, r21, r22 = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    wx, wy, wz = qvel[3], qvel[4], qvel[5]
+    out[0] = math.atan2(r10, r00)  # heading of the body's x axis
+    out[1] = r20 * wx + r21 * wy + r22 * wz  # world z component of the angular velocity
+    out[2], out[3], out[4], out[5] = qvel[0], qvel[1], qvel[2], qpos[2]
+    out[6], out[7], out[8] = -r20, -r21, -r22  # R^T (0, 0, -1)
+    out[9], out[10], out[11] = wx, wy, wz
+
+
+class MorphCentipedeEnv(gymnasium.Env):
+    """A centipede on a floor, paid Ant-v5's reward (forward speed, staying healthy, control and contact costs).
+
+    Graph observations are a dict: ``joint_pos`` and ``joint_vel`` (one entry per actuated hinge, in the tree's
+    order: per segment left hip, left ankle, right hip, right ankle), ``global`` (``GLOBAL_FEATURES``, 12) and
+    ``parents`` ([4N] int64: each ankle's parent is its hip, each hip's -1, the root segment). Flat
+    observations are Ant-v5's: qpos without x and y, qvel, the clipped contact forces of every body but the world.
+
+    ``tree`` is the current body's ``KinematicTree.from_mujoco(model)`` (root link ``torso_0``; the welded
+    segments merge into it), ``parents`` its read-only parent array; ``info`` carries ``leg_pairs``, ``body``
+    (``centipede-N``, ``ant``) and ``topology_hash``.
+    """
+
+    metadata = {"render_modes": [], "render_fps": 20}
+
+    def __init__(
+        self,
+        leg_pairs: int | tuple[int, int] = 2,
+        observation_mode: str = "graph",
+        layout: str = "centipede",
+        frame_skip: int = ANT_FRAME_SKIP,
+        forward_reward_weight: float = ANT_FORWARD_REWARD_WEIGHT,
+        ctrl_cost_weight: float = ANT_CTRL_COST_WEIGHT,
+        contact_cost_weight: float = ANT_CONTACT_COST_WEIGHT,
+        healthy_reward: float = ANT_HEALTHY_REWARD,
+        terminate_when_unhealthy: bool = True,
+        healthy_z_range: tuple[float, float] = ANT_HEALTHY_Z_RANGE,
+        contact_force_range: tuple[float, float] = ANT_CONTACT_FORCE_RANGE,
+        reset_noise_scale: float = ANT_RESET_NOISE_SCALE,
+    ):
+        if observation_mode not in OBSERVATION_MODES:
+            raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {observation_mode!r}")
+        if layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+        if isinstance(frame_skip, bool) or not isinstance(frame_skip, numbers.Integral) or frame_skip < 1:
+            raise ValueError(f"frame_skip must be an integer >= 1, got {frame_skip!r}")
+        self.leg_pair_range = check_leg_pair_range(leg_pairs)
+        if layout == "ant" and self.leg_pair_range != (2, 2):
+            raise ValueError(f"the ant layout has 2 leg pairs, got leg_pairs={leg_pairs!r}")
+        self.observation_mode = observation_mode
+        self.layout = layout
+        self.frame_skip = int(frame_skip)
+        self.forward_reward_weight = forward_reward_weight
+        self.ctrl_cost_weight = ctrl_cost_weight
+        self.contact_cost_weight = contact_cost_weight
+        self.healthy_reward = healthy_reward
+        self.terminate_when_unhealthy = terminate_when_unhealthy
+        self.healthy_z_range = tuple(healthy_z_range)
+        self.contact_force_range = tuple(contact_force_range)
+        self.reset_noise_scale = reset_noise_scale
+        # cfrc_ext costs a pass over the bodies per step: computed only when something reads it
+        self._needs_contact_forces = contact_cost_weight != 0 or observation_mode == "flat"
+        self.leg_pairs = 0
+        self.model: mujoco.MjModel | None = None
+        self.data: mujoco.MjData | None = None
+        self._build(self.leg_pair_range[0])
+
+    # -- body ----------------------------------------------------------------
+    def _build(self, leg_pairs: int) -> None:
+        if leg_pairs == self.leg_pairs:
+            mujoco.mj_resetData(self.model, self.data)
+            return
+        model = ant_model() if self.layout == "ant" else centipede_model(leg_pairs)
+        self.leg_pairs = leg_pairs
+        self.model, self.data = model, mujoco.MjData(model)
+        self.tree = KinematicTree.from_mujoco(model)
+        self.parents = self.tree.parents
+        self.num_joints = self.tree.num_joints
+        self.body_label = "ant" if self.layout == "ant" else f"centipede-{leg_pairs}"
+        self.topology_hash = self.tree.topology_hash
+        # The tree's joints are the hinges after the root's free joint, in qpos order: checked, not assumed.
+        names = tuple(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(1, model.njnt))
+        if names != self.tree.names or model.nq != 7 + self.num_joints:
+            raise AssertionError(f"{self.body_label}: qpos order {names} is not the tree's {self.tree.names}")
+        joint_of = {name: k for k, name in enumerate(self.tree.names)}
+        motors = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, int(j)) for j in model.actuator_trnid[:, 0]]
+        order = np.array([joint_of[name] for name in motors], dtype=np.int64)
+        # ctrl[i] = action[order[i]]; None when the motors are in the tree's order (every centipede)
+        self._ctrl_order = None if np.array_equal(order, np.arange(self.num_joints)) else order
+        if self.layout == "ant":
+            assert tuple(motors) == ANT_ACTUATOR_ORDER
+        self._root = 1  # the root segment's body id
+        self._qpos, self._qvel, self._ctrl = self.data.qpos, self.data.qvel, self.data.ctrl
+        self._xpos_root = self.data.xpos[self._root]  # a view: what MuJoCo left after the step
+        self._warnings = [self.data.warning[w] for w in DIVERGENCE_WARNINGS]
+        self._no_forces = np.zeros((model.nbody, 6))
+        self.dt = model.opt.timestep * self.frame_skip
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(self.num_joints,), dtype=np.float32)
+        self.observation_space = self._observation_space()
+
+    def _observation_space(self) -> spaces.Space:
+        n, m = self.num_joints, self.model
+        if self.observation_mode == "flat":
+            size = (m.nq - 2) + m.nv + 6 * (m.nbody - 1)
+            return spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float64)
+        return spaces.Dict(
+            {
+                "joint_pos": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
+                "joint_vel": spaces.Box(-np.inf, np.inf, shape=(n,), dtype=np.float64),
+                "global": spaces.Box(-np.inf, np.inf, shape=(NUM_GLOBAL_FEATURES,), dtype=np.float64),
+                "parents": spaces.Box(-1, n - 1, shape=(n,), dtype=np.int64),
+            }
+        )
+
+    # -- gymnasium API -------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset; ``options={"leg_pairs": n}`` forces this episode's size (nothing is drawn then)."""
+        super().reset(seed=seed)
+        if options and "leg_pairs" in options:
+            n = check_leg_pairs(options["leg_pairs"])
+            if self.layout == "ant" and n != 2:
+                raise ValueError(f"the ant layout has 2 leg pairs, got {n}")
+        else:
+            lo, hi = self.leg_pair_range
+            n = lo if lo == hi else int(self.np_random.integers(lo, hi + 1))
+        self._build(n)
+        m, d, s = self.model, self.data, self.reset_noise_scale
+        # Ant-v5's noise, in its order from the same generator (its set_state: qpos, qvel, then mj_forward)
+        qpos = m.qpos0 + self.np_random.uniform(low=-s, high=s, size=m.nq)
+        qvel = s * self.np_random.standard_normal(m.nv)
+        d.qpos[:] = qpos
+        d.qvel[:] = qvel
+        mujoco.mj_forward(m, d)
+        return self._observation(), self._info_position()
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (self.num_joints,):
+            raise ValueError(f"action must have shape ({self.num_joints},) for {self.body_label}, got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action contains NaN or inf: {a}")
+        m, d = self.model, self.data
+        x_before, y_before = self._xpos_root[0], self._xpos_root[1]
+        self._ctrl[:] = a if self._ctrl_order is None else a[self._ctrl_order]
+        before = [w.number for w in self._warnings]
+        mujoco.mj_step(m, d, nstep=self.frame_skip)
+        if self._needs_contact_forces:
+            mujoco.mj_rnePostConstraint(m, d)
+        unstable = any(w.number > b for w, b in zip(self._warnings, before, strict=True))
+        x_velocity = (self._xpos_root[0] - x_before) / self.dt
+        y_velocity = (self._xpos_root[1] - y_before) / self.dt
+        healthy = self.is_healthy
+        cfrc = d.cfrc_ext if self._needs_contact_forces else self._no_forces
+        reward, terms = ant_reward(
+            x_velocity, healthy, self._ctrl, cfrc, self.forward_reward_weight, self.healthy_reward,
+            self.ctrl_cost_weight, self.contact_cost_weight, self.contact_force_range,
+        )  # fmt: skip
+        terminated = (not healthy and self.terminate_when_unhealthy) or unstable
+        info = {
+            **self._info_position(),
+            "x_velocity": x_velocity,
+            "y_velocity": y_velocity,
+            **terms,
+            "physics_unstable": unstable,
+        }
+        return self._observation(), reward, terminated, False, info
+
+    @property
+    def is_healthy(self) -> bool:
+        """Ant-v5's: every qpos and qvel entry finite and the root's z within ``healthy_z_range``."""
+        lo, hi = self.healthy_z_range
+        finite = np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all()
+        return bool(finite and lo <= self._qpos[2] <= hi)
+
+    # -- observations --------------------------------------------------------
+    def _observation(self):
+        qpos, qvel = self._qpos, self._qvel
+        if self.observation_mode == "flat":
+            forces = np.clip(self.data.cfrc_ext[1:], *self.contact_force_range)
+            return np.concatenate((qpos[2:], qvel, forces.ravel()))
+        glob = np.empty(NUM_GLOBAL_FEATURES)
+        write_global_features(qpos, qvel, glob)
+        return {"joint_pos": qpos[7:].copy(), "joint_vel": qvel[6:].copy(), "global": glob,
+                "parents": self.parents.copy()}  # fmt: skip
+
+    def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
+        """The graph observation written into one row of padded arrays (the first ``num_joints`` entries, the
+        rest zeroed; ``global_feats`` 12 wide), the same values as the dict's, for a vectorised loop."""
+        n = self.num_joints
+        joint_pos[:n], joint_vel[:n] = self._qpos[7:], self._qvel[6:]
+        joint_pos[n:], joint_vel[n:] = 0.0, 0.0
+        write_global_features(self._qpos, self._qvel, global_feats)
+
+    def _info_position(self) -> dict:
+        qpos = self._qpos
+        return {
+            "x_position": qpos[0],
+            "y_position": qpos[1],
+            "distance_from_origin": np.linalg.norm(qpos[0:2], ord=2),
+            "leg_pairs": self.leg_pairs,
+            "body": self.body_label,
+            "topology_hash": self.topology_hash,
+        }
