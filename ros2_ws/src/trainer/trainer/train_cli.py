@@ -50,6 +50,7 @@ import sys
 from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
+from morph_core.algo.rollout_workers import RolloutWorkerError
 from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
@@ -148,6 +149,9 @@ def build_parser() -> CommandLineParser:
         help=f"trust-region rule ({rules}) (default: {TrainConfig.clip_mode})",
     )
     add_dataclass_options(parser, TrainConfig, skip=("clip_mode",))
+    parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
+                        help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray start "
+                        "--head printed it); default: a local Ray on this machine")  # fmt: skip
     return parser
 
 
@@ -345,6 +349,15 @@ def main(argv: list[str] | None = None) -> int:
             cfg = replace_nested(TrainConfig(), overrides)
         except (TypeError, ValueError) as err:
             parser.error(str(err))
+    pool = None
+    if cfg.rollout_workers > 1:
+        try:
+            from trainer.ray_rollouts import ray_rollout_pool  # Ray, the trainer[ray] extra, only here
+        except ImportError as err:
+            parser.error(f"--rollout-workers {cfg.rollout_workers} runs on Ray ({err}): install trainer[ray]")
+        pool = ray_rollout_pool(args.ray_address)
+    elif args.ray_address is not None:
+        parser.error("--ray-address: only with --rollout-workers > 1")
     follower = _follower(args.out, cfg, args.resume)
     if cfg.progress_bar:
         print("morph-train: progress bar: ret = the mean return of the last 50 episodes, sps = steps per second, "
@@ -355,8 +368,8 @@ def main(argv: list[str] | None = None) -> int:
             if resumed:
                 resumed.write_back()
             with follower:
-                train(cfg, args.out, resume=args.resume)
-    except TrainingStateError as err:
+                train(cfg, args.out, resume=args.resume, rollout_pool=pool)
+    except (TrainingStateError, RolloutWorkerError) as err:
         print(f"morph-train: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:  # a full disk: every file is written atomically, so the last checkpoint is intact

@@ -8,7 +8,8 @@ of every minibatch, and meet once per minibatch step:
 
 - **Collect.** Process r steps swimmers lo..hi-1 under a NumPy snapshot of
   the policy and writes their columns of one rollout in shared memory, with
-  its own action-noise generator.
+  its own action-noise generator: a ``rollout_workers.RolloutWorker`` in each
+  process, the rollout workers of the ``HelperPool``.
 - **Update.** Process 0 computes the advantages over the whole rollout, draws
   each epoch's permutation, normalises each minibatch's advantages over the
   whole minibatch and hands the helpers the epoch's minibatches at once. Each
@@ -25,16 +26,19 @@ of every minibatch, and meet once per minibatch step:
   helpers start their next rollout as soon as an update ends, while process
   0 logs and saves.
 
-The data stays in one block of shared memory; commands are small tuples
-through a pipe per helper, and within an epoch two semaphores per helper say
+The two jobs are two objects in each helper (``_Helper``): its rollout
+worker, called once per iteration, and its gradient peer (``_GradientPeer``),
+called once per minibatch. The data stays in one block of shared memory;
+commands are small dataclasses through a pipe per helper, each answered by
+the helper's method of that name, and within an epoch two semaphores per helper say
 "your part's gradient is ready" and "the new parameters are", polled before
 a process blocks on them (a pipe message cost ~30 µs each way). A helper
 that dies closes its pipe, and process 0 stops with ``HelperError`` instead
 of waiting for it.
 
 A run's random streams depend on the process count: one process draws
-every swimmer's noise from the run's generator, several draw each share's
-from its own (``helper_seed``). So ``processes`` is part of a run's config;
+every swimmer's noise from the run's generator, several draw each helper's
+share's from its own (``rollout_workers.worker_seed``). So ``processes`` is part of a run's config;
 a run resumes bit for bit with the count it was started with.
 """
 
@@ -54,11 +58,18 @@ import torch
 
 from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import MinibatchPart, part_gradient, part_inputs, update_terms
-from morph_core.algo.rollout import Rollout, collect, rollout_layout
+from morph_core.algo.rollout import Rollout, rollout_layout
+from morph_core.algo.rollout_workers import RolloutSpec, RolloutWorker, WorkerState, env_bounds, worker_seed
 from morph_core.algo.update_config import UpdateConfig
-from morph_core.env.vec_env import SwimmerVecEnv
+from morph_core.env.vec_env import Episode
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
-from morph_core.policy.numpy_actor import NumpyPolicy
+
+__all__ = ["HelperError", "HelperPool", "HelperSpec", "Helpers", "env_bounds", "helper_seed"]
+
+
+def helper_seed(seed: int, rank: int) -> int:
+    """The action-noise seed of helper ``rank`` (process 0 uses the run's generator): its worker's seed."""
+    return worker_seed(seed, rank)
 
 
 class HelperError(RuntimeError):
@@ -91,17 +102,6 @@ def take_spinning(semaphore, check: Callable[[], None], spin: float = SPIN_SECON
             while not semaphore.acquire(timeout=1.0):
                 check()
             return
-
-
-def env_bounds(num_envs: int, processes: int) -> list[tuple[int, int]]:
-    """(lo, hi) of the swimmers each process steps: as even a split as the count allows."""
-    edges = np.linspace(0, num_envs, processes + 1).round().astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-
-
-def helper_seed(seed: int, rank: int) -> int:
-    """The action-noise seed of helper ``rank`` (process 0 uses the run's generator)."""
-    return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0])
 
 
 class SharedArrays:
@@ -157,23 +157,60 @@ def shared_rollout(shared: SharedArrays, num_steps: int, num_envs: int, max_join
 
 @dataclasses.dataclass(frozen=True)
 class HelperSpec:
-    """What a helper needs to start (it builds everything else itself)."""
+    """What the helpers of a run start from (each builds everything else itself)."""
 
-    rank: int
     processes: int
-    shm_name: str
-    num_steps: int
-    num_envs: int
-    bodies: str
-    """the swimmers' bodies, an ``env.bodies`` spec"""
-    max_joints: int
-    """the largest of them: the rollout's width"""
-    seed: int
-    env_threads: int
-    num_params: int
-    policy: dict
-    compile: bool
+    rollout: RolloutSpec
+    """the run's rollout: helper r steps worker r's share of it (``RolloutSpec.worker``)"""
     update: UpdateConfig
+    compile: bool
+
+
+# -- the commands process 0 sends a helper; each is answered by the helper's method of its name ------------
+@dataclasses.dataclass(frozen=True)
+class Ready:
+    """Answered once the helper has built its swimmers and policy."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Collect:
+    """Step the helper's swimmers into its columns under the published parameters; answered with the
+    episodes that finished."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GetState:
+    """Answered with the helper's ``WorkerState``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SetState:
+    state: WorkerState
+
+
+@dataclasses.dataclass(frozen=True)
+class Begin:
+    """An update begins on the shared rollout, its advantages and the published parameters."""
+
+    kl_beta: torch.Tensor | None
+
+
+@dataclasses.dataclass(frozen=True)
+class Epoch:
+    """The epoch's minibatches (their permutation and advantages in shared memory) end at ``cuts``; not
+    answered: the helper signals each part's gradient through its semaphores."""
+
+    cuts: list[int]
+
+
+@dataclasses.dataclass(frozen=True)
+class Close:
+    """Leave (not answered)."""
+
+
+def _command_name(command) -> str:
+    # a tuple is named by its first item, as the string protocol before these classes was
+    return str(command[0]) if isinstance(command, tuple) and command else type(command).__name__
 
 
 class Helpers:
@@ -184,11 +221,12 @@ class Helpers:
         self.world = spec.processes
         self.collecting = False
         """the helpers are collecting (``start_collect`` without ``finish_collect`` yet)"""
-        self.bounds = env_bounds(spec.num_envs, spec.processes)
+        run = spec.rollout
+        self.bounds = env_bounds(run.num_envs, spec.processes)
         self.theta = learner.params.theta
-        layout = shared_layout(spec.num_steps, spec.num_envs, spec.max_joints, self.theta.numel(), spec.processes)
+        layout = shared_layout(run.num_steps, run.num_envs, run.max_joints, self.theta.numel(), spec.processes)
         self.shared = SharedArrays(layout)
-        self.rollout = shared_rollout(self.shared, spec.num_steps, spec.num_envs, spec.max_joints)
+        self.rollout = shared_rollout(self.shared, run.num_steps, run.num_envs, run.max_joints)
         self._theta = torch.from_numpy(self.shared["theta"])
         self._grads = torch.from_numpy(self.shared["grad"])
         context = multiprocessing.get_context("spawn")  # fork would copy torch's and MuJoCo's threads' locks
@@ -202,7 +240,7 @@ class Helpers:
                 signals = (self._done[rank - 1], self._go[rank - 1])
                 proc = context.Process(
                     target=helper_main,
-                    args=(dataclasses.replace(spec, rank=rank, shm_name=self.shared.name), theirs, signals),
+                    args=(spec, rank, (self.shared.name, layout), theirs, signals),
                     name=f"morph-train-helper{rank}",
                     daemon=True,
                 )
@@ -210,30 +248,31 @@ class Helpers:
                 theirs.close()  # only the helper holds its end now: its death reads as EOF here
                 self._procs.append(proc)
                 self._conns.append(ours)
-            self._call_all(("ready",))
+            self._call_all(Ready())
         except BaseException:
             self.close()
             raise
 
     # -- talking to the helpers ------------------------------------------------
-    def _send(self, rank: int, message: tuple) -> None:
+    def _send(self, rank: int, command) -> None:
         try:
-            self._conns[rank - 1].send(message)
+            self._conns[rank - 1].send(command)
         except (BrokenPipeError, ConnectionResetError, OSError):
             raise HelperError(self._gone(rank)) from None
 
     def _receive(self, rank: int):
+        """Helper ``rank``'s answer to its last command."""
         conn, proc = self._conns[rank - 1], self._procs[rank - 1]
         try:
             while not (poll_spinning(conn) or conn.poll(1.0)):
                 if not proc.is_alive():
                     raise HelperError(self._gone(rank))
-            reply = conn.recv()
+            outcome, value = conn.recv()
         except (EOFError, ConnectionResetError, OSError):
             raise HelperError(self._gone(rank)) from None
-        if reply[0] == "error":
-            raise HelperError(f"training helper {rank} failed:\n{reply[1]}")
-        return reply[1:]
+        if outcome == "error":
+            raise HelperError(f"training helper {rank} failed:\n{value}")
+        return value
 
     def _check(self, rank: int) -> None:
         """Raise ``HelperError`` if helper ``rank`` has died or reported an error while process 0 waits."""
@@ -246,9 +285,9 @@ class Helpers:
         proc.join(timeout=1.0)
         return f"training helper {rank} (pid {proc.pid}) died (exit code {proc.exitcode})"
 
-    def _call_all(self, message: tuple) -> list:
+    def _call_all(self, command) -> list:
         for rank in range(1, self.world):
-            self._send(rank, message)
+            self._send(rank, command)
         return [self._receive(rank) for rank in range(1, self.world)]
 
     # -- collection ------------------------------------------------------------
@@ -259,12 +298,12 @@ class Helpers:
         """The helpers start collecting their swimmers under the current parameters."""
         self.publish_parameters()
         for rank in range(1, self.world):
-            self._send(rank, ("collect",))
+            self._send(rank, Collect())
         self.collecting = True
 
-    def finish_collect(self) -> list[tuple[int, float, int]]:
+    def finish_collect(self) -> list[Episode]:
         """Wait for the helpers' columns; their finished episodes."""
-        episodes = [episode for rank in range(1, self.world) for episode in self._receive(rank)[0]]
+        episodes = [episode for rank in range(1, self.world) for episode in self._receive(rank)]
         self.collecting = False
         return episodes
 
@@ -275,15 +314,14 @@ class Helpers:
     # -- the update (minibatches.MinibatchPeers) ------------------------------------
     def begin(self, kl_beta: torch.Tensor | None) -> None:
         self.publish_parameters()
-        beta = None if kl_beta is None else kl_beta.clone()
-        self._call_all(("begin", beta))
+        self._call_all(Begin(None if kl_beta is None else kl_beta.clone()))
 
     def epoch(self, perm: torch.Tensor, cuts: list[int], advantages: torch.Tensor) -> None:
         n = len(perm)
         self.shared["mb"][:n] = perm.numpy()
         self.shared["mb_advantages"][:n] = advantages.numpy()
         for rank in range(1, self.world):
-            self._send(rank, ("epoch", cuts))
+            self._send(rank, Epoch(cuts))
 
     def gather(self, grad: torch.Tensor) -> list[MinibatchPart]:
         parts = []
@@ -306,20 +344,20 @@ class Helpers:
             go.release()
 
     # -- checkpoints ----------------------------------------------------------------
-    def get_states(self) -> list[tuple[dict, dict[str, np.ndarray], torch.Tensor]]:
-        """Each helper's (env meta, env arrays, noise generator state), in rank order."""
-        return [tuple(reply) for reply in self._call_all(("get_state",))]
+    def get_states(self) -> list[WorkerState]:
+        """Each helper's swimmers and noise generator, in rank order."""
+        return self._call_all(GetState())
 
-    def set_states(self, states: list[tuple[dict, dict[str, np.ndarray], torch.Tensor | None]]) -> None:
+    def set_states(self, states: list[WorkerState]) -> None:
         for rank, state in enumerate(states, start=1):
-            self._send(rank, ("set_state", *state))
+            self._send(rank, SetState(state))
         for rank in range(1, self.world):
             self._receive(rank)
 
     def close(self) -> None:
         for conn in self._conns:
             try:
-                conn.send(("close",))
+                conn.send(Close())
             except OSError:
                 pass
         for proc in self._procs:
@@ -336,14 +374,47 @@ class Helpers:
             self.shared = None
 
 
+class HelperPool:
+    """The rollout workers of a several-process run (a ``rollout_workers.RolloutPool``): process 0's own
+    worker (the learner's policy, the run's generator) and the helpers'. ``start`` sets the helpers off;
+    ``finish`` steps process 0's share meanwhile, then waits for theirs."""
+
+    def __init__(self, worker: RolloutWorker, helpers: Helpers):
+        self.worker, self.helpers = worker, helpers
+        self.rollout = helpers.rollout
+        self.bounds = helpers.bounds
+        self.rng_names: list[str | None] = [None] + [f"helper{rank}" for rank in range(1, helpers.world)]
+
+    @property
+    def collecting(self) -> bool:
+        return self.helpers.collecting
+
+    def start(self, theta: torch.Tensor) -> None:
+        self.helpers.start_collect()  # publishes the learner's parameters, which are ``theta``
+
+    def finish(self) -> list[Episode]:
+        episodes = self.worker.collect()
+        return episodes + self.helpers.finish_collect()
+
+    def get_states(self) -> list[WorkerState]:
+        return [self.worker.get_state(), *self.helpers.get_states()]
+
+    def set_states(self, states: list[WorkerState]) -> None:
+        self.worker.set_state(states[0])
+        self.helpers.set_states(states[1:])
+
+    def close(self) -> None:
+        self.worker.close()  # the helpers are the update's peers too: their owner closes them
+
+
 class _Closed(Exception):
     """Process 0 closed the helpers while this one waited within an epoch."""
 
 
-def helper_main(spec: HelperSpec, conn: Connection, signals: tuple) -> None:
+def helper_main(spec: HelperSpec, rank: int, shared: tuple[str, dict], conn: Connection, signals: tuple) -> None:
     """A helper process: steps its swimmers and computes its parts of the minibatches, as told."""
     try:
-        _serve(spec, conn, *signals)
+        _Helper(spec, rank, shared, conn, *signals).serve()
     except (_Closed, EOFError, BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
         pass  # process 0 has gone or stopped: nothing left to do
     except BaseException:
@@ -353,84 +424,114 @@ def helper_main(spec: HelperSpec, conn: Connection, signals: tuple) -> None:
             pass
 
 
-def _serve(spec: HelperSpec, conn: Connection, done, go) -> None:
-    torch.set_num_threads(1)
-    lo, hi = env_bounds(spec.num_envs, spec.processes)[spec.rank]
-    envs = SwimmerVecEnv(hi - lo, spec.bodies, seed=spec.seed + lo, num_threads=spec.env_threads)
-    policy = GraphActorCritic(PolicyConfig.from_dict(spec.policy))
-    learner = Learner.create(policy, 0.0, 1e-8, spec.compile)  # its optimizer never steps: process 0's does
-    if learner.params.theta.numel() != spec.num_params:
-        raise ValueError(f"the helper's policy has {learner.params.theta.numel()} parameters, not {spec.num_params}")
-    layout = shared_layout(spec.num_steps, spec.num_envs, spec.max_joints, spec.num_params, spec.processes)
-    shared = SharedArrays(layout, name=spec.shm_name)
-    rollout = shared_rollout(shared, spec.num_steps, spec.num_envs, spec.max_joints)
-    mine = rollout.columns(lo, hi)
-    slot = spec.rank - 1
-    theta, grad = torch.from_numpy(shared["theta"]), torch.from_numpy(shared["grad"][slot])
-    generator = torch.Generator().manual_seed(helper_seed(spec.seed, spec.rank))
-    obs = envs.observations()
-    batch = terms = None
-    cuts: list[int] = []
+class _GradientPeer:
+    """A helper's part of every minibatch: its gradient and statistics written to its slot of the shared
+    block, signalled through ``done``; the next parameters awaited on ``go``."""
 
-    def prepare(k: int):
-        """The inputs of this helper's part of the epoch's minibatch k."""
-        lo, hi = cuts[k], cuts[k + 1]
-        return part_inputs(terms, batch, perm[lo:hi], perm_advantages[lo:hi], spec.rank, spec.processes)
+    def __init__(self, spec: HelperSpec, rank: int, learner: Learner, shared: SharedArrays, rollout: Rollout):
+        self.spec, self.rank, self.slot = spec, rank, rank - 1
+        self.learner, self.shared, self.rollout = learner, shared, rollout
+        self.grad = torch.from_numpy(shared["grad"][self.slot])
+        self.batch = self.terms = None
 
-    def take_parameters():
-        learner.params.theta.data.copy_(theta)
+    def begin(self, kl_beta: torch.Tensor | None) -> None:
+        advantages, returns = (torch.from_numpy(self.shared[k]) for k in ("advantages", "returns"))
+        self.batch = self.rollout.batch(advantages, returns)
+        self.terms = update_terms(self.learner, self.batch, self.spec.update, kl_beta)
 
-    def check():  # within an epoch process 0 only ever says "close"; its death reads as EOF
-        if conn.poll():
-            raise _Closed(conn.recv())
+    def epoch(self, cuts: list[int], done, go, take_parameters: Callable[[], None], check: Callable[[], None]):
+        perm = torch.from_numpy(self.shared["mb"][: cuts[-1]].copy())
+        advantages = torch.from_numpy(self.shared["mb_advantages"][: cuts[-1]].copy())
 
-    while True:
-        poll_spinning(conn)  # within an update the next epoch comes at once; between updates recv blocks
-        command, *args = conn.recv()
-        if command == "close":
-            break
-        if command == "collect":
+        def inputs(k: int):  # this helper's part of minibatch k
+            lo, hi = cuts[k], cuts[k + 1]
+            return part_inputs(self.terms, self.batch, perm[lo:hi], advantages[lo:hi], self.rank, self.spec.processes)
+
+        own = inputs(0)
+        for k in range(len(cuts) - 1):
+            self._write(*part_gradient(self.learner, self.terms, own))
+            done.release()
+            if k + 2 < len(cuts):
+                own = inputs(k + 1)  # gathered while process 0 adds, clips and steps Adam
+            take_spinning(go, check)
             take_parameters()
-            obs, episodes = collect(envs, NumpyPolicy(policy), mine, obs, generator)
-            conn.send(("collected", episodes))
-        elif command == "begin":
-            take_parameters()
-            advantages, returns = (torch.from_numpy(shared[k]) for k in ("advantages", "returns"))
-            batch = rollout.batch(advantages, returns)
-            terms = update_terms(learner, batch, spec.update, args[0])
-            conn.send(("begun",))
-        elif command == "epoch":
-            cuts = args[0]
-            perm = torch.from_numpy(shared["mb"][: cuts[-1]].copy())
-            perm_advantages = torch.from_numpy(shared["mb_advantages"][: cuts[-1]].copy())
-            own = prepare(0)
-            for k in range(len(cuts) - 1):
-                part_grad, part = part_gradient(learner, terms, own)
-                grad.copy_(part_grad)
-                size = len(part.log_ratio)
-                shared["part_size"][slot] = [size, part.clip_share is not None]
-                shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
-                shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()
-                if part.clip_share is not None:
-                    shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
-                done.release()
-                if k + 2 < len(cuts):
-                    own = prepare(k + 1)  # gathered while process 0 adds, clips and steps Adam
-                take_spinning(go, check)
-                take_parameters()
-        elif command == "get_state":
-            meta, arrays = envs.get_state()
-            conn.send(("state", meta, arrays, generator.get_state()))
-        elif command == "set_state":
-            meta, arrays, generator_state = args
-            envs.set_state(meta, arrays)
-            if generator_state is not None:
-                generator.set_state(generator_state)
-            obs = envs.observations()
-            conn.send(("set",))
-        elif command == "ready":
-            conn.send(("ready",))
-        else:
-            raise ValueError(f"unknown command {command!r}")
-    envs.close()
-    shared.close()
+
+    def _write(self, grad: torch.Tensor, part: MinibatchPart) -> None:
+        shared, slot = self.shared, self.slot
+        self.grad.copy_(grad)
+        size = len(part.log_ratio)
+        shared["part_size"][slot] = [size, part.clip_share is not None]
+        shared["part_losses"][slot] = [float(part.pg_loss), float(part.v_loss), float(part.entropy)]
+        shared["part_log_ratio"][slot, :size] = part.log_ratio.numpy()
+        if part.clip_share is not None:
+            shared["part_clip_share"][slot, :size] = part.clip_share.numpy()
+
+
+class _Helper:
+    """A helper process's two jobs, a rollout worker and a gradient peer, on one policy whose parameters
+    it takes from the shared block; each command answered by the method of its name."""
+
+    def __init__(self, spec: HelperSpec, rank: int, shared: tuple[str, dict], conn: Connection, done, go):
+        torch.set_num_threads(1)
+        name, layout = shared
+        self.conn, self.done, self.go = conn, done, go
+        policy = GraphActorCritic(PolicyConfig.from_dict(spec.rollout.policy))
+        self.learner = Learner.create(policy, 0.0, 1e-8, spec.compile)  # its optimizer never steps: process 0's does
+        (num_params,) = layout["theta"][0]
+        if (mine := self.learner.params.theta.numel()) != num_params:
+            raise ValueError(f"the helper's policy has {mine} parameters, not {num_params}")
+        self.shared = SharedArrays(layout, name=name)
+        run = spec.rollout
+        rollout = shared_rollout(self.shared, run.num_steps, run.num_envs, run.max_joints)
+        worker = run.worker(rank, spec.processes)
+        self.worker = RolloutWorker(worker, policy, rollout.columns(worker.lo, worker.hi))
+        self.peer = _GradientPeer(spec, rank, self.learner, self.shared, rollout)
+        self.theta = torch.from_numpy(self.shared["theta"])
+        self._handlers = {
+            Ready: self.ready, Collect: self.collect, GetState: self.get_state, SetState: self.set_state,
+            Begin: self.begin, Epoch: self.epoch,
+        }  # fmt: skip
+
+    def serve(self) -> None:
+        while True:
+            poll_spinning(self.conn)  # within an update the next epoch comes at once; between updates recv blocks
+            command = self.conn.recv()
+            if isinstance(command, Close):
+                break
+            handler = self._handlers.get(type(command))
+            if handler is None:
+                raise ValueError(f"unknown command {_command_name(command)!r}")
+            answer = handler(command)
+            if not isinstance(command, Epoch):  # an epoch answers through its semaphores
+                self.conn.send(("ok", answer))
+        self.worker.close()
+        self.shared.close()
+
+    def take_parameters(self) -> None:
+        self.learner.params.theta.data.copy_(self.theta)
+
+    def check(self) -> None:
+        """Within an epoch process 0 only ever says ``Close``; its death reads as EOF."""
+        if self.conn.poll():
+            raise _Closed(self.conn.recv())
+
+    # -- the commands ------------------------------------------------------------
+    def ready(self, _: Ready) -> None:
+        return None
+
+    def collect(self, _: Collect) -> list[Episode]:
+        self.take_parameters()
+        return self.worker.collect()
+
+    def get_state(self, _: GetState) -> WorkerState:
+        return self.worker.get_state()
+
+    def set_state(self, command: SetState) -> None:
+        self.worker.set_state(command.state)
+
+    def begin(self, command: Begin) -> None:
+        self.take_parameters()
+        self.peer.begin(command.kl_beta)
+
+    def epoch(self, command: Epoch) -> None:
+        self.peer.epoch(command.cuts, self.done, self.go, self.take_parameters, self.check)

@@ -27,20 +27,19 @@ from morph_core.algo.checkpoint import (
     save_training_state,
     sub_dict,
 )
-from morph_core.algo.data_parallel import Helpers, HelperSpec, env_bounds
+from morph_core.algo.data_parallel import HelperPool, Helpers, HelperSpec
 from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import compute_gae, explained_variance
-from morph_core.algo.rollout import Rollout, collect
+from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
 from morph_core.algo.run_log import RunLog
 from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import update
 from morph_core.algo.update_config import UpdateConfig
 from morph_core.algo.update_stats import epoch_columns
 from morph_core.env.bodies import BodyMix, is_chain_label, parse_bodies
-from morph_core.env.vec_env import Episode, SwimmerVecEnv, merge_env_states, split_env_state
+from morph_core.env.vec_env import Episode, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
-from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import check_field_types, replace_nested
@@ -49,6 +48,9 @@ log = logging.getLogger(__name__)
 
 RowHook = Callable[[dict, bool], None]
 """hears a run's progress row and whether that step's state was saved: ``on_row(row, saved)``"""
+PoolFactory = Callable[[RolloutSpec, int], RolloutPool]
+"""makes the pool of ``rollout_workers`` > 1 workers for a run's rollout: ``pool(spec, workers)`` (the core
+has no such pool: ``trainer.ray_rollouts`` makes one of Ray actors)"""
 
 
 @dataclass
@@ -118,6 +120,11 @@ class TrainConfig:
     processes: int = 1
     """processes sharing the swimmers and every minibatch's gradient (algo.data_parallel); 2 uses both cores
     of a 2-core machine. The action noise's random streams depend on it, so a run keeps its count"""
+    rollout_workers: int = 1
+    """rollout workers (Ray actors, ``morph-train --rollout-workers``) that each step a share of the swimmers
+    (``algo.rollout_workers.env_bounds``) while this process updates; 1: this process steps them all. Worker
+    r draws its action noise from worker_seed(seed, r) (``algo.rollout_workers``), so the noise, like
+    ``processes``', depends on the count and a run keeps it"""
     compile: bool = True
     """compile the minibatch loss and its backward into one Inductor graph (algo.compiled; ~1.5x faster
     update, ~15-30 s to compile once; falls back to eager mode with a warning where Inductor cannot run)"""
@@ -148,6 +155,11 @@ class TrainConfig:
         if not 1 <= self.processes <= min(self.num_envs, smallest):
             raise ValueError(f"processes must be in 1..{min(self.num_envs, smallest)} (each needs a swimmer and a "
                              f"part of every minibatch), got {self.processes}")  # fmt: skip
+        if not 1 <= self.rollout_workers <= self.num_envs:
+            raise ValueError(f"rollout_workers must be in 1..{self.num_envs} (each needs a swimmer), "
+                             f"got {self.rollout_workers}")  # fmt: skip
+        if self.rollout_workers > 1 and self.processes > 1:
+            raise ValueError("rollout_workers > 1 and processes > 1 both share the swimmers out: choose one")
         if self.clip_eps <= 0:
             raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
         self.update_config()  # the update's own checks: weight cap, KL settings, objective and rule together
@@ -218,10 +230,17 @@ def log_columns(cfg: TrainConfig) -> list[str]:
     ]  # fmt: skip
 
 
-def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False, on_row: RowHook | None = None) -> Path:
+def train(
+    cfg: TrainConfig,
+    run_dir: str | Path,
+    resume: bool = False,
+    on_row: RowHook | None = None,
+    rollout_pool: PoolFactory | None = None,
+) -> Path:
     """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors). ``on_row(row,
     saved)`` hears each progress row once it is written and, when ``saved``, the state of its step too (a Ray
-    Tune trial reports it, with the run's own state files as its checkpoint)."""
+    Tune trial reports it, with the run's own state files as its checkpoint). ``rollout_pool`` makes the
+    workers of ``cfg.rollout_workers`` > 1."""
     run_dir = Path(run_dir)
     state_path = run_dir / "state.safetensors"
     ckpt_dir = run_dir / "checkpoints"
@@ -233,10 +252,10 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False, on_row: R
     learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
     optimizer = learner.optimizer
     gen = torch.Generator().manual_seed(cfg.seed)
-    # This process steps the first share of the swimmers (all of them, alone); helpers the others.
-    bounds = env_bounds(cfg.num_envs, cfg.processes)
-    envs = SwimmerVecEnv(bounds[0][1], cfg.body_mix, seed=cfg.seed, num_threads=cfg.env_threads)
+    if cfg.rollout_workers > 1 and rollout_pool is None:
+        raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
     helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
+    pool = _rollout_pool(cfg, learner, gen, helpers, rollout_pool)
     try:
         global_step, iteration, last_ckpt = 0, 0, 0
         if resume and (state_path.exists() or previous_state_path(state_path).exists()):
@@ -247,35 +266,36 @@ def train(cfg: TrainConfig, run_dir: str | Path, resume: bool = False, on_row: R
             learner.restore_state(tensors)
             gen.set_state(tensors["rng.torch"])
             env_arrays = {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()}
-            env_parts = split_env_state(meta["env"], env_arrays, bounds)
-            envs.set_state(*env_parts[0])
-            if helpers is not None:
-                helpers.set_states([(*part, _helper_rng(tensors, r)) for r, part in enumerate(env_parts[1:], 1)])
+            env_parts = split_env_state(meta["env"], env_arrays, pool.bounds)
+            pool.set_states(
+                [
+                    WorkerState(*part, _saved_rng(tensors, name))
+                    for part, name in zip(env_parts, pool.rng_names, strict=True)
+                ]
+            )
             global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
             _check_policy_checkpoints(ckpt_dir, global_step, policy)
         else:
             run_dir.mkdir(parents=True, exist_ok=True)
             with atomic_writer(run_dir / "config.json") as f:
                 json.dump(cfg.to_dict(), f, indent=2)
-        _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, (global_step, iteration, last_ckpt), on_row)
+        _train_loop(cfg, run_dir, resume, learner, gen, pool, helpers, (global_step, iteration, last_ckpt), on_row)
     finally:
-        envs.close()
+        pool.close()
         if helpers is not None:
             helpers.close()
     return run_dir
 
 
-def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters, on_row) -> None:
+def _train_loop(cfg, run_dir, resume, learner, gen, pool: RolloutPool, helpers, counters, on_row) -> None:
     state_path, ckpt_dir = run_dir / "state.safetensors", run_dir / "checkpoints"
     policy, optimizer = learner.policy, learner.optimizer
     global_step, iteration, last_ckpt = counters
     log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
     T, E = cfg.num_steps, cfg.num_envs
-    rollout = Rollout(T, E, envs.max_joints) if helpers is None else helpers.rollout
-    mine = rollout.columns(0, envs.num_envs)  # this process's swimmers' columns
+    rollout = pool.rollout
     update_cfg = cfg.update_config()
-    obs = envs.observations()
-    dims, trees = cfg.dims, not envs.bodies.chains_only  # the spec parsed once, not at every iteration
+    dims, trees = cfg.dims, not cfg.body_mix.chains_only  # the spec parsed once, not at every iteration
     recent: list[Episode] = []
     bar = _progress(cfg, global_step)
     while global_step < cfg.total_timesteps:
@@ -284,11 +304,9 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters, on_
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
         # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
         t0 = time.perf_counter()
-        if helpers is not None and not helpers.collecting:  # else started after the last update (step 4)
-            helpers.start_collect()
-        obs, episodes = collect(envs, NumpyPolicy(policy), mine, obs, gen)
-        if helpers is not None:
-            episodes += helpers.finish_collect()
+        if not pool.collecting:  # else started after the last update (step 4)
+            pool.start(learner.params.theta)
+        episodes = pool.finish()
         global_step += T * E
         rollout_s = time.perf_counter() - t0
 
@@ -310,16 +328,16 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters, on_
         stats = update(learner, batch, update_cfg, gen, peers=helpers)
         update_s = time.perf_counter() - t1
 
-        # 4. Log and checkpoint. The helpers' next rollout starts first (their swimmers' states taken
+        # 4. Log and checkpoint. The workers' next rollout starts first (their swimmers' states taken
         # before it when a checkpoint is due): this process's logging and saving overlap it. It writes
-        # their columns of the shared rollout, so nothing below reads the batch.
+        # their columns of the rollout, so nothing below reads the batch.
         explained = explained_variance(batch.values, batch.returns)
         checkpoint = global_step // cfg.checkpoint_interval > last_ckpt // cfg.checkpoint_interval or (
             global_step >= cfg.total_timesteps
         )
-        helper_states = helpers.get_states() if helpers is not None and checkpoint else []
-        if helpers is not None and global_step < cfg.total_timesteps:
-            helpers.start_collect()
+        worker_states = pool.get_states() if checkpoint else []
+        if global_step < cfg.total_timesteps:
+            pool.start(learner.params.theta)
         recent = (recent + episodes)[-50:]
         row = {
             "global_step": global_step,
@@ -345,8 +363,8 @@ def _train_loop(cfg, run_dir, resume, learner, gen, envs, helpers, counters, on_
         if checkpoint:
             last_ckpt = global_step
             policy.save(ckpt_dir / f"policy_{global_step:08d}.safetensors", metadata={"global_step": global_step})
-            env_meta, env_arrays = merge_env_states([envs.get_state(), *[(m, a) for m, a, _ in helper_states]])
-            more_rngs = {f"helper{r}": rng for r, (_, _, rng) in enumerate(helper_states, start=1)}
+            env_meta, env_arrays = merge_env_states([(s.env_meta, s.env_arrays) for s in worker_states])
+            more_rngs = {name: s.rng for name, s in zip(pool.rng_names, worker_states, strict=True) if name}
             counters = {"global_step": global_step, "iteration": iteration, "last_ckpt": last_ckpt}
             save_training_state(
                 state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors(), more_rngs
@@ -366,20 +384,35 @@ def _mean_return(episodes: list[Episode]) -> float:
     return float(np.mean([e.episode_return for e in episodes])) if episodes else math.nan
 
 
+def rollout_spec(cfg: TrainConfig) -> RolloutSpec:
+    """The rollout of a run of ``cfg``, as its rollout workers build it (``algo.rollout_workers``)."""
+    return RolloutSpec(bodies=str(cfg.body_mix), num_envs=cfg.num_envs, num_steps=cfg.num_steps, seed=cfg.seed,
+                       env_threads=cfg.env_threads, policy=dataclasses.asdict(cfg.policy))  # fmt: skip
+
+
 def helper_spec(cfg: TrainConfig, learner: Learner) -> HelperSpec:
-    """What the helper processes of a run of ``cfg`` start from (``algo.data_parallel``)."""
-    return HelperSpec(
-        rank=0, processes=cfg.processes, shm_name="", num_steps=cfg.num_steps, num_envs=cfg.num_envs,
-        bodies=str(cfg.body_mix), max_joints=cfg.body_mix.max_joints, seed=cfg.seed, env_threads=cfg.env_threads,
-        num_params=learner.params.theta.numel(), policy=dataclasses.asdict(cfg.policy), compile=cfg.compile,
-        update=cfg.update_config(),
-    )  # fmt: skip
+    """What the helper processes of a run of ``cfg`` start from (``algo.data_parallel``): ``learner``'s policy."""
+    spec = dataclasses.replace(rollout_spec(cfg), policy=dataclasses.asdict(learner.policy.config))
+    return HelperSpec(processes=cfg.processes, rollout=spec, update=cfg.update_config(), compile=cfg.compile)
 
 
-def _helper_rng(tensors: dict[str, torch.Tensor], rank: int) -> torch.Tensor | None:
-    state = tensors.get(f"rng.helper{rank}")
-    if state is None:  # a run started with fewer processes: this helper's noise starts from its seed
-        log.warning("resume: the checkpoint has no noise generator for helper %d; it starts from its seed", rank)
+def _rollout_pool(cfg, learner, gen, helpers, rollout_pool) -> RolloutPool:
+    """Who steps the swimmers: this process alone (with the run's generator), with the helpers, or workers."""
+    spec = rollout_spec(cfg)
+    if cfg.rollout_workers > 1:
+        return rollout_pool(spec, cfg.rollout_workers)
+    if helpers is None:
+        return LocalPool(RolloutWorker(spec.worker(0, 1), learner.policy, generator=gen))
+    first = spec.worker(0, cfg.processes)  # this process steps the first share of the swimmers
+    worker = RolloutWorker(first, learner.policy, helpers.rollout.columns(first.lo, first.hi), gen)
+    return HelperPool(worker, helpers)
+
+
+def _saved_rng(tensors: dict[str, torch.Tensor], name: str | None) -> torch.Tensor | None:
+    """A worker's saved generator (None: the run's own, restored with the run)."""
+    state = None if name is None else tensors.get(f"rng.{name}")
+    if name is not None and state is None:  # a run started with fewer processes: its noise starts from its seed
+        log.warning("resume: the checkpoint has no noise generator rng.%s; it starts from its seed", name)
     return state
 
 
