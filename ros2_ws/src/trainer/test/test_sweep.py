@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from safetensors.numpy import load_file
 
+from morph_core.algo.trust_region import rule_names
 from trainer.sweep.cli import main
 from trainer.sweep.spec import SpecError, load_spec
 
@@ -75,6 +76,23 @@ def test_a_spec_file_and_the_command_line_make_named_trials(tmp_path):
     js.write_text(json.dumps({"grid": {"seed": [3]}}))
     assert [t.name for t in load_spec(js).expand()] == ["seed=3"]
     assert [t.name for t in load_spec(None, sets=["seed=4"]).expand()] == ["trial"]
+
+
+def test_the_results_sweeps_make_the_runs_of_docs_results():
+    """sweeps/*.yaml: the configs the results scripts ran, so that their figures stay reproducible."""
+    sweeps = Path(__file__).resolve().parents[4] / "sweeps"
+    trials = {p.stem: load_spec(p).expand() for p in sorted(sweeps.glob("*.yaml"))}
+    assert {k: len(v) for k, v in trials.items()} == {"rules": 70, "train": 10, "trees": 10, "two_joint": 8}
+    rules = {(t.train_config().clip_mode, t.train_config().anneal_lr) for t in trials["rules"]}
+    assert {rule for rule, _ in rules} == set(rule_names())  # a new rule joins the comparison here
+    assert len(rules) == 14 and all(t.train_config().total_timesteps == 1_000_000 for t in trials["rules"])
+    assert {t.train_config().bodies for t in trials["trees"]} == {"2-10,random:3-10"}
+    two = {
+        (c.gamma, c.min_joints, c.max_joints, c.total_timesteps)
+        for c in (t.train_config() for t in trials["two_joint"])
+    }
+    assert two == {(0.98, 2, 2, 500_000), (0.999, 2, 2, 500_000), (0.9999, 2, 2, 500_000), (0.9999, 2, 10, 500_000)}
+    assert trials["train"][0].eval_config(1_000_000).from_step == 0  # the curves: every 24th checkpoint
 
 
 @pytest.mark.parametrize(
