@@ -36,6 +36,7 @@ setup(
             "morph-render = trainer.render_cli:main",
             "morph-export = trainer.export_cli:main",
             "morph-keys = trainer.keys_cli:main",
+            "morph-sweep = trainer.sweep.cli:main",
         ],
     },
 )

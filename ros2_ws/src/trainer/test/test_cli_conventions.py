@@ -26,6 +26,7 @@ TOOLS = [
     ("bag_rounds", "bag_rounds", ["--out", "rounds"], ["--round", "3"]),
     ("ship", "python -m trainer.ship", ["--run", "run", "--dest", "p.safetensors"], ["--replac"]),
     ("summary", "python -m trainer.summary", ["--run", "run"], ["--ru", "run"]),
+    ("sweep.cli", "morph-sweep", ["--out", "sweep", "--dry-run"], ["--gri", "seed=1"]),
 ]
 
 

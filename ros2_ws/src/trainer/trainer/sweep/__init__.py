@@ -1,0 +1,1 @@
+"""``morph-sweep``: training runs on Ray Tune (``spec``: what runs; ``tune_run``: the trials; ``cli``: the tool)."""

@@ -1,0 +1,5 @@
+import sys
+
+from trainer.sweep.cli import main
+
+sys.exit(main())
