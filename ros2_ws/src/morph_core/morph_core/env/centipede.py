@@ -222,6 +222,21 @@ class MorphCentipedeEnv(gymnasium.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (self.num_joints,):
             raise ValueError(f"action must have shape ({self.num_joints},) for {self.body_label}, got {a.shape}")
+        reward, terminated = self.advance(a)
+        x_velocity, y_velocity, terms, unstable = self._last_step
+        info = {
+            **self._info_position(),
+            "x_velocity": x_velocity,
+            "y_velocity": y_velocity,
+            **terms,
+            "physics_unstable": unstable,
+        }
+        return self._observation(), reward, terminated, False, info
+
+    def advance(self, a: np.ndarray) -> tuple[float, bool]:
+        """``step``'s physics and reward alone: (reward, terminated). ``a``: ``num_joints`` float64 entries
+        (``step`` checks the shape); NaN or inf raises ``ValueError``. For loops that read the state
+        themselves (``write_observation``: the vectorised env, the sim) instead of Gymnasium's dicts."""
         if not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a}")
         m, d = self.model, self.data
@@ -240,15 +255,9 @@ class MorphCentipedeEnv(gymnasium.Env):
             x_velocity, healthy, self._ctrl, cfrc, self.forward_reward_weight, self.healthy_reward,
             self.ctrl_cost_weight, self.contact_cost_weight, self.contact_force_range,
         )  # fmt: skip
-        terminated = (not healthy and self.terminate_when_unhealthy) or unstable
-        info = {
-            **self._info_position(),
-            "x_velocity": x_velocity,
-            "y_velocity": y_velocity,
-            **terms,
-            "physics_unstable": unstable,
-        }
-        return self._observation(), reward, terminated, False, info
+        self._last_step = (x_velocity, y_velocity, terms, unstable)
+        self.unstable = unstable
+        return reward, bool((not healthy and self.terminate_when_unhealthy) or unstable)
 
     @property
     def is_healthy(self) -> bool:
