@@ -23,7 +23,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 
 
 class JointStateError(ValueError):
@@ -212,7 +211,7 @@ def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.
     from morph_core.policy.chains import ChainBatch  # torch, only for callers that run the torch policy
 
     n = len(positions)
-    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, NUM_GLOBAL_FEATURES)
+    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, -1)  # the policy's width: 4, or 12 (legged)
     return ChainBatch.from_padded(
         np.asarray(positions, dtype=np.float32).reshape(1, n),
         np.asarray(velocities, dtype=np.float32).reshape(1, n),
