@@ -71,3 +71,20 @@ def test_the_policy_node_drives_a_served_centipede_on_its_twelve_globals(
     # publishes the state again and it is answered on the right tree).
     counts = sim_diag.latest
     assert all(set(c.rejected) <= {"wrong_tree"} and c.rejected_total <= 1 for c in counts.values()), counts
+
+
+def test_the_demo_refuses_centipedes_without_a_policy_and_walks_one_with_it(tmp_path):
+    import subprocess
+    import sys
+
+    bringup = [sys.executable, "-m", "morph_policy_node.bringup", "--bodies", "centipede:2"]
+    out = subprocess.run(bringup, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "no centipede policy is shipped: give --checkpoint" in out.stdout
+    torch.manual_seed(0)
+    ckpt = tmp_path / "centipede.safetensors"
+    GraphActorCritic(PolicyConfig(global_features=12)).save(ckpt)
+    out = subprocess.run([*bringup, "--checkpoint", str(ckpt), "--sim-seconds", "2"], capture_output=True, text=True,
+                         timeout=240)  # fmt: skip
+    line = next((x for x in out.stdout.splitlines() if x.startswith("swim speed:")), None)
+    assert out.returncode == 0 and line is not None, out.stdout[-3000:] + out.stderr[-3000:]
+    assert "bodies centipede:2, 8 joints" in line
