@@ -140,6 +140,12 @@ def test_random_trees_keep_their_size_and_branching_limit(branching):
         ("star:3", "cannot read body item"),
         ("2 - 4", "cannot read body item"),
         ("x" * 2000, "longer than"),
+        ("centipede:1", "centipede leg pairs must be at least 2"),
+        ("centipede:17", "centipede leg pairs must be at most 16"),
+        ("centipede:4-2", "empty range"),
+        ("centipede:", "cannot read body item"),
+        ("centipede:2x3", "cannot read body item"),
+        ("centipedes:3", "unknown body family 'centipedes'"),
     ],
 )
 def test_bad_specs_say_why(spec, reason):
@@ -157,7 +163,8 @@ def test_a_spec_is_a_string():
 def test_fuzzed_specs_parse_or_raise_value_error_only():
     rng = np.random.default_rng(2024)
     alphabet = list("0123456789-,:x bXé\n") + ["star:", "y:", "comb:", "random:", "chain:", ":b", "64", "99999"]
-    parsed, started = 0, time.monotonic()
+    alphabet += ["centipede:", "centipede:2", "16"]
+    parsed, centipedes, started = 0, 0, time.monotonic()
     for _ in range(5000):
         spec = "".join(rng.choice(alphabet, size=int(rng.integers(0, 14))))
         try:
@@ -165,12 +172,15 @@ def test_fuzzed_specs_parse_or_raise_value_error_only():
         except ValueError:
             continue
         parsed += 1
+        centipedes += mix.has_centipedes
         assert isinstance(mix, BodyMix) and parse_bodies(str(mix)) == mix
         lo, hi = mix.joint_range
         assert 1 <= lo <= hi <= MAX_JOINTS
-        tree = mix.draw(rng)
-        assert lo <= tree.num_joints <= hi
+        body = mix.draw(rng)
+        assert lo <= body.num_joints <= hi
+        assert mix.global_features == (12 if mix.has_centipedes else 4)
     assert parsed > 100  # the fuzzer reaches valid specs too, not only errors
+    assert centipedes > 10  # and specs with centipedes among them
     assert time.monotonic() - started < 60
 
 
@@ -202,3 +212,42 @@ def test_drawn_trees_swim_without_diverging_under_random_and_bang_bang_actions()
         state = np.zeros((4, n)), np.zeros((4, n)), np.zeros((4, 4))
         batch.write_observation(*state)
         assert all(np.isfinite(part).all() for part in state)
+
+
+# -- centipedes ------------------------------------------------------------------------------------------------
+def test_a_centipede_family_reads_draws_and_labels():
+    from morph_core.env.bodies import Centipede, body_label
+
+    mix = parse_bodies("centipede:2-4")
+    assert str(mix) == "centipede:2-4" and parse_bodies("centipede:3") == parse_bodies("centipede:3-3")
+    assert mix.joint_range == (8, 16) and mix.global_features == 12 and not mix.chains_only
+    assert mix.members() == [Centipede(2), Centipede(3), Centipede(4)]
+    assert [body_label(m) for m in mix.members()] == ["centipede-2", "centipede-3", "centipede-4"]
+    assert mix.first() == Centipede(2) and Centipede(3).tree.num_joints == 12
+    # the draw is MorphCentipedeEnv(leg_pairs=(2, 4))'s from the same generator
+    from gymnasium.utils import seeding
+
+    from morph_core.env.centipede import MorphCentipedeEnv
+
+    env = MorphCentipedeEnv(leg_pairs=(2, 4))
+    sizes = [env.reset(seed=seed)[1]["leg_pairs"] for seed in range(20)]
+    assert [mix.draw(seeding.np_random(seed)[0]).leg_pairs for seed in range(20)] == sizes
+    assert set(sizes) == {2, 3, 4}
+
+
+def test_swimmers_and_centipedes_mix_with_twelve_globals():
+    mix = parse_bodies("2-3,centipede:2")
+    assert mix.has_centipedes and mix.global_features == 12 and mix.joint_range == (2, 8)
+    assert parse_bodies("2-4,y:2x2").global_features == 4
+    with pytest.raises(ValueError, match="holds centipedes"):
+        MorphSwimmerEnv(bodies="2,centipede:2")
+
+
+def test_the_policy_takes_the_mixs_global_width():
+    from morph_core.env.bodies import fit_global_features
+    from morph_core.policy.config import PolicyConfig
+
+    assert fit_global_features(PolicyConfig(), parse_bodies("centipede:2")).global_features == 12
+    assert fit_global_features(PolicyConfig(), parse_bodies("2-4")) == PolicyConfig()
+    with pytest.raises(ValueError, match="give 4 global features, the policy reads 12"):
+        fit_global_features(PolicyConfig(global_features=12), parse_bodies("2-4"))

@@ -72,3 +72,66 @@ def test_the_vector_env_gives_gymnasium_steps_numbers_bit_for_bit():
 
 def _arrays(p):
     return p.joint_pos, p.joint_vel, p.global_feats, p.num_joints
+
+
+# -- centipedes ------------------------------------------------------------------------------------------------
+def test_centipedes_step_with_twelve_globals_fall_and_reset():
+    from morph_core.env.centipede import MorphCentipedeEnv
+
+    envs = SwimmerVecEnv(2, "centipede:2-3", seed=3)
+    assert envs.global_features == 12 and envs.max_joints == 12
+    obs = envs.observations()
+    assert obs.global_feats.shape == (2, 12)
+    # row 0 is MorphCentipedeEnv(leg_pairs=(2, 3)) reset with seed 3, to the bit
+    ref = MorphCentipedeEnv(leg_pairs=(2, 3))
+    ref_obs, info = ref.reset(seed=3)
+    n = info["leg_pairs"] * 4
+    assert obs.num_joints[0] == n and np.array_equal(obs.global_feats[0], ref_obs["global"].astype(np.float32))
+    rng = np.random.default_rng(0)
+    labels, terminated = set(), 0
+    for _ in range(200):
+        actions = rng.uniform(-1, 1, (2, 12)).astype(np.float32)
+        if ref is not None:
+            ref_obs, r, term, _, _ = ref.step(applied_action(actions[0, :n]).astype(np.float64))
+        step = envs.step(actions)
+        if ref is not None:
+            assert step.reward[0] == r and step.terminated[0] == term
+            if term:
+                assert np.array_equal(step.final_obs[0]["global"], ref_obs["global"])
+                ref = None
+            else:
+                assert np.array_equal(step.obs.global_feats[0], ref_obs["global"].astype(np.float32))
+        terminated += int(step.terminated.sum())
+        labels |= {e.body for e in step.episodes}
+        assert (step.obs.joint_pos[np.arange(12) >= step.obs.num_joints[:, None]] == 0).all()
+    assert terminated > 0 and labels <= {"centipede-2", "centipede-3"} and labels
+
+
+@pytest.mark.parametrize("spec", ["centipede:2-3", "2-3,y:1x1,centipede:2"])
+def test_a_restored_centipede_run_goes_on_bit_for_bit(spec):
+    envs = SwimmerVecEnv(3, spec, seed=1, max_episode_steps=50)  # time limits too, inside the test
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        envs.step(rng.uniform(-1, 1, (3, envs.max_joints)).astype(np.float32))
+    meta, arrays = envs.get_state()
+    again = SwimmerVecEnv(3, spec, seed=77, max_episode_steps=50)
+    again.set_state(meta, arrays)
+    pairs = zip(envs.observations().arrays(), again.observations().arrays(), strict=True)
+    assert all(np.array_equal(a, b) for a, b in pairs)
+    ended = 0
+    for _ in range(80):
+        actions = rng.uniform(-1, 1, (3, envs.max_joints)).astype(np.float32)
+        a, b = envs.step(actions), again.step(actions)
+        assert np.array_equal(a.reward, b.reward) and np.array_equal(a.terminated, b.terminated)
+        assert all(np.array_equal(x, y) for x, y in zip(a.obs.arrays(), b.obs.arrays(), strict=True))
+        assert a.episodes == b.episodes
+        ended += len(a.episodes)
+    assert ended > 0  # the draws after a reset (the generators' states) were restored too
+
+
+def test_mixed_specs_pad_a_swimmers_globals():
+    envs = SwimmerVecEnv(4, "2,centipede:2", seed=0)
+    obs = envs.observations()
+    swimmers = obs.num_joints == 2
+    assert swimmers.any() and (~swimmers).any()
+    assert (obs.global_feats[swimmers, 4:] == 0).all() and (obs.global_feats[~swimmers, 5] > 0.5).all()  # z

@@ -136,6 +136,15 @@ def _has_trees(spec: str) -> bool:
         return False
 
 
+def _has_centipedes(spec: str) -> bool:
+    from morph_core.env.bodies import parse_bodies
+
+    try:
+        return parse_bodies(spec).has_centipedes
+    except ValueError:
+        return False
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     body = ap.add_mutually_exclusive_group()
@@ -150,6 +159,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
+    if args.checkpoint is None and args.bodies and _has_centipedes(args.bodies):
+        # Refused rather than run untrained: a policy that cannot walk would look like a broken demo.
+        print("bringup: no centipede policy is shipped: give --checkpoint (a morph-train --bodies centipede:2-4 "
+              "run's checkpoints/policy_*.safetensors; docs/centipedes.md)", flush=True)  # fmt: skip
+        return 2
     if args.checkpoint is None:
         shipped = SHIPPED_MODEL
         if args.bodies and _has_trees(args.bodies):

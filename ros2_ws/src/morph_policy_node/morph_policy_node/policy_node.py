@@ -153,9 +153,11 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.msgs.effort_names import names_label, tree_label
 from morph_core.msgs.joint_state import (
+    LEGGED_GLOBAL_FEATURES,
     JointStateError,
     YawUnwrapper,
     global_features,
+    legged_global_features,
     validate_joint_state,
 )
 from morph_core.msgs.policy_info import pack_policy_info
@@ -342,7 +344,7 @@ class MorphPolicyNode(Node):
 
         self.rejected = 0
         self._diagnostics = InputDiagnostics(self, self.counts)
-        self._odom = None  # (quaternion, body linear xy, angular z) of the latest valid odometry
+        self._odom = None  # (quaternion, body linear xy, angular z, position, body linear, body angular): the latest
         self._unwrap = YawUnwrapper()
         self._episodes = EpisodeTracker()  # when the unwrapping restarts
         self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
@@ -478,13 +480,16 @@ class MorphPolicyNode(Node):
         q = msg.pose.pose.orientation
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
         quat, body = (q.x, q.y, q.z, q.w), (lin.x, lin.y)
+        p = msg.pose.pose.position
+        full = ((p.x, p.y, p.z), (lin.x, lin.y, lin.z), (ang.x, ang.y, ang.z))
         try:
             global_features(quat, body, ang.z)  # validation only; unwrapping happens when a state uses it
+            legged_global_features(quat, *full)  # the 3-D fields too, which a 12-feature policy reads
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
         except (JointStateError, StampError) as err:
             self._reject(ODOM, err, "stamp" if isinstance(err, StampError) else "odometry")
             return
-        self._odom = (quat, body, ang.z)
+        self._odom = (quat, body, ang.z, *full)
         ready = self._pairing.odometry(stamp_ns)
         if ready is not None:
             self._act(*ready)
@@ -572,10 +577,14 @@ class MorphPolicyNode(Node):
             self.get_logger().info(
                 f"no {DESCRIPTION} yet: joints taken as a chain in message order (joint 0 next to the torso)"
             )
+        width = self._weights.config.global_features  # 4: a swimmer's planar features; 12: a legged body's in 3-D
         if self._odom is None:
-            glob = np.zeros(4)  # no odometry yet: the torso at rest at the origin
+            glob = np.zeros(width)  # no odometry yet: the torso at rest at the origin
+        elif width == LEGGED_GLOBAL_FEATURES:
+            quat, _, _, position, linear, angular = self._odom
+            glob = legged_global_features(quat, position, linear, angular)  # the centipede env's, from odometry
         else:
-            quat, body, wz = self._odom
+            quat, body, wz = self._odom[:3]
             glob = global_features(quat, body, wz, self._unwrap)
         by_tree = self._effort_order == "description"
         names = tree.names if by_tree else order.message_names  # the efforts' order

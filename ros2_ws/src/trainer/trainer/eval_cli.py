@@ -14,6 +14,11 @@ stride). ``--processes 2`` evaluates two
 checkpoints at a time, one per core (each checkpoint's results are the same
 as alone). Figures comparing the clip modes go to ``--plots DIR``.
 
+Centipedes are a family of ``--bodies`` (``--bodies centipede:2-5``: every size from 2 to 5 leg pairs,
+trained or zero-shot); an episode ends when the centipede falls. With centipedes in ``--bodies`` and no
+``--lengths``, no swimmer chains are evaluated. A policy trained on swimmers alone (4 global features)
+cannot drive a centipede (12): refused.
+
 ``--checkpoint FILE`` instead of ``--run`` evaluates one policy file (a shipped
 model, say) on the same bodies and prints a table of its returns (mean ± std
 over the episodes, per body), writing nothing.
@@ -35,6 +40,7 @@ from threadpoolctl import threadpool_limits
 
 from morph_core.algo.evaluate import Body, evaluate_policy
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
+from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import (
@@ -99,7 +105,7 @@ def eval_bodies(cfg: EvalConfig) -> list[Body]:
         members = parse_bodies(cfg.bodies).members()
         if members is None:
             raise ValueError(f"bodies {cfg.bodies!r} holds a random family: name the trees to evaluate")
-        bodies += [m.num_joints if m.is_chain else m for m in members]
+        bodies += [m.num_joints if isinstance(m, KinematicTree) and m.is_chain else m for m in members]
     return list(dict.fromkeys(bodies))
 
 
@@ -174,6 +180,13 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
     return "\n".join(lines)
 
 
+def _has_centipedes(spec: str) -> bool:
+    try:
+        return bool(spec) and parse_bodies(spec).has_centipedes
+    except ValueError:
+        return False  # said below, where the spec is read for the bodies
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = CommandLineParser(
         prog="morph-eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -194,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = overrides_from_args(args, EvalConfig)
     if args.lengths is not None:
         overrides["lengths"] = args.lengths
+    elif _has_centipedes(overrides.get("bodies", "")):
+        overrides["lengths"] = []  # a centipede evaluation films no swimmer chains unless asked (--lengths)
     cfg = replace_nested(EvalConfig(), overrides)
     bad_lengths = any(not 1 <= n <= 64 for n in cfg.lengths)
     if min(cfg.episodes, cfg.stride, cfg.processes) < 1 or cfg.from_step < 0 or bad_lengths:

@@ -16,6 +16,13 @@ no ``--lengths``, only the bodies are filmed.
         --lengths 2 6 10 20 --gif swim.gif --mp4 swim.mp4
     morph-render --untrained --lengths 3 --seconds 4 --gif untrained.gif
     morph-render --checkpoint policy.safetensors --bodies star:3x2,y:1x2,comb:4 --gif trees.gif
+    morph-render --checkpoint centipedes/checkpoints/policy_00004096.safetensors --bodies centipede:3,centipede:5 \
+        --height 240 --seconds 4 --gif centipedes.gif
+
+Centipedes (``--bodies centipede:N``) are filmed from the side and above, following the front segment;
+a centipede that falls stops there (its caption says so), as its episode would end in training. A
+policy's global input is the width it was trained with: a swimmer's 4 features are zero-padded for a
+policy that reads 12 (trained with centipedes); a swimmer policy (4) cannot drive a centipede (refused).
 
 Rendering needs offscreen OpenGL: ``MUJOCO_GL`` when set, else EGL, else
 OSMesa (``morph_core.env.render.choose_gl_backend``).
@@ -125,13 +132,15 @@ def training_rule(weights: PolicyWeights) -> str:
     return f"{rule} clipping" if isinstance(rule, str) and rule else "rule unknown"
 
 
-def caption(num_joints: int, rule: str, episode_return: float, diverged: bool, label: str | None = None) -> str:
+def caption(
+    num_joints: int, rule: str, episode_return: float, diverged: bool, label: str | None = None, fell: bool = False
+) -> str:
     """A view's caption; ``label`` (``bodies.body_label``) names a tree in front of its joint count."""
     joints = f"{num_joints} joint{'s' * (num_joints != 1)}"
     if label is not None and not is_chain_label(label):
         joints = f"{label} ({joints})"
     text = f"{joints}, {rule}, return {episode_return:+.1f}"
-    return text + " (physics diverged)" if diverged else text
+    return text + " (physics diverged)" if diverged else text + " (fell)" if fell else text
 
 
 def _name(take) -> str:
@@ -141,12 +150,22 @@ def _name(take) -> str:
 def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4: Path | None, log=print) -> int:
     """Film ``weights`` as ``cfg`` says into ``gif`` and/or ``mp4``; returns the number of frames.
     ``choose_gl_backend`` must have run (before MuJoCo was imported)."""
+    import numpy as np
+
+    from morph_core.env.bodies import Centipede
     from morph_core.env.render import Take
     from morph_core.policy.numpy_actor import NumpyPolicy
     from trainer.video import VideoWriter, add_caption, caption_font, tile
 
     cfg.check()
     policy = NumpyPolicy(weights)
+    global_width = weights.config.global_features
+    if global_width < 12 and any(isinstance(b, Centipede) for b in cfg.takes()):
+        raise ValueError(f"this policy reads {global_width} global features, a centipede 12: train it on centipedes")
+
+    def mean(pos, vel, glob, **kw):  # a swimmer's 4 globals, zero-padded to a 12-wide policy's input
+        return policy.mean(pos, vel, np.pad(glob, (0, global_width - len(glob))), **kw)
+
     rule = training_rule(weights)
     font = caption_font(max(10, cfg.height // 12))
     writer = VideoWriter(cfg.fps, gif=gif, mp4=mp4, gif_colors=cfg.gif_colors)
@@ -154,13 +173,15 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
     groups = [bodies] if cfg.layout == "tiled" else [[body] for body in bodies]
     try:
         for group in groups:
-            takes = [Take(body, policy.mean, cfg.width, cfg.height, reset_seed=cfg.seed) for body in group]
+            takes = [Take(body, mean, cfg.width, cfg.height, reset_seed=cfg.seed) for body in group]
             try:
                 for step in range(cfg.steps + 1):
                     if step % cfg.frame_every == 0:
                         views = [
                             add_caption(
-                                t.frame(), caption(t.num_joints, rule, t.episode_return, t.diverged, t.label), font
+                                t.frame(),
+                                caption(t.num_joints, rule, t.episode_return, t.diverged, t.label, t.fell),
+                                font,
                             )
                             for t in takes
                         ]

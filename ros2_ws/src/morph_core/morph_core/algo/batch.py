@@ -32,7 +32,8 @@ class RolloutBatch:
     joint_vel: torch.Tensor
     """[N, J] float32 joint angular velocities"""
     global_feats: torch.Tensor
-    """[N, 4] float32 torso yaw, yaw rate, vx, vy"""
+    """[N, G] float32 global features (G = the policy's ``global_features``: a swimmer's 4, torso yaw, yaw
+    rate, vx, vy; a centipede's 12)"""
     actions: torch.Tensor
     """[N, J] float32 actions taken (before any clip to the motors' range)"""
     log_prob: torch.Tensor
@@ -55,8 +56,9 @@ class RolloutBatch:
         n, j = self.joint_pos.shape if self.joint_pos.ndim == 2 else (None, None)
         if n is None:
             raise ValueError(f"joint_pos must be [N, J], got {tuple(self.joint_pos.shape)}")
-        shapes = {
-            "num_joints": (n,), "joint_vel": (n, j), "global_feats": (n, NUM_GLOBAL_FEATURES), "actions": (n, j),
+        g = self.global_feats.shape[1] if self.global_feats.ndim == 2 and self.global_feats.shape[1] else 0
+        shapes = {  # the global width is the data's (a swimmer's 4, a centipede's 12); the policy checks its own
+            "num_joints": (n,), "joint_vel": (n, j), "global_feats": (n, g or NUM_GLOBAL_FEATURES), "actions": (n, j),
             "log_prob": (n,), "values": (n,), "advantages": (n,), "returns": (n,),
         }  # fmt: skip
         if self.proximal_log_prob is not None:

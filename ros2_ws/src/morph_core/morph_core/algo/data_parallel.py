@@ -132,12 +132,14 @@ class SharedArrays:
             self._shm.unlink()
 
 
-def shared_layout(num_steps: int, num_envs: int, max_joints: int, num_params: int, processes: int) -> dict:
+def shared_layout(
+    num_steps: int, num_envs: int, max_joints: int, num_params: int, processes: int, global_features: int
+) -> dict:
     """Everything the processes share: the rollout, its advantages and returns, the parameters, the current
     epoch's minibatches and, per helper, one gradient and its part's size and statistics."""
     n, helpers = num_steps * num_envs, processes - 1
     return {
-        **{f"rollout.{k}": v for k, v in rollout_layout(num_steps, num_envs, max_joints).items()},
+        **{f"rollout.{k}": v for k, v in rollout_layout(num_steps, num_envs, max_joints, global_features).items()},
         "advantages": ((num_steps, num_envs), np.float32),
         "returns": ((num_steps, num_envs), np.float32),
         "theta": ((num_params,), np.float32),
@@ -151,8 +153,11 @@ def shared_layout(num_steps: int, num_envs: int, max_joints: int, num_params: in
     }
 
 
-def shared_rollout(shared: SharedArrays, num_steps: int, num_envs: int, max_joints: int) -> Rollout:
-    return Rollout(num_steps, num_envs, max_joints, alloc=lambda name, shape, dtype: shared[f"rollout.{name}"])
+def shared_rollout(shared: SharedArrays, run: RolloutSpec) -> Rollout:
+    return Rollout(
+        run.num_steps, run.num_envs, run.max_joints, lambda name, shape, dtype: shared[f"rollout.{name}"],
+        run.global_features,
+    )  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,9 +229,11 @@ class Helpers:
         run = spec.rollout
         self.bounds = env_bounds(run.num_envs, spec.processes)
         self.theta = learner.params.theta
-        layout = shared_layout(run.num_steps, run.num_envs, run.max_joints, self.theta.numel(), spec.processes)
+        layout = shared_layout(
+            run.num_steps, run.num_envs, run.max_joints, self.theta.numel(), spec.processes, run.global_features
+        )
         self.shared = SharedArrays(layout)
-        self.rollout = shared_rollout(self.shared, run.num_steps, run.num_envs, run.max_joints)
+        self.rollout = shared_rollout(self.shared, run)
         self._theta = torch.from_numpy(self.shared["theta"])
         self._grads = torch.from_numpy(self.shared["grad"])
         context = multiprocessing.get_context("spawn")  # fork would copy torch's and MuJoCo's threads' locks
@@ -482,7 +489,7 @@ class _Helper:
             raise ValueError(f"the helper's policy has {mine} parameters, not {num_params}")
         self.shared = SharedArrays(layout, name=name)
         run = spec.rollout
-        rollout = shared_rollout(self.shared, run.num_steps, run.num_envs, run.max_joints)
+        rollout = shared_rollout(self.shared, run)
         worker = run.worker(rank, spec.processes)
         self.worker = RolloutWorker(worker, policy, rollout.columns(worker.lo, worker.hi))
         self.peer = _GradientPeer(spec, rank, self.learner, self.shared, rollout)

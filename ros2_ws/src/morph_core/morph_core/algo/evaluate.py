@@ -10,14 +10,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from morph_core.env.bodies import Centipede
+from morph_core.env.centipede_batch import CentipedeBatch
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_batch import SwimmerBatch
 from morph_core.env.vec_env import MAX_EPISODE_STEPS
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 
-Body = int | KinematicTree
-"""a chain length, or a tree"""
+Body = int | KinematicTree | Centipede
+"""a chain length, a tree, or a centipede (an episode of it ends when it falls)"""
 
 
 def evaluate_policy(
@@ -38,11 +40,19 @@ def evaluate_policy(
     one MuJoCo call (``SwimmerBatch``, on ``num_threads`` threads).
     """
     bodies = list(dict.fromkeys(bodies))  # a body asked twice is evaluated once
-    groups = [SwimmerBatch(body, [seed + k for k in range(episodes)], num_threads) for body in bodies]
+    seeds = [seed + k for k in range(episodes)]
+    groups = [
+        CentipedeBatch(body.leg_pairs, seeds) if isinstance(body, Centipede) else SwimmerBatch(body, seeds, num_threads)
+        for body in bodies
+    ]
+    actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
     # The swimmers' observations, padded, one row each; a body's swimmers are rows g*episodes.. of group g.
     count, width = len(bodies) * episodes, max(g.num_joints for g in groups)
     pos, vel = np.zeros((count, width), np.float32), np.zeros((count, width), np.float32)
-    glob = np.zeros((count, 4), np.float32)
+    global_width = actor.global_mlp[0][0].shape[0]  # the policy's; a swimmer's 4 features padded to it
+    if global_width < 12 and any(isinstance(b, Centipede) for b in bodies):
+        raise ValueError(f"this policy reads {global_width} global features, a centipede 12: train it on centipedes")
+    glob = np.zeros((count, global_width), np.float32)
     num_joints = np.repeat(np.array([g.num_joints for g in groups], dtype=np.int64), episodes)
     parents = np.full((count, width), -1, np.int64)
     rows = [slice(g * episodes, (g + 1) * episodes) for g in range(len(bodies))]
@@ -53,7 +63,6 @@ def evaluate_policy(
     returns = np.zeros(count)
     alive = np.ones(count, dtype=bool)
     applied = np.zeros((count, width))
-    actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
     for _ in range(max_steps):
         idx = np.flatnonzero(alive)
         if idx.size == 0:

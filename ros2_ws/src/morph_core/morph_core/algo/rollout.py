@@ -14,16 +14,19 @@ import torch
 
 from morph_core.algo.batch import RolloutBatch
 from morph_core.env.vec_env import Episode, PaddedObs, SwimmerVecEnv
-from morph_core.policy.chains import pad_observations
+from morph_core.policy.chains import NUM_GLOBAL_FEATURES, pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 
 
-def rollout_layout(steps: int, envs: int, max_joints: int) -> dict[str, tuple[tuple[int, ...], type]]:
-    """Name -> (shape, dtype) of every array of a ``Rollout``."""
+def rollout_layout(
+    steps: int, envs: int, max_joints: int, global_features: int = NUM_GLOBAL_FEATURES
+) -> dict[str, tuple[tuple[int, ...], type]]:
+    """Name -> (shape, dtype) of every array of a ``Rollout``; ``global_features`` the bodies' global width
+    (``SwimmerVecEnv.global_features``: 4 for swimmers, 12 with centipedes)."""
     T, E, J = steps, envs, max_joints
     return {
         "joint_pos": ((T, E, J), np.float32), "joint_vel": ((T, E, J), np.float32),
-        "global_feats": ((T, E, 4), np.float32), "num_joints": ((T, E), np.int64),
+        "global_feats": ((T, E, global_features), np.float32), "num_joints": ((T, E), np.int64),
         "parents": ((T, E, J), np.int64),  # each joint's parent joint (-1: the torso, and at padding)
         "actions": ((T, E, J), np.float32), "log_prob": ((T, E), np.float32),
         "rewards": ((T, E), np.float32), "values": ((T, E), np.float32),
@@ -37,9 +40,16 @@ class Rollout:
     """[T, E] storage of one rollout, padded to the largest body the families allow; NumPy while
     collecting, shared with torch (no copy) for the update."""
 
-    def __init__(self, steps: int, envs: int, max_joints: int, alloc: Callable[..., np.ndarray] | None = None):
+    def __init__(
+        self,
+        steps: int,
+        envs: int,
+        max_joints: int,
+        alloc: Callable[..., np.ndarray] | None = None,
+        global_features: int = NUM_GLOBAL_FEATURES,
+    ):
         """``alloc(name, shape, dtype)`` gives each array (zeroed); by default ``np.zeros``."""
-        for name, (shape, dtype) in rollout_layout(steps, envs, max_joints).items():
+        for name, (shape, dtype) in rollout_layout(steps, envs, max_joints, global_features).items():
             setattr(self, name, np.zeros(shape, dtype) if alloc is None else alloc(name, shape, dtype))
 
     def columns(self, lo: int, hi: int) -> Rollout:

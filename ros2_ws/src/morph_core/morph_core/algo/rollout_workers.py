@@ -77,6 +77,11 @@ class RolloutSpec:
         """The largest body's joint count: the rollout's width."""
         return parse_bodies(self.bodies).max_joints
 
+    @property
+    def global_features(self) -> int:
+        """The width of the rollout's global observations (12 with centipedes, else the swimmer's 4)."""
+        return parse_bodies(self.bodies).global_features
+
     def worker(self, rank: int, workers: int) -> WorkerSpec:
         """Worker ``rank`` of ``workers`` sharing the swimmers out (``env_bounds``)."""
         lo, hi = env_bounds(self.num_envs, workers)[rank]
@@ -128,7 +133,9 @@ class RolloutWorker:
             policy = GraphActorCritic(PolicyConfig.from_dict(run.policy))
             self._params = FlatParameters(policy)  # the parameters as one vector, as the learner sends them
         self.policy = policy
-        self.rollout = Rollout(run.num_steps, spec.hi - spec.lo, run.max_joints) if rollout is None else rollout
+        if rollout is None:
+            rollout = Rollout(run.num_steps, spec.hi - spec.lo, run.max_joints, global_features=run.global_features)
+        self.rollout = rollout
         self.generator = torch.Generator().manual_seed(spec.noise_seed) if generator is None else generator
         self.obs = self.envs.observations()
 

@@ -37,7 +37,7 @@ from morph_core.algo.trust_region import rule_names
 from morph_core.algo.update import update
 from morph_core.algo.update_config import UpdateConfig
 from morph_core.algo.update_stats import epoch_columns
-from morph_core.env.bodies import BodyMix, is_chain_label, parse_bodies
+from morph_core.env.bodies import BodyMix, fit_global_features, is_chain_label, parse_bodies
 from morph_core.env.vec_env import Episode, merge_env_states, split_env_state
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.weights import CheckpointError, load_checkpoint
@@ -146,6 +146,7 @@ class TrainConfig:
             raise ValueError(f"need 1 <= min_joints <= max_joints <= 64, got {self.min_joints}, {self.max_joints}")
         if self.bodies:  # parsed here, so that a bad spec is refused before anything runs
             self._joint_range_from_bodies()
+        self.policy = fit_global_features(self.policy, self.body_mix)  # 12 with centipedes
         for name in ("num_envs", "num_steps", "minibatch_size", "update_epochs", "total_timesteps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

@@ -25,7 +25,6 @@ from morph_core.algo.off_policy import exact_kl, with_proximal
 from morph_core.algo.trust_region import get_rule
 from morph_core.algo.update_config import UpdateConfig
 from morph_core.algo.update_stats import UpdateStats, update_stats
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES
 
 
 def update(
@@ -76,7 +75,8 @@ def compile_ahead(learner: Learner, cfg: UpdateConfig, max_joints: int, off_poli
     mask = torch.arange(max_joints) < num_joints.unsqueeze(1)
     pos, vel, actions = (torch.randn(n, max_joints, generator=gen) * mask for _ in range(3))
     zeros = torch.zeros(n)
-    batch = RolloutBatch(num_joints, pos, vel, torch.randn(n, NUM_GLOBAL_FEATURES, generator=gen), actions,
+    glob = torch.randn(n, learner.policy.config.global_features, generator=gen)  # the policy's width
+    batch = RolloutBatch(num_joints, pos, vel, glob, actions,
                          -torch.rand(n, generator=gen), zeros, torch.randn(n, generator=gen), zeros)  # fmt: skip
     if off_policy:
         batch = with_proximal(learner.policy, batch)

@@ -1,4 +1,4 @@
-"""Body families: which swimmers (kinematic trees of hinges) an env draws, from one text spec.
+"""Body families: which bodies (swimmers: kinematic trees of hinges; centipedes) an env draws, from one text spec.
 
 A spec is one or more items separated by commas; at each reset one item is drawn uniformly
 (no draw when there is one item), then one of its members (no draw when it has one):
@@ -10,13 +10,21 @@ A spec is one or more items separated by commas; at each reset one item is drawn
                                                carries a one-joint tooth                  (2S-1 joints)
     random:LO-HI[:bB]                          a random tree of LO..HI joints, at most B children per
                                                link (the torso included); B defaults to 2
+    centipede:N  |  centipede:LO-HI            a centipede (``env.centipede``) of N (LO..HI) leg pairs,
+                                               drawn uniformly                             (4N joints)
 
 Every size of a named shape (K, A, S, B) may be a range ``LO-HI`` too (``star:2-3x1-2``: the four stars
 of 2..3 arms of 1..2 joints, one drawn uniformly). Limits: chains 1..``MAX_JOINTS`` joints (as
 ``num_joints``), trees (named or random) at most ``MAX_TREE_JOINTS``,
 ``star`` K in 2..``STAR_MAX_ARMS``, ``y`` S >= 1, B >= 1, ``comb`` S >= 3 (``comb:2`` would be
 ``y:1x1``), ``random`` B in 1..``RANDOM_MAX_BRANCHING``; the caps come from the stability sweep
-(``bench/check_body_stability.py``, docs/bodies.md). A bad spec raises ``ValueError`` with the reason.
+(``bench/check_body_stability.py``, docs/bodies.md); centipedes ``MIN_LEG_PAIRS``..``MAX_LEG_PAIRS`` leg pairs.
+A bad spec raises ``ValueError`` with the reason.
+
+Swimmers and centipedes may be mixed in one spec (``2-4,centipede:2-3``): each env draws its family at
+every reset like any item. The policy's global input is then the centipede's 12 features, a swimmer's 4
+(yaw, yaw rate, vx, vy: the centipede's first four, same meanings) zero-padded (``BodyMix.global_features``).
+A swimmer draw is a ``KinematicTree``, a centipede draw a ``Centipede`` (its size; ``.tree`` its tree).
 
 A spec of chains alone draws as ``MorphSwimmerEnv(num_joints=(LO, HI))`` always has: one chain item
 ``LO-HI`` draws ``rng.integers(LO, HI + 1)`` when LO != HI and nothing when LO == HI, so chain runs stay
@@ -26,19 +34,22 @@ Joints are numbered in depth-first pre-order from the torso (a link's children i
 above: a Y's stem, then its first branch, then its second; a comb's tooth before the spine goes on),
 which is MuJoCo's qpos order for the MJCF ``env.model`` writes; drawn trees carry the swimmer's
 joint names ``motor{k}_rot`` and root link ``torso``. ``body_label`` names a body in logs:
-``chain-N``, a named shape's label (``star-3x2``, ``y-1x2``, ``comb-4``), else ``tree-`` and 8 hex
-digits of its topology hash.
+``chain-N``, a named shape's label (``star-3x2``, ``y-1x2``, ``comb-4``), ``centipede-N``, else ``tree-`` and
+8 hex digits of its topology hash.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
 from functools import cache
 
 import numpy as np
 
+from morph_core.env.centipede_model import JOINTS_PER_LEG_PAIR, MAX_LEG_PAIRS, MIN_LEG_PAIRS
 from morph_core.env.model import MAX_JOINTS
+from morph_core.policy.config import PolicyConfig
 from morph_core.policy.index_plan import joint_depths
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
@@ -60,6 +71,11 @@ _STAR_RE = re.compile(rf"star:{_RANGE}x{_RANGE}")
 _Y_RE = re.compile(rf"y:{_RANGE}x{_RANGE}")
 _COMB_RE = re.compile(rf"comb:{_RANGE}")
 _RANDOM_RE = re.compile(rf"random:{_RANGE}(?::b{_INT})?")
+_CENTIPEDE_RE = re.compile(rf"centipede:{_RANGE}")
+SWIMMER_GLOBAL_FEATURES = 4
+"""a swimmer's global vector: yaw, yaw rate, vx, vy (``swimmer_env.GLOBAL_FEATURES``)"""
+CENTIPEDE_GLOBAL_FEATURES = 12
+"""a centipede's (``centipede.GLOBAL_FEATURES``), the swimmer's four first"""
 
 
 def swimmer_tree(parents) -> KinematicTree:
@@ -240,7 +256,62 @@ class RandomTreeFamily:
         return KinematicTree.chain(self.lo)
 
 
-Family = ChainFamily | StarFamily | YFamily | CombFamily | RandomTreeFamily
+@dataclass(frozen=True)
+class Centipede:
+    """A centipede body of ``leg_pairs`` leg pairs (``env.centipede.MorphCentipedeEnv``): what a centipede
+    family draws where a swimmer family draws a ``KinematicTree``."""
+
+    leg_pairs: int
+
+    @property
+    def num_joints(self) -> int:
+        return JOINTS_PER_LEG_PAIR * self.leg_pairs
+
+    @property
+    def label(self) -> str:
+        return f"centipede-{self.leg_pairs}"
+
+    @property
+    def tree(self) -> KinematicTree:
+        """Its kinematic tree, read off the compiled model (MJCF joint names, root link ``torso_0``)."""
+        return centipede_tree(self.leg_pairs)
+
+
+@cache
+def centipede_tree(leg_pairs: int) -> KinematicTree:
+    from morph_core.env.centipede_model import centipede_model  # compiles MuJoCo models: only when asked
+
+    return KinematicTree.from_mujoco(centipede_model(leg_pairs))
+
+
+@dataclass(frozen=True)
+class CentipedeFamily:
+    """Centipedes of lo..hi leg pairs, the size drawn uniformly (``MorphCentipedeEnv(leg_pairs=(lo, hi))``'s
+    draw: nothing when lo == hi)."""
+
+    lo: int
+    hi: int
+
+    def __str__(self) -> str:
+        return f"centipede:{_range_text(self.lo, self.hi)}"
+
+    @property
+    def joint_range(self) -> tuple[int, int]:
+        return JOINTS_PER_LEG_PAIR * self.lo, JOINTS_PER_LEG_PAIR * self.hi
+
+    def members(self) -> list[Centipede]:
+        return [Centipede(n) for n in range(self.lo, self.hi + 1)]
+
+    def draw(self, rng: np.random.Generator) -> Centipede:
+        return Centipede(self.lo if self.lo == self.hi else int(rng.integers(self.lo, self.hi + 1)))
+
+    def first(self) -> Centipede:
+        return Centipede(self.lo)
+
+
+Family = ChainFamily | StarFamily | YFamily | CombFamily | RandomTreeFamily | CentipedeFamily
+Body = KinematicTree | Centipede
+"""what a ``BodyMix`` draws"""
 
 
 def _parse_item(item: str) -> Family:
@@ -254,6 +325,8 @@ def _parse_item(item: str) -> Family:
         family = YFamily(_pair(m[1], m[2], "y stem joints", 1), _pair(m[3], m[4], "y branch joints", 1))
     elif m := _COMB_RE.fullmatch(item):
         family = CombFamily(_pair(m[1], m[2], "comb spine joints", 3))
+    elif m := _CENTIPEDE_RE.fullmatch(item):
+        return CentipedeFamily(*_pair(m[1], m[2], "centipede leg pairs", MIN_LEG_PAIRS, MAX_LEG_PAIRS))
     elif m := _RANDOM_RE.fullmatch(item):
         lo, hi = _pair(m[1], m[2], "random tree joints", 1, MAX_TREE_JOINTS)
         b = DEFAULT_BRANCHING if m[3] is None else int(m[3])
@@ -262,8 +335,8 @@ def _parse_item(item: str) -> Family:
         return RandomTreeFamily(lo, hi, b)
     else:
         family_name = item.split(":", 1)[0]
-        known = "N, LO-HI, chain:, star:KxA, y:SxB, comb:S, random:LO-HI[:bB]"
-        if ":" in item and family_name not in ("chain", "star", "y", "comb", "random"):
+        known = "N, LO-HI, chain:, star:KxA, y:SxB, comb:S, random:LO-HI[:bB], centipede:LO-HI"
+        if ":" in item and family_name not in ("chain", "star", "y", "comb", "random", "centipede"):
             raise ValueError(f"unknown body family {family_name[:20]!r} (known: {known})")
         raise ValueError(f"cannot read body item {item[:40]!r} (forms: {known})")
     lo, hi = family.joint_range
@@ -281,11 +354,11 @@ class BodyMix:
     def __str__(self) -> str:
         return ",".join(map(str, self.items))
 
-    def draw(self, rng: np.random.Generator) -> KinematicTree:
+    def draw(self, rng: np.random.Generator) -> Body:
         item = self.items[0] if len(self.items) == 1 else self.items[int(rng.integers(len(self.items)))]
         return item.draw(rng)
 
-    def first(self) -> KinematicTree:
+    def first(self) -> Body:
         """A member drawn without randomness (the first item's first or smallest): the body an env has
         before its first reset."""
         return self.items[0].first()
@@ -303,10 +376,24 @@ class BodyMix:
     def chains_only(self) -> bool:
         return all(isinstance(item, ChainFamily) for item in self.items)
 
-    def members(self) -> list[KinematicTree] | None:
+    @property
+    def has_centipedes(self) -> bool:
+        return any(isinstance(item, CentipedeFamily) for item in self.items)
+
+    @property
+    def swimmers_only(self) -> bool:
+        return not self.has_centipedes
+
+    @property
+    def global_features(self) -> int:
+        """The policy's global input width for these bodies: a swimmer's 4, or 12 with any centipede (a
+        swimmer's four then zero-padded)."""
+        return CENTIPEDE_GLOBAL_FEATURES if self.has_centipedes else SWIMMER_GLOBAL_FEATURES
+
+    def members(self) -> list[Body] | None:
         """Every body the mix can draw, in spec order without repeats; None when a family is random."""
-        out: list[KinematicTree] = []
-        seen: set[KinematicTree] = set()
+        out: list[Body] = []
+        seen: set[Body] = set()
         for item in self.items:
             trees = item.members()
             if trees is None:
@@ -362,14 +449,38 @@ def is_chain_label(label: str) -> bool:
     return label.startswith("chain-")
 
 
-def body_label(body: int | KinematicTree) -> str:
+def body_label(body: int | Body) -> str:
     """``chain-N`` for a chain (or a chain length), the named shape's label (``star-3x2``, ``y-1x2``,
     ``comb-4``) for a tree of a named family (recognised by its parent array, which is what the topology
-    hash covers), else ``tree-`` and the first 8 hex digits of ``tree.topology_hash``."""
+    hash covers), ``centipede-N`` for a centipede, else ``tree-`` and the first 8 hex digits of
+    ``tree.topology_hash``."""
     if isinstance(body, int):
         return chain_label(body)
+    if isinstance(body, Centipede):
+        return body.label
     tree = body
     if tree.is_chain:
         return chain_label(tree.num_joints)
     label = _named_labels().get(tree.parents.astype(np.int64).tobytes())
     return label if label is not None else "tree-" + tree.topology_hash[:8]
+
+
+def swimmers_only(mix: BodyMix, what: str) -> BodyMix:
+    """``mix`` when it holds swimmers alone, else ValueError naming ``what`` refuses centipedes."""
+    if mix.has_centipedes:
+        raise ValueError(f"{what} runs swimmers; {str(mix)!r} holds centipedes (MorphCentipedeEnv runs those)")
+    return mix
+
+
+def fit_global_features(policy: PolicyConfig, mix: BodyMix) -> PolicyConfig:
+    """``policy`` reading ``mix``'s global width: a policy left at the swimmer's default 4 gets the mix's (12 with
+    centipedes); another width that disagrees is refused (ValueError), since the env writes the mix's."""
+    width = mix.global_features
+    if policy.global_features == width:
+        return policy
+    if policy.global_features == SWIMMER_GLOBAL_FEATURES:
+        return dataclasses.replace(policy, global_features=width)
+    raise ValueError(
+        f"bodies {str(mix)!r} give {width} global features, the policy reads {policy.global_features}: "
+        f"leave policy global_features unset (or {width})"
+    )

@@ -23,7 +23,6 @@ drawn in its order from the same generator, after the size's draw.
 
 from __future__ import annotations
 
-import math
 import numbers
 
 import gymnasium
@@ -49,6 +48,7 @@ from morph_core.env.reward import (
     ANT_RESET_NOISE_SCALE,
     ant_reward,
 )
+from morph_core.msgs.joint_state import write_global_features
 from morph_core.policy.tree import KinematicTree
 
 OBSERVATION_MODES = ("graph", "flat")
@@ -73,24 +73,6 @@ def check_leg_pair_range(leg_pairs) -> tuple[int, int]:
     if lo > hi:
         raise ValueError(f"leg_pairs range is empty: lo={lo} > hi={hi}")
     return lo, hi
-
-
-def write_global_features(qpos, qvel, out) -> None:
-    """``GLOBAL_FEATURES`` of a free-floating root (qpos[0:7], qvel[0:6]: MuJoCo's free joint, quaternion w x y z,
-    angular velocity in the body frame) into ``out`` [12]. The quaternion is normalised first: reset noise
-    leaves it off unit length, and MuJoCo uses it normalised."""
-    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
-    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w * s, x * s, y * s, z * s
-    # the rotation matrix's first column (x axis) and third row (world z in body coordinates)
-    r00, r10 = 1 - 2 * (y * y + z * z), 2 * (x * y + z * w)
-    r20, r21, r22 = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
-    wx, wy, wz = qvel[3], qvel[4], qvel[5]
-    out[0] = math.atan2(r10, r00)  # heading of the body's x axis
-    out[1] = r20 * wx + r21 * wy + r22 * wz  # world z component of the angular velocity
-    out[2], out[3], out[4], out[5] = qvel[0], qvel[1], qvel[2], qpos[2]
-    out[6], out[7], out[8] = -r20, -r21, -r22  # R^T (0, 0, -1)
-    out[9], out[10], out[11] = wx, wy, wz
 
 
 class MorphCentipedeEnv(gymnasium.Env):
@@ -222,6 +204,21 @@ class MorphCentipedeEnv(gymnasium.Env):
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (self.num_joints,):
             raise ValueError(f"action must have shape ({self.num_joints},) for {self.body_label}, got {a.shape}")
+        reward, terminated = self.advance(a)
+        x_velocity, y_velocity, terms, unstable = self._last_step
+        info = {
+            **self._info_position(),
+            "x_velocity": x_velocity,
+            "y_velocity": y_velocity,
+            **terms,
+            "physics_unstable": unstable,
+        }
+        return self._observation(), reward, terminated, False, info
+
+    def advance(self, a: np.ndarray) -> tuple[float, bool]:
+        """``step``'s physics and reward alone: (reward, terminated). ``a``: ``num_joints`` float64 entries
+        (``step`` checks the shape); NaN or inf raises ``ValueError``. For loops that read the state
+        themselves (``write_observation``: the vectorised env, the sim) instead of Gymnasium's dicts."""
         if not np.isfinite(a).all():
             raise ValueError(f"action contains NaN or inf: {a}")
         m, d = self.model, self.data
@@ -240,15 +237,9 @@ class MorphCentipedeEnv(gymnasium.Env):
             x_velocity, healthy, self._ctrl, cfrc, self.forward_reward_weight, self.healthy_reward,
             self.ctrl_cost_weight, self.contact_cost_weight, self.contact_force_range,
         )  # fmt: skip
-        terminated = (not healthy and self.terminate_when_unhealthy) or unstable
-        info = {
-            **self._info_position(),
-            "x_velocity": x_velocity,
-            "y_velocity": y_velocity,
-            **terms,
-            "physics_unstable": unstable,
-        }
-        return self._observation(), reward, terminated, False, info
+        self._last_step = (x_velocity, y_velocity, terms, unstable)
+        self.unstable = unstable
+        return reward, bool((not healthy and self.terminate_when_unhealthy) or unstable)
 
     @property
     def is_healthy(self) -> bool:

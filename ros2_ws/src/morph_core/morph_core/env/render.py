@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from morph_core.env.centipede_model import SEGMENT_SPACING
 from morph_core.env.model import SEGMENT_LENGTH, check_num_joints
 
 if TYPE_CHECKING:
@@ -135,10 +136,16 @@ class CameraView:
         return height / (2 * math.tan(math.radians(fovy_deg) / 2))
 
 
+CENTIPEDE_VIEW = CameraView(elevation=-25.0, azimuth=90.0, pad=1.0, min_extent=3.0, shadows=True)
+"""a centipede walks on a floor: filmed from the side and above (forward to the right), with shadows so that
+its feet's contacts show"""
+
+
 class Take:
-    """One swimmer driven by ``controller``, filmed at ``width`` x ``height``: ``body`` a chain length
-    (``num_joints``) or a ``KinematicTree`` (reset as ``reset(options={"tree": body})``); ``label`` is its
-    ``bodies.body_label``.
+    """One body driven by ``controller``, filmed at ``width`` x ``height``: ``body`` a chain length
+    (``num_joints``), a ``KinematicTree`` (reset as ``reset(options={"tree": body})``) or a
+    ``bodies.Centipede`` (a ``MorphCentipedeEnv`` of its leg pairs); ``label`` is its ``bodies.body_label``.
+    A centipede that falls (Ant-v5's health rule) ends its take like a diverged swimmer: ``fell``.
 
     ``reset_seed`` seeds the env's reset noise. ``step()`` advances one control period and adds the
     reward to ``episode_return``; after the physics diverges (``diverged``) the swimmer stays where
@@ -156,14 +163,20 @@ class Take:
     ):
         import mujoco
 
-        from morph_core.env.bodies import tree_depth
+        from morph_core.env.bodies import Centipede, tree_depth
+        from morph_core.env.centipede import MorphCentipedeEnv
         from morph_core.env.swimmer_env import MorphSwimmerEnv
 
+        centipede = isinstance(body, Centipede)
         tree = not isinstance(body, numbers.Integral)
         self.num_joints = body.num_joints if tree else check_num_joints(body)
         self._controller = controller
-        self.env = MorphSwimmerEnv(num_joints=self.num_joints)
-        self._obs, _ = self.env.reset(seed=reset_seed, options={"tree": body} if tree else None)
+        if centipede:
+            self.env = MorphCentipedeEnv(leg_pairs=body.leg_pairs)
+            self._obs, _ = self.env.reset(seed=reset_seed)
+        else:
+            self.env = MorphSwimmerEnv(num_joints=self.num_joints)
+            self._obs, _ = self.env.reset(seed=reset_seed, options={"tree": body} if tree else None)
         self.tree, self.label = self.env.tree, self.env.body_label
         self._parents = None if self.tree.is_chain else self.env.parents
         model = self.env.model
@@ -171,12 +184,17 @@ class Take:
         if not (16 <= width <= limit_w and 16 <= height <= limit_h):
             raise ValueError(f"frame size must be 16..{limit_w} x 16..{limit_h} pixels, got {width} x {height}")
         self._renderer = mujoco.Renderer(model, height=height, width=width)
-        view = view or CameraView()
+        view = view or (CENTIPEDE_VIEW if centipede else CameraView())
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
-        self.camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
-        depth = None if self._parents is None else tree_depth(self._parents)
-        self.camera.distance = view.distance(self.num_joints, width / height, model.vis.global_.fovy, depth)
+        self.camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, self.tree.root_link)
+        if centipede:  # the body's length along x: its segments, framed like a chain of that length
+            length = body.leg_pairs * SEGMENT_SPACING + 1.0  # and a leg's reach at each end
+            extent = max((length + 2 * view.pad) / (width / height), view.min_extent)
+            self.camera.distance = extent / (2 * math.tan(math.radians(model.vis.global_.fovy) / 2))
+        else:
+            depth = None if self._parents is None else tree_depth(self._parents)
+            self.camera.distance = view.distance(self.num_joints, width / height, model.vis.global_.fovy, depth)
         self.camera.elevation = view.elevation
         self.camera.azimuth = view.azimuth
         for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
@@ -184,9 +202,10 @@ class Take:
         self.episode_return = 0.0
         self.steps = 0
         self.diverged = False
+        self.fell = False
 
     def step(self) -> None:
-        if self.diverged:
+        if self.diverged or self.fell:
             return
         o = self._obs
         if self._parents is None:
@@ -198,6 +217,7 @@ class Take:
         self.episode_return += float(reward)
         self.steps += 1
         self.diverged = bool(terminated and info.get("physics_unstable"))
+        self.fell = bool(terminated and not self.diverged)
 
     def frame(self) -> np.ndarray:
         self._renderer.update_scene(self.env.data, camera=self.camera)

@@ -30,6 +30,14 @@ across episodes: every state is one control period after the one before, the
 first state of an episode included (a diverged state, never shown, is
 replaced by the next episode's first).
 
+Centipedes (``bodies`` of the centipede family alone, e.g. ``centipede:3``): a ``MorphCentipedeEnv`` per
+episode (the size drawn from the spec at every reset, Ant-v5's reset noise, its 0.05 s control period), the
+joints in its tree order, the root's pose and twist in 3-D (``odometry``), its URDF from the compiled model.
+A fall does not end the episode here: the sim is a robot on a floor, it lies where it fell until
+``episode_steps`` or a reset (training ends the episode, ``MorphCentipedeEnv``'s health rule; the protocol's
+episode causes have no "fell"). A spec that mixes swimmers and centipedes is refused: the sim's clock has one
+control period (a swimmer's 0.04 s, a centipede's 0.05 s).
+
 Effort units are the motors' normalised commands (the env's action, ctrl
 range [-1, 1]; a swimmer's joint torque = 150 x effort; a robot's ctrl by
 ``mjcf_robot``'s rule). Values outside the range are clipped, as MuJoCo
@@ -42,9 +50,10 @@ import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 
-from morph_core.env.bodies import BodyMix
+from morph_core.env.bodies import BodyMix, parse_bodies
 from morph_core.env.mjcf_robot import MjcfRobot, RootState
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
@@ -75,6 +84,64 @@ class TorsoState:
     yaw_rate: float
 
 
+class CentipedeBodies:
+    """Centipedes of a body spec run as ``SwimmerSim`` runs a robot model: ``MjcfRobot``'s interface over a
+    ``vec_env.BodyEnv`` (the spec's draw, then Ant-v5's reset noise, from one generator)."""
+
+    def __init__(self, bodies: BodyMix):
+        from morph_core.env.vec_env import BodyEnv  # the env stack, only for a sim of centipedes
+
+        if not bodies.has_centipedes or not all(str(item).startswith("centipede:") for item in bodies.items):
+            raise ValueError(f"{str(bodies)!r} mixes swimmers and centipedes: a sim runs one family (one period)")
+        self.bodies = bodies
+        self._env = BodyEnv(bodies)
+        self.joint_range = bodies.joint_range
+
+    def __getattr__(self, name):  # num_joints, tree, dt, model, data, leg_pairs
+        if name == "_env":
+            raise AttributeError(name)
+        return getattr(self._env.env, name)
+
+    @property
+    def name(self) -> str:
+        return self._env.env.body_label
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> None:
+        if options:
+            raise ValueError(f"centipedes of a spec take no reset options, got {sorted(options)}")
+        self._env.reset(seed=seed)
+
+    def advance(self, efforts: np.ndarray) -> bool:
+        """One control period; True if MuJoCo had to reset a state that blew up (a fall is not reported)."""
+        self._env.advance(efforts)
+        return self._env.env.unstable
+
+    @property
+    def joint_positions(self) -> np.ndarray:
+        return self._env.env.data.qpos[7:].copy()
+
+    @property
+    def joint_velocities(self) -> np.ndarray:
+        return self._env.env.data.qvel[6:].copy()
+
+    def root_state(self) -> RootState:
+        """The root segment's pose and twist from its free joint: position, the unit quaternion, the linear
+        velocity turned into the root's frame (MuJoCo keeps it in the world's), the angular as it is."""
+        qpos, qvel = self._env.env.data.qpos, self._env.env.data.qvel
+        quat = qpos[3:7] / np.linalg.norm(qpos[3:7])  # reset noise leaves it off unit length; MuJoCo normalises
+        w, x, y, z = (float(v) for v in quat)
+        rot = np.empty(9)
+        mujoco.mju_quat2Mat(rot, quat)
+        linear = rot.reshape(3, 3).T @ qvel[0:3]
+        return RootState(
+            frame=self.tree.root_link,
+            position=tuple(float(v) for v in qpos[0:3]),
+            orientation=(x, y, z, w),
+            linear=tuple(float(v) for v in linear),
+            angular=tuple(float(v) for v in qvel[3:6]),
+        )
+
+
 class SwimmerSim:
     """One swimmer; ``num_joints`` an int (a fixed chain) or an inclusive range ``(lo, hi)`` drawn from
     at every reset; or ``bodies`` (a spec or ``BodyMix``: a body drawn at every reset; ``num_joints`` is
@@ -96,6 +163,9 @@ class SwimmerSim:
     ):
         if bodies is not None and robot is not None:
             raise ValueError("a sim runs swimmers of a body spec or a robot model, not both")
+        if bodies is not None and (parse_bodies(bodies) if isinstance(bodies, str) else bodies).has_centipedes:
+            robot = CentipedeBodies(parse_bodies(bodies) if isinstance(bodies, str) else bodies)
+            bodies = None
         self.robot = robot
         """the robot model run, or None for a swimmer"""
         if robot is not None:
@@ -153,6 +223,8 @@ class SwimmerSim:
     @property
     def bodies(self) -> BodyMix | None:
         """The body spec drawn from, None for chains given by ``num_joints`` and for a robot."""
+        if isinstance(self.robot, CentipedeBodies):
+            return self.robot.bodies
         return None if self.robot is not None else self._env.bodies
 
     @property

@@ -18,7 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from morph_core.env.bodies import BodyMix, body_label, parse_bodies
+from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmers_only
 from morph_core.env.model import body_parents, check_num_joints, swimmer_model
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, control_cost
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
@@ -92,6 +92,7 @@ class MorphSwimmerEnv(gymnasium.Env):
             self.bodies: BodyMix | None = parse_bodies(bodies) if isinstance(bodies, str) else bodies
             if not isinstance(self.bodies, BodyMix):
                 raise TypeError(f"bodies must be a spec string or a BodyMix, got {type(bodies).__name__}")
+            swimmers_only(self.bodies, "MorphSwimmerEnv")
             self.joint_range = self.bodies.joint_range
         else:
             self.bodies = None

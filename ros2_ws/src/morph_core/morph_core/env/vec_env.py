@@ -1,12 +1,18 @@
-"""Several swimmers stepped together, each redrawing its body (a chain length, or a tree of
-``env.bodies``' families) at every reset.
+"""Several bodies stepped together, each redrawing its body (a chain length, a tree of ``env.bodies``'
+families, or a centipede) at every reset.
 
 Observations come out padded to the largest body the families allow, with each
 body's parents beside them, ready for ``ChainBatch.from_padded``: each swimmer writes its state into its row after
 its step (``MorphSwimmerEnv.advance`` and ``write_observation``, the same
 numbers as Gymnasium's ``step`` without its per-step dicts). Episodes end at the time limit (truncation, with
 the final observation kept for bootstrapping) or when the physics diverges
-(termination); finished swimmers are reset at once.
+(termination), or for a centipede when it falls (Ant-v5's health rule: termination); finished bodies
+are reset at once.
+
+A spec of swimmers alone steps ``MorphSwimmerEnv``s exactly as before centipedes existed (global
+features 4 wide). A spec with centipedes steps a ``BodyEnv`` per slot, which draws the family and the
+body from its own generator at every reset and runs a ``MorphSwimmerEnv`` or a ``MorphCentipedeEnv``;
+the global features are then 12 wide, a swimmer's 4 zero-padded (``BodyMix.global_features``).
 """
 
 from __future__ import annotations
@@ -18,8 +24,10 @@ from typing import NamedTuple, TypeVar
 
 import mujoco
 import numpy as np
+from gymnasium.utils import seeding
 
-from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmer_tree
+from morph_core.env.bodies import BodyMix, Centipede, parse_bodies, swimmer_tree
+from morph_core.env.centipede import MorphCentipedeEnv
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 
@@ -62,9 +70,98 @@ class EnvThreads:
             self._pool = None
 
 
+class BodyEnv:
+    """One slot of a vectorised env whose spec holds centipedes: at every reset it draws the family and the
+    body from ``bodies`` with its own generator, then resets a ``MorphSwimmerEnv`` or a ``MorphCentipedeEnv``
+    (one of each, kept, each compiled model cached) on that body, handing it the same generator, so the reset
+    noise follows the draw as in the family's own env. Global features are ``bodies.global_features`` wide."""
+
+    def __init__(self, bodies: BodyMix):
+        self.bodies = bodies
+        self.global_features = bodies.global_features
+        self.np_random = seeding.np_random(None)[0]
+        self._swimmer: MorphSwimmerEnv | None = None
+        self._centipede: MorphCentipedeEnv | None = None
+        self._use(bodies.first())
+        self._reset_body(bodies.first())
+
+    def _use(self, body) -> MorphSwimmerEnv | MorphCentipedeEnv:
+        if isinstance(body, Centipede):
+            if self._centipede is None:
+                self._centipede = MorphCentipedeEnv(leg_pairs=body.leg_pairs)
+            self.env = self._centipede
+        else:
+            if self._swimmer is None:
+                self._swimmer = MorphSwimmerEnv(num_joints=body.num_joints)
+            self.env = self._swimmer
+        self.env.np_random = self.np_random  # one generator across families: the draw, then the noise
+        return self.env
+
+    def _reset_body(self, body) -> None:
+        env = self._use(body)
+        env.reset(options={"leg_pairs": body.leg_pairs} if isinstance(body, Centipede) else {"tree": body})
+
+    def reset(self, *, seed: int | None = None) -> None:
+        if seed is not None:
+            self.np_random = seeding.np_random(seed)[0]  # Gymnasium's seeding, as env.reset(seed=...) does
+        self._reset_body(self.bodies.draw(self.np_random))
+
+    @property
+    def is_centipede(self) -> bool:
+        return self.env is self._centipede
+
+    @property
+    def body(self) -> Centipede | object:
+        return Centipede(self.env.leg_pairs) if self.is_centipede else self.env.tree
+
+    def __getattr__(self, name):  # num_joints, parents, tree, body_label, model, data, dt
+        if name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def advance(self, a: np.ndarray) -> tuple[float, bool]:
+        return self.env.advance(a)
+
+    def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
+        self.env.write_observation(joint_pos, joint_vel, global_feats)
+        if not self.is_centipede:
+            global_feats[4:] = 0.0  # a swimmer's 4 features, padded (the row may have held a centipede's 12)
+
+    def _observation(self) -> dict:
+        obs = self.env._observation()
+        obs["global"] = np.pad(obs["global"], (0, self.global_features - len(obs["global"])))
+        return obs
+
+    # -- state: the body, the generator, and what MuJoCo's integration state leaves out ---------
+    def state_meta(self) -> dict:
+        if self.is_centipede:
+            return {"leg_pairs": int(self.env.leg_pairs), "rng": self.np_random.bit_generator.state}
+        body = {"num_joints": self.env.num_joints}
+        return body | ({} if self.env.tree.is_chain else {"parents": self.env.parents.tolist()})
+
+    def extra_arrays(self) -> dict[str, np.ndarray]:
+        # A centipede's reward reads the root's xpos as the last step left it (a derived quantity, not
+        # in MuJoCo's integration state): saved, so that a restored run pays the same first reward.
+        return {"root_xpos": self.env.data.xpos[self.env._root].copy()} if self.is_centipede else {}
+
+    def restore_body(self, meta: dict) -> None:
+        if "leg_pairs" in meta:
+            env = self._use(Centipede(int(meta["leg_pairs"])))
+            env._build(int(meta["leg_pairs"]))
+        else:
+            env = self._use(swimmer_tree(meta.get("parents", list(range(-1, int(meta["num_joints"]) - 1)))))
+            env._build(int(meta["num_joints"]) if "parents" not in meta else swimmer_tree(meta["parents"]))
+        self.np_random.bit_generator.state = meta["rng"]
+
+    def restore_extra(self, arrays: dict[str, np.ndarray], prefix: str) -> None:
+        if self.is_centipede:
+            self.env.data.xpos[self.env._root] = arrays[prefix + "root_xpos"]
+
+
 @dataclass
 class PaddedObs:
-    """[E, J] joint states (zero padded), [E, 4] globals, [E] joint counts, [E, J] parents (``index_plan``'s
+    """[E, J] joint states (zero padded), [E, G] globals (G = ``BodyMix.global_features``: 4, or 12 with
+    centipedes), [E] joint counts, [E, J] parents (``index_plan``'s
     convention: -1 for the torso and at padding)."""
 
     joint_pos: np.ndarray
@@ -99,8 +196,9 @@ class StepResult:
 
 
 class SwimmerVecEnv:
-    """``num_envs`` swimmers whose bodies are drawn from ``bodies``: a (lo, hi) range of chain lengths, or an
-    ``env.bodies`` spec or ``BodyMix`` (chains and trees); swimmer i is reset first with ``seed + i``."""
+    """``num_envs`` bodies drawn from ``bodies``: a (lo, hi) range of chain lengths, or an ``env.bodies``
+    spec or ``BodyMix`` (chains, trees, centipedes); body i is reset first with ``seed + i``.
+    ``global_features``: the width of the global observation (4 for swimmers, 12 with centipedes)."""
 
     def __init__(
         self,
@@ -115,14 +213,18 @@ class SwimmerVecEnv:
         if isinstance(bodies, tuple):
             bodies = f"{bodies[0]}-{bodies[1]}"
         self.bodies = parse_bodies(bodies) if isinstance(bodies, str) else bodies
-        self.envs = [MorphSwimmerEnv(bodies=self.bodies) for _ in range(num_envs)]
+        if self.bodies.swimmers_only:  # the swimmers' own envs, stepped as before centipedes existed
+            self.envs = [MorphSwimmerEnv(bodies=self.bodies) for _ in range(num_envs)]
+        else:
+            self.envs = [BodyEnv(self.bodies) for _ in range(num_envs)]
+        self.global_features = self.bodies.global_features
         self.max_joints = self.bodies.max_joints
         self.max_episode_steps = max_episode_steps
         self.num_envs = num_envs
-        J = self.max_joints
+        J, G = self.max_joints, self.global_features
         self._padded = PaddedObs(
             np.zeros((num_envs, J), np.float32), np.zeros((num_envs, J), np.float32),
-            np.zeros((num_envs, 4), np.float32), np.zeros(num_envs, np.int64), np.full((num_envs, J), -1, np.int64),
+            np.zeros((num_envs, G), np.float32), np.zeros(num_envs, np.int64), np.full((num_envs, J), -1, np.int64),
         )  # fmt: skip
         for i, env in enumerate(self.envs):
             env.reset(seed=seed + i)
@@ -161,7 +263,7 @@ class SwimmerVecEnv:
             env = self.envs[i]
             result.final_obs[i] = env._observation()
             ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
-            result.episodes.append(Episode(env.num_joints, ret, length, body_label(env.tree)))
+            result.episodes.append(Episode(env.num_joints, ret, length, env.body_label))
             self.episode_steps[i], self.episode_returns[i] = 0, 0.0
             env.reset()
             self._write_body(i)
@@ -181,14 +283,18 @@ class SwimmerVecEnv:
 
     # -- exact save/restore, for checkpoints that resume bit for bit ---------
     def get_state(self) -> tuple[dict, dict[str, np.ndarray]]:
-        """(JSON-able scalars, arrays): bodies (joint counts, and a tree's parents), RNG states, full MuJoCo
-        integration states."""
+        """(JSON-able scalars, arrays): bodies (joint counts, and a tree's parents; a centipede's leg pairs), RNG
+        states, full MuJoCo integration states (and a centipede's root position, ``BodyEnv.extra_arrays``)."""
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         arrays, meta = {}, {"envs": []}
         for i, env in enumerate(self.envs):
             state = np.empty(mujoco.mj_stateSize(env.model, spec))
             mujoco.mj_getState(env.model, env.data, state, spec)
             arrays[f"env{i}.mj_state"] = state
+            if isinstance(env, BodyEnv):
+                meta["envs"].append(env.state_meta() | {"rng": env.np_random.bit_generator.state})
+                arrays |= {f"env{i}.{k}": v for k, v in env.extra_arrays().items()}
+                continue
             body = {"num_joints": env.num_joints} | ({} if env.tree.is_chain else {"parents": env.parents.tolist()})
             meta["envs"].append(body | {"rng": env.np_random.bit_generator.state})
         arrays["episode_steps"] = self.episode_steps.copy()
@@ -200,10 +306,17 @@ class SwimmerVecEnv:
             raise ValueError(f"checkpoint holds {len(meta['envs'])} envs, this run has {self.num_envs}")
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
-            n = int(m["num_joints"])
-            env._build(n if "parents" not in m else swimmer_tree(m["parents"]))
-            env.np_random.bit_generator.state = m["rng"]
+            if isinstance(env, BodyEnv):
+                env.restore_body(m)
+            elif "leg_pairs" in m:
+                raise ValueError("checkpoint holds a centipede; this run's bodies are swimmers")
+            else:
+                n = int(m["num_joints"])
+                env._build(n if "parents" not in m else swimmer_tree(m["parents"]))
+                env.np_random.bit_generator.state = m["rng"]
             mujoco.mj_setState(env.model, env.data, np.asarray(arrays[f"env{i}.mj_state"], dtype=np.float64), spec)
+            if isinstance(env, BodyEnv):
+                env.restore_extra(arrays, f"env{i}.")
             # No mj_forward here: it would overwrite the restored solver warm start and the
             # trajectories would drift apart at solver tolerance.
             self._write_body(i)
@@ -217,7 +330,7 @@ def merge_env_states(parts: list[tuple[dict, dict[str, np.ndarray]]]) -> tuple[d
     meta, arrays, offset = {"envs": []}, {}, 0
     for part_meta, part_arrays in parts:
         for i in range(len(part_meta["envs"])):
-            arrays[f"env{offset + i}.mj_state"] = part_arrays[f"env{i}.mj_state"]
+            arrays |= {f"env{offset + i}.{k}": v for k, v in _env_arrays(part_arrays, i).items()}
         meta["envs"] += part_meta["envs"]
         offset += len(part_meta["envs"])
     for name in ("episode_steps", "episode_returns"):
@@ -231,7 +344,13 @@ def split_env_state(meta: dict, arrays: dict[str, np.ndarray], bounds: list[tupl
         raise ValueError(f"checkpoint holds {len(meta['envs'])} envs, this run has {bounds[-1][1]}")
     parts = []
     for lo, hi in bounds:
-        part = {f"env{i - lo}.mj_state": arrays[f"env{i}.mj_state"] for i in range(lo, hi)}
+        part = {f"env{i - lo}.{k}": v for i in range(lo, hi) for k, v in _env_arrays(arrays, i).items()}
         part |= {name: arrays[name][lo:hi] for name in ("episode_steps", "episode_returns")}
         parts.append(({"envs": meta["envs"][lo:hi]}, part))
     return parts
+
+
+def _env_arrays(arrays: dict[str, np.ndarray], i: int) -> dict[str, np.ndarray]:
+    """Env i's arrays of a ``get_state``, by their names after ``env{i}.`` (mj_state, and a centipede's more)."""
+    prefix = f"env{i}."
+    return {k[len(prefix) :]: v for k, v in arrays.items() if k.startswith(prefix)}

@@ -23,7 +23,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 
 
 class JointStateError(ValueError):
@@ -153,12 +152,66 @@ def global_features(
     return np.array([yaw, wz, vx, vy], dtype=np.float64)
 
 
+def write_global_features(qpos, qvel, out) -> None:
+    """``GLOBAL_FEATURES`` of a free-floating root (qpos[0:7], qvel[0:6]: MuJoCo's free joint, quaternion w x y z,
+    angular velocity in the body frame) into ``out`` [12]. The quaternion is normalised first: reset noise
+    leaves it off unit length, and MuJoCo uses it normalised."""
+    w, x, y, z = qpos[3], qpos[4], qpos[5], qpos[6]
+    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w * s, x * s, y * s, z * s
+    # the rotation matrix's first column (x axis) and third row (world z in body coordinates)
+    r00, r10 = 1 - 2 * (y * y + z * z), 2 * (x * y + z * w)
+    r20, r21, r22 = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    wx, wy, wz = qvel[3], qvel[4], qvel[5]
+    out[0] = math.atan2(r10, r00)  # heading of the body's x axis
+    out[1] = r20 * wx + r21 * wy + r22 * wz  # world z component of the angular velocity
+    out[2], out[3], out[4], out[5] = qvel[0], qvel[1], qvel[2], qpos[2]
+    out[6], out[7], out[8] = -r20, -r21, -r22  # R^T (0, 0, -1)
+    out[9], out[10], out[11] = wx, wy, wz
+
+
+LEGGED_GLOBAL_FEATURES = 12
+"""``env.centipede.GLOBAL_FEATURES``: a body in 3-D (a policy whose ``global_features`` is 12 reads these)"""
+
+
+def legged_global_features(
+    orientation_xyzw: Sequence[float],
+    position: Sequence[float],
+    body_linear: Sequence[float],
+    body_angular: Sequence[float],
+) -> np.ndarray:
+    """[12] float64 ``env.centipede.GLOBAL_FEATURES`` from an odometry of a root in 3-D (pose in the world
+    frame, twist in the root's frame, as ``odom`` carries it): the free joint's state rebuilt (the linear
+    velocity turned into the world frame, as MuJoCo's free joint holds it) and passed through the env's own
+    ``write_global_features``. The yaw is not unwrapped: the env's is atan2's, in [-pi, pi].
+
+    Raises ``JointStateError`` on NaN/inf or a quaternion that is not of unit length."""
+    x, y, z, w = (float(v) for v in orientation_xyzw)
+    pos, lin, ang = ([float(v) for v in a] for a in (position, body_linear, body_angular))
+    if not all(math.isfinite(v) for v in (x, y, z, w, *pos, *lin, *ang)):
+        raise JointStateError("NaN or inf in odometry")
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise JointStateError(f"odometry orientation is not a unit quaternion (norm {norm:.6g})")
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    rot = np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+    qpos = np.array([*pos, w, x, y, z])
+    qvel = np.array([*(rot @ np.array(lin)), *ang])
+    out = np.empty(LEGGED_GLOBAL_FEATURES)
+    write_global_features(qpos, qvel, out)
+    return out
+
+
 def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray):
     """A torch ``ChainBatch`` of one chain, joints in the given order (joint 0 next to the torso)."""
     from morph_core.policy.chains import ChainBatch  # torch, only for callers that run the torch policy
 
     n = len(positions)
-    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, NUM_GLOBAL_FEATURES)
+    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, -1)  # the policy's width: 4, or 12 (legged)
     return ChainBatch.from_padded(
         np.asarray(positions, dtype=np.float32).reshape(1, n),
         np.asarray(velocities, dtype=np.float32).reshape(1, n),

@@ -1,0 +1,90 @@
+"""Centipedes through the swimmers' tools: morph-train (``--bodies centipede:...``, resumed bit for bit),
+morph-eval on trained and zero-shot sizes, morph-render. Small sizes and runs: seconds each."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.train import TrainConfig, train
+from morph_core.policy.weights import load_checkpoint, untrained_weights
+
+SMALL = dict(
+    bodies="centipede:2-3", num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
+    tensorboard=False, progress_bar=False, compile=False,
+)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def centipede_run(tmp_path_factory):
+    return train(TrainConfig(total_timesteps=384, seed=3, **SMALL), tmp_path_factory.mktemp("run") / "a")
+
+
+def test_a_centipede_run_has_twelve_globals_and_resumes_bit_for_bit(centipede_run, tmp_path):
+    policy = load_checkpoint(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    assert policy.config.global_features == 12  # from the body mix, not the swimmer's default
+    part = train(TrainConfig(total_timesteps=128, seed=3, **SMALL), tmp_path / "b")
+    train(TrainConfig(total_timesteps=384, seed=3, **SMALL), part, resume=True)
+    (wa, ma), (wb, mb) = (
+        load_training_state(centipede_run / "state.safetensors"),
+        load_training_state(part / "state.safetensors"),
+    )
+    assert wa.keys() == wb.keys() and ma["env"] == mb["env"]
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k  # weights, Adam, RNGs, MuJoCo states and root positions
+    with (centipede_run / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    with (part / "progress.csv").open() as f:
+        assert [r["return_mean"] for r in csv.DictReader(f)] == [r["return_mean"] for r in rows]
+    assert {"return_d8", "return_d12"} <= rows[0].keys()  # action dimensions 4 x leg pairs
+    assert any(r["return_mean"] not in ("", "nan") for r in rows)  # centipedes fell or timed out: episodes ended
+
+
+def test_morph_eval_on_trained_and_zero_shot_centipedes(centipede_run, capsys):
+    from trainer.eval_cli import main
+
+    assert main(["--run", str(centipede_run), "--bodies", "centipede:2,centipede:5", "--episodes", "2"]) == 0
+    with (centipede_run / "eval.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert {(r["body"], r["num_joints"]) for r in rows} == {("centipede-2", "8"), ("centipede-5", "20")}  # no chains
+    assert len(rows) == 3 * 2 * 2  # 3 checkpoints x 2 bodies x 2 episodes
+    ckpt = str(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    assert main(["--checkpoint", ckpt, "--bodies", "centipede:6", "--episodes", "1"]) == 0
+    assert "| centipede-6 | 24 |" in capsys.readouterr().out
+
+
+def test_a_swimmer_policy_cannot_evaluate_a_centipede(tmp_path):
+    from morph_core.algo.evaluate import evaluate_policy
+    from morph_core.env.bodies import Centipede
+
+    with pytest.raises(ValueError, match="reads 4 global features, a centipede 12"):
+        evaluate_policy(untrained_weights(seed=0), [Centipede(2)], episodes=1, max_steps=2)
+
+
+@pytest.mark.timeout(300)
+def test_morph_render_films_a_centipede(centipede_run, tmp_path):
+    gif = tmp_path / "c.gif"
+    ckpt = str(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    args = ["--checkpoint", ckpt, "--bodies", "centipede:2", "--seconds", "0.8", "--width", "160", "--height", "96"]
+    done = subprocess.run(
+        [sys.executable, "-m", "trainer.render_cli", *args, "--gif", str(gif)],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "centipede-2: return" in done.stderr
+    with Image.open(gif) as im:
+        frames = []
+        for k in range(im.n_frames):
+            im.seek(k)
+            frames.append(np.asarray(im.convert("RGB")))
+    assert len(frames) == 11 and all(f.shape == (96, 160, 3) and f.std() > 20 for f in frames)
+    assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5  # it moved (or the camera followed it)
