@@ -26,7 +26,7 @@ for s in $(seq 1 "$seeds"); do for m in $rules; do echo "$m $s"; done; done |
         run="$0/$1-s$2"
         if [ -f "$run/state.safetensors" ]; then resume=--resume; else resume=; fi
         # shellcheck disable=SC2086  # EXTRA holds several options
-        .venv/bin/morph-train --clip-mode "$1" --seed "$2" --out "$run" --progress-bar false $resume $EXTRA \
+        .venv/bin/morph-train --rule "$1" --seed "$2" --out "$run" --progress-bar false $resume $EXTRA \
             > "$run.log" 2>&1 && echo "done $run"' "$out"
 # shellcheck disable=SC2086  # EVAL holds several options
 ls -d "$out"/*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 24 --episodes 10 $eval_args

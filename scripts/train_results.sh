@@ -15,7 +15,7 @@ for s in $(seq 1 "$seeds"); do for m in compensated fixed; do echo "$m $s"; done
     xargs -P 2 -L 1 bash -c '
         run="$0/$1-s$2"
         if [ -f "$run/state.safetensors" ]; then resume=--resume; else resume=; fi
-        .venv/bin/morph-train --clip-mode "$1" --seed "$2" --out "$run" --progress-bar false $resume \
+        .venv/bin/morph-train --rule "$1" --seed "$2" --out "$run" --progress-bar false $resume \
             > "$run.log" 2>&1 && echo "done $run"' "$out"
 ls -d "$out"/*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 24 --episodes 10
 .venv/bin/morph-eval --run "$out"/*-s*/ --eval false --plots docs/figures/results

@@ -20,7 +20,7 @@ done | xargs -P 2 -L 1 bash -c '
     run="$0/$1-s$2"
     shift 2
     if [ -f "$run/state.safetensors" ]; then resume=--resume; else resume=; fi
-    .venv/bin/morph-train --clip-mode compensated --seed "${run##*-s}" --total-timesteps "$STEPS" --out "$run" \
+    .venv/bin/morph-train --rule compensated --seed "${run##*-s}" --total-timesteps "$STEPS" --out "$run" \
         --progress-bar false $resume "$@" > "$run.log" 2>&1 && echo "done $run"' "$out"
 ls -d "$out"/only2-*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 12 --episodes 10 --lengths 2
 ls -d "$out"/mix-*-s*/ | xargs -P 2 -I{} .venv/bin/morph-eval --run {} --stride 12 --episodes 10 --lengths 2 3 6 10

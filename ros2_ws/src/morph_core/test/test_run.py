@@ -81,8 +81,9 @@ def test_a_config_whose_rule_and_clip_mode_disagree_or_batch_is_off_is_refused(t
         TrainConfig.from_dict({**cfg, "batch_size": 6144})
     with pytest.raises(ValueError, match="clip_mode is the old name of rule"):
         TrainConfig(rule="fixed", clip_mode="compensated")
-    with pytest.raises(TypeError):
-        TrainConfig(batch_size=64)  # the simulator's batch is its rollout: set from num_envs * num_steps
+    with pytest.raises(ValueError, match="batch_size 64 disagrees with the other fields, which make it 256"):
+        TrainConfig(**{**TINY, "batch_size": 64})  # the simulator's batch is its rollout: num_envs * num_steps
+    assert TrainConfig(**TrainConfig(**TINY).to_dict()) == TrainConfig(**TINY)  # to_dict's rule and clip_mode too
 
 
 def test_another_trainers_state_and_a_newer_section_are_refused_clearly(tmp_path):

@@ -46,7 +46,9 @@ class ResumedConfig:
         self.text = self.path.read_text()
         stored = TrainConfig.from_dict(json.loads(self.text))  # a file without newer fields: their defaults
         self.cfg = replace_nested(stored, overrides)
-        self.changes = config_changes(stored.to_dict(), self.cfg.to_dict())
+        # clip_mode: the copy of rule config.json keeps for older readers, said once as rule
+        changes = config_changes(stored.to_dict(), self.cfg.to_dict())
+        self.changes = [c for c in changes if not c.startswith("clip_mode ")]
 
     def write_back(self, tool: str = "morph-train") -> None:
         """Write ``cfg`` to ``config.json`` (atomically) and say what changed; nothing when nothing did."""

@@ -170,19 +170,14 @@ class PPOConfig:
             elif old in d:  # a config written before the rename
                 warnings.warn(f"config key {old!r} is deprecated: read as {new!r}", DeprecationWarning, stacklevel=2)
                 d[new] = d.pop(old)
-        known = {f.name for f in dataclasses.fields(cls) if f.init} | set(cls.renamed)
-        unknown = set(d) - known - set(cls.derived)
+        known = {f.name for f in dataclasses.fields(cls) if f.init} | set(cls.renamed) | set(cls.derived)
+        unknown = set(d) - known
         if unknown:
             raise ValueError(f"unknown train config fields: {sorted(unknown)}")
-        given = {k: d.pop(k) for k in cls.derived if k in d}
-        cfg = cls(**d)
-        for k, v in given.items():  # e.g. the simulator's batch_size, which num_envs * num_steps sets
-            if getattr(cfg, k) != v:
-                raise ValueError(f"{k} {v} disagrees with the config's other fields, which make it {getattr(cfg, k)}")
-        return cfg
+        return cls(**d)  # a derived field given (the simulator's batch_size) must agree: ``renamed_fields``
 
     derived = ()
-    """fields set from others (not given; checked when a file has them)"""
+    """fields set from others (``init=False``): taken by the constructor only when they agree"""
 
     def ppo(self) -> PPOConfig:
         """The ``PPOConfig`` fields alone."""

@@ -33,7 +33,7 @@ from morph_core.env.vec_env import Episode, SwimmerVecEnv, merge_env_states, spl
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, load_checkpoint
-from morph_core.util.config_cli import renamed_fields, replace_nested
+from morph_core.util.config_cli import check_field_types, renamed_fields, replace_nested
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,7 @@ class TrainConfig(SimConfig, PPOConfig):
     derived = ("batch_size",)
 
     def __post_init__(self):
+        check_field_types(self)  # before num_envs * num_steps is taken: "num_envs must be int", not the batch's
         SimConfig.__post_init__(self)
         self.batch_size = self.num_envs * self.num_steps
         PPOConfig.__post_init__(self)

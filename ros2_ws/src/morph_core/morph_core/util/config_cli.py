@@ -155,9 +155,12 @@ def parse_bool(text: str) -> bool:
 
 def renamed_fields(**old_to_new: str):
     """A dataclass decorator for fields that were renamed: the constructor still takes each old name (with a
-    ``DeprecationWarning``), an error about the field names the old one when the caller wrote it, and the old
-    name reads the new field. ``add_dataclass_options`` adds the old options as deprecated aliases and
-    ``overrides_from_args`` maps them. A subclass needs the decorator again (it gets a new ``__init__``)."""
+    ``DeprecationWarning``; silently when the new one is given too, with the same value, as ``to_dict`` writes
+    both), an error about the field names the old one when the caller wrote it, and the old name reads the
+    new field. ``add_dataclass_options`` adds the old options as deprecated aliases and ``overrides_from_args``
+    maps them. Fields the class sets from others (``init=False``, listed in its ``derived``) are taken too
+    when they agree, so that ``cls(**obj.to_dict())`` makes ``obj`` again. A subclass needs the decorator
+    again (it gets a new ``__init__``)."""
 
     def wrap(cls):
         init = cls.__init__
@@ -166,11 +169,13 @@ def renamed_fields(**old_to_new: str):
             used = [old for old in old_to_new if old in kwargs]
             for old in used:
                 new = old_to_new[old]
-                if new in kwargs and kwargs[new] != kwargs[old]:
+                if new not in kwargs:
+                    warnings.warn(f"{cls.__name__}({old}=...) is deprecated: write {new}", DeprecationWarning,
+                                  stacklevel=2)  # fmt: skip
+                elif kwargs[new] != kwargs[old]:
                     raise ValueError(f"{old} is the old name of {new}: give {new} alone")
-                warnings.warn(f"{cls.__name__}({old}=...) is deprecated: write {new}", DeprecationWarning,
-                              stacklevel=2)  # fmt: skip
                 kwargs[new] = kwargs.pop(old)
+            given = {k: kwargs.pop(k) for k in getattr(cls, "derived", ()) if k in kwargs}
             try:
                 init(self, *args, **kwargs)
             except ValueError as err:  # said in the caller's words
@@ -179,6 +184,9 @@ def renamed_fields(**old_to_new: str):
                     if text.startswith(f"{old_to_new[old]} "):
                         raise ValueError(old + text[len(old_to_new[old]) :]) from None
                 raise
+            for k, v in given.items():
+                if getattr(self, k) != v:
+                    raise ValueError(f"{k} {v} disagrees with the other fields, which make it {getattr(self, k)}")
 
         __init__.__doc__ = init.__doc__
         cls.__init__ = __init__
