@@ -93,7 +93,7 @@ def test_a_two_process_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     train(TrainConfig(total_timesteps=768, seed=5, **SMALL), part, resume=True)
     (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
     assert ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
-    assert "rng.helper1" in wa and len(ma["env"]["envs"]) == 4
+    assert "rng.helper1" in wa and len(ma["sections"]["swimmers"]["envs"]) == 4
     assert wa.keys() == wb.keys()
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k  # weights, Adam, both processes' generators and swimmers

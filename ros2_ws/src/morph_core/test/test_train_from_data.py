@@ -102,7 +102,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, behaviour):
     assert run_state(part)["done"] == 5
     train_from_data(cfg, data, part, iterations=7, resume=True)
     (ta, ma), (tb, mb) = _state(straight), _state(part)
-    assert ta.keys() == tb.keys() and "env.order" in ta
+    assert ta.keys() == tb.keys() and "section.data.order" in ta
     for k in ta:
         assert torch.equal(ta[k], tb[k]), k  # weights, Adam moments, generator, pass order: bit for bit
     assert ma["counters"] == mb["counters"]

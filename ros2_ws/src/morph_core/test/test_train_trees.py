@@ -78,8 +78,8 @@ def test_a_run_on_trees_resumes_exactly_as_an_uninterrupted_run(tmp_path, proces
     part = train(TrainConfig(total_timesteps=256, **cfg), tmp_path / "b")
     train(TrainConfig(total_timesteps=768, **cfg), part, resume=True)
     (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
-    assert ma["env"] == mb["env"]  # the swimmers' bodies (a tree's parents) and RNGs
-    assert any("parents" in env for env in ma["env"]["envs"])  # a tree's state was saved and restored
+    assert ma["sections"]["swimmers"] == mb["sections"]["swimmers"]  # the swimmers' bodies (a tree's parents), RNGs
+    assert any("parents" in env for env in ma["sections"]["swimmers"]["envs"])  # a tree's state saved and restored
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
     rows = _rows(straight)

@@ -185,11 +185,14 @@ def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_p
                  "--minibatch-size", "8"]) == 0  # fmt: skip
     assert "morph-train: resumed with minibatch_size 16 -> 8" in capsys.readouterr().out
     assert config()["minibatch_size"] == 8 and run_state(run)["done"] == 3
-    # The optimizer's hyper-parameters come back with its state: a new learning rate would not be applied.
+    # The optimizer's state comes back with the learning rate and epsilon given (issue 39: they were refused).
     assert main(["--from-bags", str(bag), "--out", str(run), "--resume", "--iterations", "4",
-                 "--learning-rate", "0.003"]) == 1  # fmt: skip
-    assert "--learning-rate 0.003 with --resume would not be applied" in _error(capsys)
-    assert config()["learning_rate"] == 0.01 and run_state(run)["done"] == 3
+                 "--learning-rate", "0.003", "--adam-eps", "1e-6"]) == 0  # fmt: skip
+    assert "morph-train: resumed with learning_rate 0.01 -> 0.003, adam_eps 1e-05 -> 1e-06" in capsys.readouterr().out
+    assert config()["learning_rate"] == 0.003 and run_state(run)["done"] == 4
+    assert [float(r["learning_rate"]) for r in _rows(run)] == [0.01, 0.01, 0.01, 0.003]
+    groups = load_training_state(run / "state.safetensors")[1]["param_groups"]
+    assert [(g["lr"], g["eps"]) for g in groups] == [(0.003, 1e-6)]
 
 
 def test_updates_far_above_the_kl_target_are_warned_about_and_the_run_summed_up(tmp_path, init, sampled, capsys):

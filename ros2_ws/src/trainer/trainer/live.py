@@ -81,7 +81,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from morph_core.algo.train import TrainConfig
+from morph_core.algo.ppo_config import PPOConfig
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
@@ -209,11 +209,11 @@ def _losses(pair: _Pair) -> str:
 
 
 class LiveTrainer(Node):
-    def __init__(self, cfg: TrainConfig, options: LiveOptions, signer: Signer | None = None):
+    def __init__(self, cfg: PPOConfig, options: LiveOptions, signer: Signer | None = None, on_row=None):
         super().__init__("morph_live_trainer")
         self.options = options
         self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness,
-                                   signer=signer)  # fmt: skip
+                                   signer=signer, on_row=on_row)  # fmt: skip
         if signer is None:
             self.get_logger().warn(
                 "no --signing-key: the weights go out UNSIGNED, and policy nodes take them only with "
@@ -450,9 +450,10 @@ class LiveTrainer(Node):
         self.learner.close()
 
 
-def run_live(cfg: TrainConfig, options: LiveOptions, args=None, signer: Signer | None = None) -> int:
+def run_live(cfg: PPOConfig, options: LiveOptions, args=None, signer: Signer | None = None, on_row=None) -> int:
     """Run the live trainer until done (``max_updates`` / ``total_timesteps``) or SIGINT/SIGTERM; ``signer``
-    signs the weights (``options.signing_key`` loaded)."""
+    signs the weights (``options.signing_key`` loaded); ``on_row(row, saved)`` hears each update's row
+    (``algo.run.Run``)."""
     # Before any thread starts (DDS, torch): they inherit it.
     os.setpriority(os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), options.nice))
     rclpy.init(args=args)
@@ -462,7 +463,7 @@ def run_live(cfg: TrainConfig, options: LiveOptions, args=None, signer: Signer |
     # used less CPU still in a one-off trial, but stopped dispatching in 2 of 2 runs of tests/test_live.py.)
     executor = SingleThreadedExecutor()
     try:
-        node = LiveTrainer(cfg, options, signer)
+        node = LiveTrainer(cfg, options, signer, on_row)
         executor.add_node(node)
         while rclpy.ok() and not node.done:
             executor.spin_once(timeout_sec=0.1)

@@ -4,7 +4,7 @@
 transitions of one swimmer's episode (``protocol.transitions``) and the
 weights version that sampled each step (from ``policy_info``'s
 ``header.frame_id``, ``msgs.policy_weights``). Once the pool holds
-``TrainConfig.batch_size`` samples (num_envs x num_steps, the paper's 6,144,
+``PPOConfig.batch_size`` samples (num_envs x num_steps on the command line, the paper's 6,144,
 whatever the number of swimmers), ``update`` runs one PPO update on the whole
 pool (whole episodes, so slightly more than a batch) with the update every data
 source uses (``algo.update``) and the objective of training from data
@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import time
 import uuid
 from collections.abc import Sequence
@@ -67,17 +66,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.checkpoint import (
-    previous_state_path,
-    restore_optimizer,
-    resume_training_state,
-    save_training_state,
-    sub_dict,
-)
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import explained_variance
-from morph_core.algo.run_log import RunLog
+from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.run import RowHook, Run
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
 from morph_core.algo.update import compile_ahead, update
@@ -87,7 +80,6 @@ from morph_core.policy.index_plan import chain_parents
 from morph_core.policy.weights import SignedWeights, write_checkpoint
 from morph_core.protocol.transition_batch import TransitionBatch
 from morph_core.protocol.transitions import Transition
-from morph_core.util.atomic import atomic_writer
 
 LIVE_LEARNING_RATE = 0.003
 """the live trainer's learning rate unless one is given: a third of the paper's 0.01 (TrainConfig's). Samples a
@@ -143,10 +135,13 @@ class LiveOptions:
             raise ValueError(f"nice must be in 0..19, got {self.nice}")
 
 
+LIVE = ("live", 1)
+"""the state section of the live trainer (name, version): the run's id and epoch (``msgs.policy_weights``)"""
+
 LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]
 
 
-def live_log_columns(cfg: TrainConfig) -> list[str]:
+def live_log_columns(cfg: PPOConfig) -> list[str]:
     return [*log_columns(cfg), *LIVE_COLUMNS]
 
 
@@ -163,53 +158,57 @@ class LiveLearner:
     """Pool of episodes, PPO updates, checkpoints and the current weights version (see module docstring)."""
 
     def __init__(
-        self, cfg: TrainConfig, run_dir: str | Path, *, resume: bool = False, max_staleness: int = 2, signer=None
+        self,
+        cfg: PPOConfig,
+        run_dir: str | Path,
+        *,
+        resume: bool = False,
+        max_staleness: int = 2,
+        signer=None,
+        on_row: RowHook | None = None,
     ):
-        """``signer``: a ``protocol.trust.Signer`` for the weights and checkpoints (None: unsigned)."""
+        """``signer``: a ``protocol.trust.Signer`` for the weights and checkpoints (None: unsigned). ``on_row(row,
+        saved)``: the row hook, after each update (its state is always saved)."""
         if cfg.anneal_lr:
             raise ValueError("anneal_lr needs a known run length; live training has none")
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
-        self.run_dir = Path(run_dir)
-        self.state_path = self.run_dir / "state.safetensors"
+        self.run = Run(run_dir, cfg, resume=resume, on_row=on_row)
+        self.run_dir = self.run.dir
         self.max_staleness = max_staleness
         torch.set_num_threads(1)  # before init, as algo.train
-        resumed = resume and (self.state_path.exists() or previous_state_path(self.state_path).exists())
         self.cfg = cfg  # on resume: the run's config.json with any overrides (``train.load_run_config``)
         torch.manual_seed(cfg.seed)
         self.policy = GraphActorCritic(cfg.policy)
         self.learner = Learner.create(self.policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
         self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "version": 0, "env_steps": 0}
+        self.run.counters.update(version=0, env_steps=0)
         self.run_id = uuid.uuid4().hex
         self.epoch = time.time_ns()
         """when the run began: orders this run's weights after every earlier run's (``msgs.policy_weights``)"""
         self.signer = signer
         self._message: tuple[int, list, bytes] | None = None  # (version, dims, data) of the latest weights
-        if resumed:
-            state = resume_training_state(self.state_path)  # a damaged newest state: the previous one
-            tensors, meta = state.tensors, state.meta
-            self.policy.load_state_dict(sub_dict(tensors, "policy."))
-            restore_optimizer(self.learner.optimizer, tensors, meta)
-            self.learner.restore_state(tensors)  # the rule's state, e.g. the KL penalty's beta
-            self.gen.set_state(tensors["rng.torch"])
-            self.counters = meta["counters"]
-            self.run_id = meta["env"]["run"]
-            self.epoch = int(meta["env"].get("epoch", 0))  # a state written before epochs: before every run
+        if self.run.resuming:
+            state = self.run.restore(self.learner, self.gen)  # a damaged newest state: the previous one
+            live, _ = state.section(*LIVE)
+            self.run_id = live["run"]
+            self.epoch = int(live.get("epoch", 0))  # a state written before epochs: before every run
         else:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            with atomic_writer(self.run_dir / "config.json") as f:
-                json.dump(cfg.to_dict(), f, indent=2)
+            self.run.start()
             self._save_state()  # version 0 is resumable too: policy nodes may already run it
-        self.resumed = resumed
-        self.log = RunLog(self.run_dir, live_log_columns(cfg), resume_step=self.counters["global_step"] if resume
-                          else None, tensorboard=cfg.tensorboard)  # fmt: skip
+        self.resumed = self.run.resuming
+        self.run.open_log(live_log_columns(cfg))
         self._pool: list[TransitionBatch] = []
         self._pool_versions: list[np.ndarray] = []
         self.pool_size = 0
         self.dropped_stale = 0
         self.dropped_no_info = 0
         self.rejected_updates = 0
+
+    @property
+    def counters(self) -> dict:
+        """global_step, iteration, last_ckpt, version, env_steps (``run.Run.counters``)"""
+        return self.run.counters
 
     @property
     def version(self) -> int:
@@ -327,13 +326,11 @@ class LiveLearner:
             "version_lag_mean": float(lags.mean()) if len(lags) else float("nan"),
             "pairs": pairs,
         }
-        self.log.log(row)
-        self.log.update_histograms(c["global_step"], stats)
-        step, last = c["global_step"], c["last_ckpt"]
-        if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval:
-            c["last_ckpt"] = step
-            self._save_checkpoint(self.run_dir / "checkpoints" / f"policy_{step:08d}.safetensors")
+        self.run.log(row, stats)
+        if self.run.checkpoint_due():
+            self._save_checkpoint(self.run.mark_checkpoint())
         self._save_state()  # every update: a resumed trainer continues from the version the nodes run
+        self.run.report(row, True)
         return row
 
     def compile_update(self) -> float:
@@ -362,9 +359,9 @@ class LiveLearner:
         self.gen.set_state(gen)
 
     def _save_state(self) -> None:
-        env = {"run": self.run_id, "epoch": self.epoch}
-        save_training_state(self.state_path, self.policy, self.learner.optimizer, self.gen, env, {},
-                            dict(self.counters), self.learner.state_tensors())  # fmt: skip
+        name, version = LIVE
+        self.run.save_state(self.learner, self.gen, {name: {"version": version, "run": self.run_id,
+                                                            "epoch": self.epoch}})  # fmt: skip
 
     def weights_message(self) -> tuple[list[tuple[str, int, int]], bytes]:
         """The current policy as the weights topic carries it (``msgs.policy_weights``), signed with the
@@ -384,4 +381,4 @@ class LiveLearner:
         write_checkpoint(path, data, dataclasses.asdict(self.policy.config), meta, signed)
 
     def close(self) -> None:
-        self.log.close()
+        self.run.close()

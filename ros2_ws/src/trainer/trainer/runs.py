@@ -46,7 +46,9 @@ class Run:
         """What the run learned with: its config minus ``HOW_RUN``, today's defaults filled in for
         the keys that older runs' configs lack (those keys did not exist, so their defaults applied)."""
         defaults = TrainConfig().to_dict()
-        return {k: self.config.get(k, v) for k, v in defaults.items() if k not in HOW_RUN}
+        # rule: the same as clip_mode, which older configs hold alone; batch_size: num_envs * num_steps
+        same_as = {"rule", "batch_size"}
+        return {k: self.config.get(k, v) for k, v in defaults.items() if k not in HOW_RUN | same_as}
 
     @property
     def trained_lengths(self) -> range:

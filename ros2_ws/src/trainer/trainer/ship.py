@@ -80,7 +80,7 @@ def training_command(cfg: dict, run_name: str) -> str:
     """The morph-train command of a run: clip mode, seed, and every option that differs from the defaults."""
     # Through TrainConfig, so keys older configs carry that are no options any more (policy.backend) drop out.
     given, defaults = _flat(TrainConfig.from_dict(cfg).to_dict()), _flat(TrainConfig().to_dict())
-    cosmetic = {"tensorboard", "progress_bar", "clip_mode", "seed"}
+    cosmetic = {"tensorboard", "progress_bar", "clip_mode", "rule", "seed", "batch_size"}  # batch: envs x steps
     changed = {k: v for k, v in given.items() if k not in cosmetic and v != defaults.get(k)}
     flags = [f"--{k.replace('_', '-')} {_text(v)}" for k, v in changed.items()]
     return " ".join(

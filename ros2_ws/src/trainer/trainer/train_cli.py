@@ -1,12 +1,13 @@
 """``morph-train``: PPO on swimmers of mixed chain lengths, under a trust-region rule of the table.
 
-Every TrainConfig field is an option (``--clip-mode``, ``--total-timesteps``,
-``--policy-bidirectional`` ...). ``--resume`` continues the run in ``--out``
-from its last checkpoint, with the config it was started with; options
-given again override it (e.g. a larger ``--total-timesteps``) and are
-written back to its config.json. The optimizer's ``--learning-rate`` and
-``--adam-eps`` come back with its state: a resume refuses new ones. A run
-that reached its ``--total-timesteps`` says so and does nothing.
+Every TrainConfig field is an option (``--rule``, ``--total-timesteps``,
+``--policy-bidirectional`` ...; ``--clip-mode`` is the deprecated name of
+``--rule``). ``--resume`` continues the run in ``--out`` from its last
+checkpoint, with the config it was started with; options given again
+override it (e.g. a larger ``--total-timesteps``, a new ``--learning-rate``:
+the optimizer's state comes back with the rate and epsilon given) and are
+written back to its config.json. A run that reached its
+``--total-timesteps`` says so and does nothing.
 
 From recorded topics instead of the simulator (``morph_core.algo.train_from_data``):
 
@@ -61,6 +62,7 @@ from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
     BoolAction,
     CommandLineParser,
+    DeprecatedAlias,
     add_dataclass_options,
     overrides_from_args,
     replace_nested,
@@ -142,13 +144,12 @@ def build_parser() -> CommandLineParser:
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
     parser.add_argument(
-        "--clip-mode",
-        dest="clip_mode",
-        choices=list(RULES),
-        default=None,
-        help=f"trust-region rule ({rules}) (default: {TrainConfig.clip_mode})",
-    )
-    add_dataclass_options(parser, TrainConfig, skip=("clip_mode",))
+        "--rule", dest="rule", choices=list(RULES), default=None, help=f"trust-region rule ({rules}) (default: "
+        f"{TrainConfig.rule})"
+    )  # fmt: skip
+    parser.add_argument("--clip-mode", dest="clip_mode", choices=list(RULES), default=None, action=DeprecatedAlias,
+                        new="--rule", help=argparse.SUPPRESS)  # fmt: skip
+    add_dataclass_options(parser, TrainConfig, skip=("rule",))
     parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
                         help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray start "
                         "--head printed it); default: a local Ray on this machine")  # fmt: skip
@@ -232,6 +233,7 @@ def _train_from_bags(args) -> None:
                 resume=args.resume,
                 new_data=args.new_data,
                 source=source,
+                on_row=follower.on_row,
             )
     print("\n".join(follower.summary(args.out, data=True)), flush=True)
 
@@ -288,7 +290,7 @@ def _train_live(args, parser) -> int:
         if resumed:
             resumed.write_back()
         with follower:
-            code = run_live(cfg, options, signer=signer)
+            code = run_live(cfg, options, signer=signer, on_row=follower.on_row)
     print("\n".join(follower.summary(args.out)), flush=True)
     return code
 
@@ -306,6 +308,10 @@ def _follower(out: Path, cfg: TrainConfig, resume: bool, init: Path | None = Non
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:
+        overrides_from_args(args, TrainConfig)  # --rule and --clip-mode given with two rules: said here
+    except ValueError as err:
+        parser.error(str(err))
     if args.live:
         return _train_live(args, parser)
     if args.from_bags is not None:
@@ -368,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
             if resumed:
                 resumed.write_back()
             with follower:
-                train(cfg, args.out, resume=args.resume, rollout_pool=pool)
+                train(cfg, args.out, resume=args.resume, on_row=follower.on_row, rollout_pool=pool)
     except (TrainingStateError, RolloutWorkerError) as err:
         print(f"morph-train: error: {err}", file=sys.stderr)
         return 1

@@ -1,6 +1,7 @@
 """What ``morph-train`` says while and after a run trains, read from the run's ``progress.csv``.
 
-While it trains (a thread that reads the rows as the trainer appends them): a warning line when an update's
+While it trains (the rows the trainer appends, read as it hands each over: ``on_row``, the trainer's row hook,
+``algo.run.Run``): a warning line when an update's
 approximate KL is far above the target, ``KL_WARN_FACTOR`` x ``kl_target`` (0.1 at the default 0.01), the
 sign of a policy that left the data's policy far behind (a learning rate too high for it: the shipped
 policy fine-tuned from bags at 0.01 reached KL 17 on its first update, 0.19 at 0.003). The first
@@ -16,7 +17,6 @@ import csv
 import io
 import math
 import sys
-import threading
 from pathlib import Path
 
 KL_WARN_FACTOR = 10.0
@@ -66,8 +66,6 @@ class ProgressFollower:
         self._header: list[str] | None = None
         self._seen: set[float] = set()
         self._warned = 0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     # -- reading -------------------------------------------------------------------------------------
     def poll(self) -> None:
@@ -124,23 +122,16 @@ class ProgressFollower:
         tqdm.write(text, file=sys.stderr)  # above a progress bar, which is drawn again below it
 
     # -- following a run -------------------------------------------------------------------------------
+    def on_row(self, row: dict, saved: bool) -> None:
+        """The trainer's row hook (``train(on_row=...)``): the row just written is read, with any before it (a
+        resumed run's earlier rows), and warned about as it comes."""
+        self.poll()
+
     def __enter__(self) -> ProgressFollower:
-        self._thread = threading.Thread(target=self._follow, name="progress-follower", daemon=True)
-        self._thread.start()
         return self
 
     def __exit__(self, *exc) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
         self.poll()  # the last rows
-
-    def _follow(self) -> None:
-        while not self._stop.wait(1.0):
-            try:
-                self.poll()
-            except (OSError, ValueError):  # a file replaced while read: read again next time
-                self._file, self._header = None, None
 
     # -- the end ---------------------------------------------------------------------------------------
     def summary(self, run_dir: str | Path, data: bool = False) -> list[str]:

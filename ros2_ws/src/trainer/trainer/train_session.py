@@ -32,32 +32,23 @@ def config_changes(before: dict, after: dict, prefix: str = "") -> list[str]:
     return changes
 
 
-OPTIMIZER_FIELDS = ("learning_rate", "adam_eps")
-"""fields a resume does not apply: the optimizer's hyper-parameters come back with its state
-(``algo.checkpoint.restore_optimizer``); an annealed learning rate is set from the config at every update"""
-
-
 class ResumeError(ValueError):
     """Options given with ``--resume`` that the resumed run would not apply."""
 
 
 class ResumedConfig:
     """A resumed run's config (``cfg``: ``config.json`` with ``overrides``) and what the overrides change.
-    Raises ``ResumeError`` for a change the resume would silently not apply."""
+    Every option applies on resume: the optimizer's learning rate and epsilon too (``algo.run.Run.restore``
+    sets them from the config after restoring its state)."""
 
     def __init__(self, run_dir: str | Path, overrides: dict):
         self.path = Path(run_dir) / "config.json"
         self.text = self.path.read_text()
         stored = TrainConfig.from_dict(json.loads(self.text))  # a file without newer fields: their defaults
         self.cfg = replace_nested(stored, overrides)
-        self.changes = config_changes(stored.to_dict(), self.cfg.to_dict())
-        for name in OPTIMIZER_FIELDS:
-            old, new = getattr(stored, name), getattr(self.cfg, name)
-            if old != new and not (name == "learning_rate" and self.cfg.anneal_lr):
-                raise ResumeError(
-                    f"--{name.replace('_', '-')} {new} with --resume would not be applied: the run's optimizer "
-                    f"state keeps its own ({old}); start a new run to train with another"
-                )
+        # clip_mode: the copy of rule config.json keeps for older readers, said once as rule
+        changes = config_changes(stored.to_dict(), self.cfg.to_dict())
+        self.changes = [c for c in changes if not c.startswith("clip_mode ")]
 
     def write_back(self, tool: str = "morph-train") -> None:
         """Write ``cfg`` to ``config.json`` (atomically) and say what changed; nothing when nothing did."""

@@ -1,8 +1,13 @@
-"""Full training state in one safetensors file: weights, optimizer, learner state, RNGs, env states.
+"""Full training state in one safetensors file: weights, optimizer, learner state, RNGs, the trainer's own.
 
 Tensors go in the file's tensor section, everything else (step counters,
 optimizer hyper-parameters, NumPy RNG states) as JSON in its metadata, so
-loading never unpickles anything. The file is replaced atomically: a run
+loading never unpickles anything. What a trainer keeps beside the learner
+(the simulator's swimmers, the bag trainer's data round, the live trainer's
+run id) is a named, versioned section: JSON under ``sections[name]`` with its
+``version``, arrays as ``section.<name>.<key>`` tensors (``state_section``
+reads one; states written before sections kept one under ``env``, read as the
+section of the trainer that wrote it, version 1). The file is replaced atomically: a run
 killed at any moment leaves the previous checkpoint intact, and the one it
 replaces is kept beside it (``previous_state_path``: the last two states
 are always on disk). A SHA-256 of every tensor's bytes travels in the
@@ -54,14 +59,16 @@ def save_training_state(
     policy: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     generator: torch.Generator,
-    env_meta: dict,
-    env_arrays: dict[str, np.ndarray],
+    sections: dict[str, dict],
+    arrays: dict[str, np.ndarray],
     counters: dict,
     learner_state: dict[str, torch.Tensor] | None = None,
     more_rngs: dict[str, torch.Tensor] | None = None,
 ) -> None:
-    """``learner_state``: further tensors by their full key (``learner.Learner.state_tensors``, e.g. the
-    KL penalty's beta), stored bit for bit and given back by ``load_training_state`` as they are.
+    """``sections``: the trainer's own state by section name, each JSON with its ``version``; ``arrays``: their
+    arrays as ``<section>.<key>``. ``learner_state``: further tensors by their full key
+    (``learner.Learner.state_tensors``, e.g. the KL penalty's beta), stored bit for bit and given back by
+    ``load_training_state`` as they are.
     ``more_rngs``: further generator states by name (a helper process's noise), stored as ``rng.<name>``."""
     tensors = {f"policy.{k}": v.detach().contiguous() for k, v in policy.state_dict().items()}
     for k, v in (learner_state or {}).items():
@@ -77,9 +84,14 @@ def save_training_state(
         if f"rng.{k}" in tensors:
             raise ValueError(f"generator name {k!r} is taken")
         tensors[f"rng.{k}"] = v
-    for k, v in env_arrays.items():
-        tensors[f"env.{k}"] = torch.from_numpy(np.ascontiguousarray(v))
-    meta = {"param_groups": opt["param_groups"], "env": env_meta, "counters": counters}
+    for name, section in sections.items():
+        if not isinstance(section.get("version"), int):
+            raise ValueError(f"state section {name!r} needs an int version")
+    for k, v in arrays.items():
+        if k.split(".", 1)[0] not in sections:
+            raise ValueError(f"array {k!r} is of no section (keys are <section>.<key>)")
+        tensors[f"section.{k}"] = torch.from_numpy(np.ascontiguousarray(v))
+    meta = {"param_groups": opt["param_groups"], "sections": sections, "counters": counters}
     metadata = {"state": json.dumps(meta), "sha256": _digest(tensors)}
     atomic_write_bytes(path, safetensors_bytes(tensors, metadata=metadata), previous=previous_state_path(path))
 
@@ -143,6 +155,35 @@ def resume_training_state(path: str | Path) -> ResumedState:
             log.warning("resume: skipped %s; resuming from %s (step %d)", "; ".join(skipped), candidate, step)
         return ResumedState(tensors, meta, candidate, tuple(skipped))
     raise TrainingStateError("no usable training state to resume from: " + "; ".join(skipped))
+
+
+LEGACY_SECTIONS = {"envs": "swimmers", "round": "data", "run": "live"}
+"""a state before sections: the section its ``env`` field is, told by a key only that trainer's has"""
+
+
+def state_section(
+    meta: dict, tensors: dict[str, torch.Tensor], name: str, version: int, path: str | Path = "the state"
+) -> tuple[dict, dict[str, torch.Tensor]]:
+    """(JSON, arrays by key) of the section ``name`` of a state, whose layout this reader knows as
+    ``version``. A state before sections has its trainer's section under ``env`` and arrays as ``env.<key>``:
+    read as version 1. Raises ``TrainingStateError`` for a state without the section (another trainer's) or
+    with a newer version than ``version``."""
+    if "sections" in meta:
+        sections, prefix = meta["sections"], f"section.{name}."
+    elif isinstance(meta.get("env"), dict):
+        legacy = next((s for key, s in LEGACY_SECTIONS.items() if key in meta["env"]), None)
+        sections, prefix = ({legacy: {**meta["env"], "version": 1}} if legacy else {}), "env."
+    else:
+        sections, prefix = {}, ""
+    if name not in sections:
+        held = ", ".join(sorted(sections)) or "none"
+        raise TrainingStateError(f"{path}: no {name!r} section (it holds: {held}): a state of another trainer")
+    section = dict(sections[name])
+    found = section.pop("version", None)
+    if not isinstance(found, int) or found > version:
+        raise TrainingStateError(f"{path}: its {name!r} section is version {found}, this trainer reads up to "
+                                 f"{version}: written by a newer trainer")  # fmt: skip
+    return section, sub_dict(tensors, prefix)
 
 
 def restore_optimizer(optimizer: torch.optim.Optimizer, tensors: dict, meta: dict) -> None:

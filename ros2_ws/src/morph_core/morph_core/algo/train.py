@@ -20,138 +20,45 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.checkpoint import (
-    previous_state_path,
-    restore_optimizer,
-    resume_training_state,
-    save_training_state,
-    sub_dict,
-)
 from morph_core.algo.data_parallel import HelperPool, Helpers, HelperSpec
 from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import compute_gae, explained_variance
+from morph_core.algo.ppo_config import PPOConfig, SimConfig
 from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
-from morph_core.algo.run_log import RunLog
-from morph_core.algo.trust_region import rule_names
+from morph_core.algo.run import RowHook, Run
 from morph_core.algo.update import update
-from morph_core.algo.update_config import UpdateConfig
-from morph_core.algo.update_stats import epoch_columns
-from morph_core.env.bodies import BodyMix, fit_global_features, is_chain_label, parse_bodies
+from morph_core.algo.update_stats import update_columns
+from morph_core.env.bodies import is_chain_label
 from morph_core.env.vec_env import Episode, merge_env_states, split_env_state
-from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.weights import CheckpointError, load_checkpoint
-from morph_core.util.atomic import atomic_writer
-from morph_core.util.config_cli import check_field_types, replace_nested
+from morph_core.util.config_cli import check_field_types, renamed_fields, replace_nested
 
 log = logging.getLogger(__name__)
 
-RowHook = Callable[[dict, bool], None]
-"""hears a run's progress row and whether that step's state was saved: ``on_row(row, saved)``"""
 PoolFactory = Callable[[RolloutSpec, int], RolloutPool]
 """makes the pool of ``rollout_workers`` > 1 workers for a run's rollout: ``pool(spec, workers)`` (the core
 has no such pool: ``trainer.ray_rollouts`` makes one of Ray actors)"""
 
 
+@renamed_fields(clip_mode="rule")
 @dataclass
-class TrainConfig:
-    """PPO with per-sample clip ranges; defaults are the paper's configuration."""
+class TrainConfig(SimConfig, PPOConfig):
+    """The simulator trainer's config: every trainer's PPO settings (``PPOConfig``) and the simulator loop's
+    own (``SimConfig``), flat, as ``morph-train`` takes them and a run's ``config.json`` holds them. Its
+    batch is the rollout, num_envs * num_steps."""
 
-    clip_mode: str = "compensated"
-    """trust-region rule, a name from algo.trust_region.RULES: 'fixed' clips r to 1 +- eps,
-    'compensated' to 1 +- eps*sqrt(dim A) per sample"""
-    clip_eps: float = 0.111
-    """base clip range eps"""
-    total_timesteps: int = 1_000_000
-    """env steps to train for (summed over envs)"""
-    seed: int = 1
-    """seed of envs, action noise and minibatch shuffling"""
-    num_envs: int = 6
-    """swimmers stepped together"""
-    num_steps: int = 1024
-    """steps per swimmer per rollout (rollout = num_envs * num_steps samples)"""
-    minibatch_size: int = 256
-    """samples per gradient step"""
-    update_epochs: int = 10
-    """passes over each rollout"""
-    learning_rate: float = 0.01
-    """Adam learning rate (constant unless anneal_lr)"""
-    anneal_lr: bool = False
-    """decay the learning rate linearly to 0 over the run (CleanRL's anneal_lr); off in the paper's configuration"""
-    adam_eps: float = 1e-5
-    """Adam epsilon"""
-    gamma: float = 0.98
-    """discount"""
-    gae_lambda: float = 0.98
-    """GAE lambda"""
-    vf_coef: float = 0.5
-    """value loss weight"""
-    ent_coef: float = 0.0
-    """entropy bonus weight"""
-    max_grad_norm: float = 0.5
-    """global gradient-norm clip"""
-    proximal_weight_cap: float = 1.0
-    """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples (training from
-    recorded data, algo.train_from_data); simulator rollouts are on-policy and carry no weight"""
-    kl_target: float = 0.01
-    """target KL of the kl-* rules: the KL penalty doubles/halves beta when the update's KL is above
-    1.5x / below 1/1.5 of it, KL early stopping ends the epochs above it (per joint for the -per-joint rules)"""
-    kl_beta: float = 1.0
-    """initial beta of the kl-penalty rules"""
-    kl_adaptive: bool = True
-    """adapt the kl-penalty rules' beta to kl_target after each update; false keeps beta = kl_beta"""
-    off_policy_objective: str = "decoupled"
-    """how samples of an older policy (bags, live) enter the update: 'decoupled' (ratio against the policy as
-    the update starts, each sample weighted by min(pi_prox / pi_behav, proximal_weight_cap)) or 'behaviour'
-    (PPO's own loss, the ratio against the policy that acted); simulator rollouts are on-policy either way"""
-    min_joints: int = 2
-    """shortest chain drawn at a reset; with ``bodies``, the fewest joints its bodies have (set from it)"""
-    max_joints: int = 10
-    """longest chain drawn at a reset; with ``bodies``, the most joints its bodies have (set from it)"""
-    bodies: str = ""
-    """the bodies drawn at each reset, in ``env.bodies``' grammar: chains and trees, e.g. '2-10,random:3-10'
-    (chains of 2..10 joints or random trees of 3..10); empty: chains of min_joints..max_joints"""
-    checkpoint_interval: int = 6000
-    """env steps between checkpoints (taken at the end of the update that crosses the mark)"""
-    torch_threads: int = 1
-    """torch intra-op threads in the update (rollout inference always uses 1)"""
-    env_threads: int = 1
-    """threads stepping the swimmers (MuJoCo releases the GIL) in each process"""
-    processes: int = 1
-    """processes sharing the swimmers and every minibatch's gradient (algo.data_parallel); 2 uses both cores
-    of a 2-core machine. The action noise's random streams depend on it, so a run keeps its count"""
-    rollout_workers: int = 1
-    """rollout workers (Ray actors, ``morph-train --rollout-workers``) that each step a share of the swimmers
-    (``algo.rollout_workers.env_bounds``) while this process updates; 1: this process steps them all. Worker
-    r draws its action noise from worker_seed(seed, r) (``algo.rollout_workers``), so the noise, like
-    ``processes``', depends on the count and a run keeps it"""
-    compile: bool = True
-    """compile the minibatch loss and its backward into one Inductor graph (algo.compiled; ~1.5x faster
-    update, ~15-30 s to compile once; falls back to eager mode with a warning where Inductor cannot run)"""
-    tensorboard: bool = True
-    """also write TensorBoard scalars"""
-    progress_bar: bool = True
-    """show a progress bar"""
-    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    batch_size: int = field(init=False, default=6144)
+    """samples per update: num_envs * num_steps (set from them)"""
+
+    derived = ("batch_size",)
 
     def __post_init__(self):
-        if isinstance(self.policy, dict):
-            self.policy = PolicyConfig.from_dict(self.policy)
-        if not isinstance(self.policy, PolicyConfig):
-            raise TypeError(f"policy must be a JSON object of policy fields, got {self.policy!r}")
-        check_field_types(self)
-        if self.clip_mode not in rule_names():
-            raise ValueError(f"clip_mode must be one of {rule_names()}, got {self.clip_mode!r}")
-        if not 1 <= self.min_joints <= self.max_joints <= 64:
-            raise ValueError(f"need 1 <= min_joints <= max_joints <= 64, got {self.min_joints}, {self.max_joints}")
-        if self.bodies:  # parsed here, so that a bad spec is refused before anything runs
-            self._joint_range_from_bodies()
-        self.policy = fit_global_features(self.policy, self.body_mix)  # 12 with centipedes
-        for name in ("num_envs", "num_steps", "minibatch_size", "update_epochs", "total_timesteps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.minibatch_size > self.batch_size:
-            raise ValueError(f"minibatch_size {self.minibatch_size} exceeds the rollout size {self.batch_size}")
+        check_field_types(self)  # before num_envs * num_steps is taken: "num_envs must be int", not the batch's
+        SimConfig.__post_init__(self)
+        self.batch_size = self.num_envs * self.num_steps
+        PPOConfig.__post_init__(self)
         smallest = min(b - a for a, b in pairwise(minibatch_cuts(self.batch_size, self.minibatch_size)))
         if not 1 <= self.processes <= min(self.num_envs, smallest):
             raise ValueError(f"processes must be in 1..{min(self.num_envs, smallest)} (each needs a swimmer and a "
@@ -161,74 +68,21 @@ class TrainConfig:
                              f"got {self.rollout_workers}")  # fmt: skip
         if self.rollout_workers > 1 and self.processes > 1:
             raise ValueError("rollout_workers > 1 and processes > 1 both share the swimmers out: choose one")
-        if self.clip_eps <= 0:
-            raise ValueError(f"clip_eps must be > 0, got {self.clip_eps}")
-        self.update_config()  # the update's own checks: weight cap, KL settings, objective and rule together
-
-    @property
-    def batch_size(self) -> int:
-        return self.num_envs * self.num_steps
-
-    def _joint_range_from_bodies(self) -> None:
-        """min_joints..max_joints become the bodies' joint range (the action dimensions they draw), which
-        every reader of a run's config takes for the trained range; a range given that disagrees is refused."""
-        lo, hi = parse_bodies(self.bodies).joint_range
-        defaults = tuple(f.default for f in dataclasses.fields(self) if f.name in ("min_joints", "max_joints"))
-        if (self.min_joints, self.max_joints) not in (defaults, (lo, hi)):
-            raise ValueError(f"min_joints..max_joints ({self.min_joints}..{self.max_joints}) disagree with bodies "
-                             f"{self.bodies!r} ({lo}..{hi} joints): give bodies alone")  # fmt: skip
-        self.min_joints, self.max_joints = lo, hi
-
-    @property
-    def body_mix(self) -> BodyMix:
-        """The bodies of this run's swimmers (``bodies``, or the chains of min_joints..max_joints)."""
-        return parse_bodies(self.bodies or f"{self.min_joints}-{self.max_joints}")
-
-    @property
-    def dims(self) -> range:
-        """The action dimensions d the run's bodies can have: the keys of its per-dimension statistics."""
-        lo, hi = self.body_mix.joint_range
-        return range(lo, hi + 1)
-
-    def update_config(self) -> UpdateConfig:
-        return UpdateConfig(
-            rule=self.clip_mode,
-            clip_eps=self.clip_eps,
-            update_epochs=self.update_epochs,
-            minibatch_size=self.minibatch_size,
-            vf_coef=self.vf_coef,
-            ent_coef=self.ent_coef,
-            max_grad_norm=self.max_grad_norm,
-            proximal_weight_cap=self.proximal_weight_cap,
-            kl_target=self.kl_target,
-            kl_beta=self.kl_beta,
-            kl_adaptive=self.kl_adaptive,
-            off_policy_objective=self.off_policy_objective,
-        )
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown train config fields: {sorted(unknown)}")
-        return cls(**d)
 
 
 def log_columns(cfg: TrainConfig) -> list[str]:
-    per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
         "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "learning_rate", "episodes",
         "return_mean",
         *[f"return_d{d}" for d in cfg.dims],
         *([] if cfg.body_mix.chains_only else ["return_chains", "return_trees"]),  # keyed by shape as well
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
-        *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
-        *epoch_columns(cfg.dims),
+        *update_columns(cfg.dims),
     ]  # fmt: skip
+
+
+SWIMMERS = ("swimmers", 1)
+"""the state section of the simulator trainer (name, version): every swimmer's state (bodies, MuJoCo, RNG)"""
 
 
 def train(
@@ -242,65 +96,45 @@ def train(
     saved)`` hears each progress row once it is written and, when ``saved``, the state of its step too (a Ray
     Tune trial reports it, with the run's own state files as its checkpoint). ``rollout_pool`` makes the
     workers of ``cfg.rollout_workers`` > 1."""
-    run_dir = Path(run_dir)
-    state_path = run_dir / "state.safetensors"
-    ckpt_dir = run_dir / "checkpoints"
-
+    if cfg.rollout_workers > 1 and rollout_pool is None:
+        raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
+    run = Run(run_dir, cfg, resume=resume, on_row=on_row)
     # Threads before init: the orthogonal init's QR differs in its last bits with the thread count.
     torch.set_num_threads(1)
     torch.manual_seed(cfg.seed)
-    policy = GraphActorCritic(cfg.policy)
-    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
-    optimizer = learner.optimizer
+    learner = Learner.create(GraphActorCritic(cfg.policy), cfg.learning_rate, cfg.adam_eps, cfg.compile)
     gen = torch.Generator().manual_seed(cfg.seed)
-    if cfg.rollout_workers > 1 and rollout_pool is None:
-        raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
     helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
     pool = _rollout_pool(cfg, learner, gen, helpers, rollout_pool)
     try:
-        global_step, iteration, last_ckpt = 0, 0, 0
-        if resume and (state_path.exists() or previous_state_path(state_path).exists()):
-            resumed = resume_training_state(state_path)  # TrainingStateError when neither state file is usable
-            tensors, meta = resumed.tensors, resumed.meta
-            policy.load_state_dict(sub_dict(tensors, "policy."))
-            restore_optimizer(optimizer, tensors, meta)
-            learner.restore_state(tensors)
-            gen.set_state(tensors["rng.torch"])
-            env_arrays = {k: v.numpy() for k, v in sub_dict(tensors, "env.").items()}
-            env_parts = split_env_state(meta["env"], env_arrays, pool.bounds)
-            pool.set_states(
-                [
-                    WorkerState(*part, _saved_rng(tensors, name))
-                    for part, name in zip(env_parts, pool.rng_names, strict=True)
-                ]
-            )
-            global_step, iteration, last_ckpt = (meta["counters"][k] for k in ("global_step", "iteration", "last_ckpt"))
-            _check_policy_checkpoints(ckpt_dir, global_step, policy)
+        if run.resuming:
+            state = run.restore(learner, gen)  # TrainingStateError when neither state file is usable
+            swimmers, arrays = state.section(*SWIMMERS)
+            env_parts = split_env_state(swimmers, {k: v.numpy() for k, v in arrays.items()}, pool.bounds)
+            pool.set_states([WorkerState(*part, _saved_rng(state.tensors, name))
+                             for part, name in zip(env_parts, pool.rng_names, strict=True)])  # fmt: skip
+            _check_policy_checkpoints(run.checkpoints, run.counters["global_step"], learner.policy)
         else:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            with atomic_writer(run_dir / "config.json") as f:
-                json.dump(cfg.to_dict(), f, indent=2)
-        _train_loop(cfg, run_dir, resume, learner, gen, pool, helpers, (global_step, iteration, last_ckpt), on_row)
+            run.start()
+        _train_loop(cfg, run, learner, gen, pool, helpers)
     finally:
         pool.close()
         if helpers is not None:
             helpers.close()
-    return run_dir
+    return run.dir
 
 
-def _train_loop(cfg, run_dir, resume, learner, gen, pool: RolloutPool, helpers, counters, on_row) -> None:
-    state_path, ckpt_dir = run_dir / "state.safetensors", run_dir / "checkpoints"
-    policy, optimizer = learner.policy, learner.optimizer
-    global_step, iteration, last_ckpt = counters
-    log = RunLog(run_dir, log_columns(cfg), resume_step=global_step if resume else None, tensorboard=cfg.tensorboard)
+def _train_loop(cfg: TrainConfig, run: Run, learner: Learner, gen, pool: RolloutPool, helpers) -> None:
+    policy, optimizer, counters = learner.policy, learner.optimizer, run.counters
+    run.open_log(log_columns(cfg))
     T, E = cfg.num_steps, cfg.num_envs
     rollout = pool.rollout
     update_cfg = cfg.update_config()
     dims, trees = cfg.dims, not cfg.body_mix.chains_only  # the spec parsed once, not at every iteration
     recent: list[Episode] = []
-    bar = _progress(cfg, global_step)
-    while global_step < cfg.total_timesteps:
-        iteration += 1
+    bar = _progress(cfg, counters["global_step"])
+    while counters["global_step"] < cfg.total_timesteps:
+        counters["iteration"] += 1
 
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
         # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
@@ -308,7 +142,8 @@ def _train_loop(cfg, run_dir, resume, learner, gen, pool: RolloutPool, helpers, 
         if not pool.collecting:  # else started after the last update (step 4)
             pool.start(learner.params.theta)
         episodes = pool.finish()
-        global_step += T * E
+        counters["global_step"] += T * E
+        global_step = counters["global_step"]
         rollout_s = time.perf_counter() - t0
 
         # 2. Advantages.
@@ -333,16 +168,14 @@ def _train_loop(cfg, run_dir, resume, learner, gen, pool: RolloutPool, helpers, 
         # before it when a checkpoint is due): this process's logging and saving overlap it. It writes
         # their columns of the rollout, so nothing below reads the batch.
         explained = explained_variance(batch.values, batch.returns)
-        checkpoint = global_step // cfg.checkpoint_interval > last_ckpt // cfg.checkpoint_interval or (
-            global_step >= cfg.total_timesteps
-        )
+        checkpoint = run.checkpoint_due(final=global_step >= cfg.total_timesteps)
         worker_states = pool.get_states() if checkpoint else []
         if global_step < cfg.total_timesteps:
             pool.start(learner.params.theta)
         recent = (recent + episodes)[-50:]
         row = {
             "global_step": global_step,
-            "iteration": iteration,
+            "iteration": counters["iteration"],
             "wall_time": time.time(),
             "sps": T * E / (rollout_s + update_s),
             "rollout_s": rollout_s,
@@ -359,26 +192,22 @@ def _train_loop(cfg, run_dir, resume, learner, gen, pool: RolloutPool, helpers, 
         if trees:
             row["return_chains"] = _mean_return([e for e in episodes if is_chain_label(e.body)])
             row["return_trees"] = _mean_return([e for e in episodes if not is_chain_label(e.body)])
-        log.log(row)
-        log.update_histograms(global_step, stats)
+        run.log(row, stats)
         if checkpoint:
-            last_ckpt = global_step
-            policy.save(ckpt_dir / f"policy_{global_step:08d}.safetensors", metadata={"global_step": global_step})
-            env_meta, env_arrays = merge_env_states([(s.env_meta, s.env_arrays) for s in worker_states])
+            policy.save(run.mark_checkpoint(), metadata={"global_step": global_step})
+            swimmers, arrays = merge_env_states([(s.env_meta, s.env_arrays) for s in worker_states])
             more_rngs = {name: s.rng for name, s in zip(pool.rng_names, worker_states, strict=True) if name}
-            counters = {"global_step": global_step, "iteration": iteration, "last_ckpt": last_ckpt}
-            save_training_state(
-                state_path, policy, optimizer, gen, env_meta, env_arrays, counters, learner.state_tensors(), more_rngs
-            )
-        if on_row is not None:
-            on_row(row, checkpoint)
+            name, version = SWIMMERS
+            run.save_state(learner, gen, {name: {**swimmers, "version": version}},
+                           {f"{name}.{k}": v for k, v in arrays.items()}, more_rngs)  # fmt: skip
+        run.report(row, checkpoint)
         if bar is not None:
             bar.update(T * E)
             ret = _mean_return(recent)
             bar.set_postfix(ret=f"{ret:.1f}", sps=f"{row['sps']:.0f}", kl=f"{row['approx_kl']:.3f}")
     if bar is not None:
         bar.close()
-    log.close()
+    run.close()
 
 
 def _mean_return(episodes: list[Episode]) -> float:

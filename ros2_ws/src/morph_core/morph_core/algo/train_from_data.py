@@ -10,7 +10,7 @@ sampling policy took, each with the behaviour log-prob it published
    gamma * V(next state), as the simulator trainer does; the recorded steps
    are never terminal);
 2. takes its batch: all the steps with a behaviour log-prob if they are at
-   most ``batch_size`` (num_envs * num_steps, 6144 by default), else the
+   most ``batch_size`` (``PPOConfig.batch_size``, 6144 by default), else the
    next part of a seeded random permutation cut into ceil(steps /
    batch_size) near-equal parts (``iterations`` defaults to one pass: each
    step once). A batch that would leave a single sample for its last
@@ -38,7 +38,7 @@ proximal policy pi_prox, the policy as the update starts
 (``off_policy.with_proximal``), r = pi_theta / pi_prox, so the clip bounds the
 step again, and corrects for the data's origin separately: each sample's
 surrogate is weighted by the importance weight pi_prox / pi_behav,
-truncated at c (``TrainConfig.proximal_weight_cap``, 1 by default, as
+truncated at c (``PPOConfig.proximal_weight_cap``, 1 by default, as
 V-trace's rho-bar). The truncation bounds the variance a few samples the
 behaviour policy rarely took would otherwise bring, at the price of a bias
 towards the behaviour policy's action distribution; with c = 1 a sample the
@@ -83,25 +83,17 @@ import numpy as np
 import torch
 
 from morph_core.algo.batch import RolloutBatch
-from morph_core.algo.checkpoint import (
-    load_training_state,
-    previous_state_path,
-    restore_optimizer,
-    resume_training_state,
-    save_training_state,
-    sub_dict,
-)
+from morph_core.algo.checkpoint import load_training_state, state_section
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import compute_gae, explained_variance
-from morph_core.algo.run_log import RunLog
-from morph_core.algo.train import TrainConfig
+from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.run import RowHook, Run
 from morph_core.algo.update import update
-from morph_core.algo.update_stats import epoch_columns
+from morph_core.algo.update_stats import update_columns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transition_batch import TransitionBatch
-from morph_core.util.atomic import atomic_writer
 
 STALE_LOG_RATIO = 1e-3
 """a sample is stale when |log pi_prox - log pi_behav| exceeds this (float rounding of the same policy's
@@ -198,11 +190,10 @@ def describe_bodies(data: TransitionBatch, shown: int = 6) -> str:
     return f"{lo}..{hi} joints: {listed}{more} steps"
 
 
-def log_columns(cfg: TrainConfig, trees: bool | None = None) -> list[str]:
+def log_columns(cfg: PPOConfig, trees: bool | None = None) -> list[str]:
     """The log's columns; ``trees`` (default: the run's ``bodies`` hold trees) adds the returns over the chains
     and over the trees."""
     trees = not cfg.body_mix.chains_only if trees is None else trees
-    per_dim = ["clip_frac", "in_eps_frac", "logr_mean", "logr_std", "approx_kl"]
     return [
         "global_step", "iteration", "data_round", "round_iteration", "env_steps", "data_steps", "usable_steps",
         "batch_size",
@@ -211,8 +202,7 @@ def log_columns(cfg: TrainConfig, trees: bool | None = None) -> list[str]:
         *(["return_chains", "return_trees"] if trees else []), "reward_rate",
         "policy_loss", "value_loss", "entropy", "approx_kl", "clip_frac", "explained_variance", "log_std",
         "is_weight_mean", "is_weight_capped_frac", "stale_frac", "behaviour_logr_mean",
-        *[f"{name}_d{d}" for name in per_dim for d in cfg.dims],
-        *epoch_columns(cfg.dims),
+        *update_columns(cfg.dims),
     ]  # fmt: skip
 
 
@@ -326,7 +316,7 @@ def off_policy_stats(batch: RolloutBatch, cap: float) -> dict[str, float]:
     }
 
 
-def check_data(data: TransitionBatch, cfg: TrainConfig) -> None:
+def check_data(data: TransitionBatch, cfg: PPOConfig) -> None:
     """Raise unless PPO can train on ``data`` under ``cfg``: steps there, some with their behaviour
     log-prob (``MissingPolicyInfoError``), chains within the config's range (``DataMismatchError``: the
     log's per-dimension columns come from it), whole episodes."""
@@ -365,8 +355,13 @@ def passes_cut(steps: int, batch_size: int) -> int:
     return -(-steps // batch_size)
 
 
+DATA = ("data", 1)
+"""the state section of the bag trainer (name, version): the current data set (``_Round``) and its pass's
+permutation"""
+
+
 def train_from_data(
-    cfg: TrainConfig,
+    cfg: PPOConfig,
     data: TransitionBatch,
     run_dir: str | Path,
     *,
@@ -375,6 +370,7 @@ def train_from_data(
     resume: bool = False,
     new_data: bool = False,
     source: list[str] | None = None,
+    on_row: RowHook | None = None,
 ) -> Path:
     """PPO updates on ``data`` into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors).
 
@@ -382,11 +378,10 @@ def train_from_data(
     number the data set was started with). ``init``: a policy checkpoint (.safetensors beside its .json) to
     start a new run from, else a fresh policy seeded with ``cfg.seed``. ``resume``: continue the run in
     ``run_dir`` on the same data (else ``DataMismatchError``); with ``new_data`` too, train it further on
-    new data (the next round). ``source`` names the data (bag paths), for the record.
+    new data (the next round). ``source`` names the data (bag paths), for the record. ``on_row(row, saved)``:
+    the row hook (``run.Run.report``).
     """
     run_dir = Path(run_dir)
-    state_path = run_dir / "state.safetensors"
-    ckpt_dir = run_dir / "checkpoints"
     if cfg.anneal_lr:
         raise ValueError("anneal_lr needs a known run length; training from data has none")
     if iterations is not None and iterations < 1:
@@ -395,7 +390,7 @@ def train_from_data(
         raise ValueError("new_data continues a run: it needs resume")
     if init is not None and resume:
         raise ValueError("init starts a new run; a resumed run continues from its own state")
-    if resume and not state_path.exists() and (run_dir / "init.json").exists():
+    if resume and not (run_dir / "state.safetensors").exists() and (run_dir / "init.json").exists():
         init = json.loads((run_dir / "init.json").read_text())["init"]  # killed before its first checkpoint
     check_data(data, cfg)
     digest = data_digest(data)
@@ -411,20 +406,16 @@ def train_from_data(
         policy = GraphActorCritic(cfg.policy)
     learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
     gen = torch.Generator().manual_seed(cfg.seed)
-    counters = {"global_step": 0, "iteration": 0, "last_ckpt": 0, "data_round": 0, "env_steps": 0}
+    run = Run(run_dir, cfg, resume=resume, on_row=on_row)
+    counters = run.counters
+    counters.update(data_round=0, env_steps=0)
     current: _Round | None = None
-    resumed = resume and (state_path.exists() or previous_state_path(state_path).exists())
-    if resumed:
-        state = resume_training_state(state_path)  # a damaged newest state: the previous one, named in the log
-        tensors, meta = state.tensors, state.meta
-        policy.load_state_dict(sub_dict(tensors, "policy."))
-        restore_optimizer(learner.optimizer, tensors, meta)
-        learner.restore_state(tensors)
-        gen.set_state(tensors["rng.torch"])
-        counters = meta["counters"]
-        saved = meta["env"]["round"]
-        order = tensors.get("env.order")
-        current = _Round(**{**saved, "order": None if order is None else order.numpy()})
+    if run.resuming:
+        state = run.restore(learner, gen)  # a damaged newest state: the previous one, named in the log
+        counters = run.counters
+        saved, arrays = state.section(*DATA)
+        order = arrays.get("order")
+        current = _Round(**{**saved["round"], "order": None if order is None else order.numpy()})
         finished = current.done >= current.iterations
         if not new_data and current.digest != digest:
             raise DataMismatchError(
@@ -444,20 +435,16 @@ def train_from_data(
     elif new_data:
         raise ValueError(f"new_data: no trained state in {run_dir} to continue")
     else:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        with atomic_writer(run_dir / "config.json") as f:
-            json.dump(cfg.to_dict(), f, indent=2)
+        run.start()
         if init is not None:
-            with atomic_writer(run_dir / "init.json") as f:
-                json.dump({"init": str(Path(init).resolve())}, f, indent=2)
+            run.write_json("init.json", {"init": str(Path(init).resolve())})
     if current is None or new_data:
         current = _Round(digest, len(data), list(source or []), iterations or one_pass)
         counters["data_round"] += 1
         counters["env_steps"] += len(data)
     # Trees in the data, the run's bodies or a log resumed: the returns over chains and trees apart, kept for the run.
-    trees = not data.is_chains or not cfg.body_mix.chains_only or (resumed and _logs_trees(run_dir))
-    log = RunLog(run_dir, log_columns(cfg, trees), resume_step=counters["global_step"] if resume else None,
-                 tensorboard=cfg.tensorboard)  # fmt: skip
+    trees = not data.is_chains or not cfg.body_mix.chains_only or (run.resuming and _logs_trees(run_dir))
+    run.open_log(log_columns(cfg, trees))
 
     samples = Samples(data, cfg.max_joints)
     recorded = EpisodeReturns.of(data).row(cfg.dims, trees)
@@ -511,28 +498,27 @@ def train_from_data(
             "log_std": float(policy.log_std.detach()),
             **off_policy_stats(batch, cfg.proximal_weight_cap),
         }
-        log.log(row)
-        log.update_histograms(counters["global_step"], stats)
-        step, last = counters["global_step"], counters["last_ckpt"]
-        if step // cfg.checkpoint_interval > last // cfg.checkpoint_interval or current.done >= current.iterations:
-            counters["last_ckpt"] = step
-            policy.save(ckpt_dir / f"policy_{step:08d}.safetensors", metadata={"global_step": step})
-            _save_state(state_path, learner, gen, current, counters)
+        run.log(row, stats)
+        saved = run.checkpoint_due(final=current.done >= current.iterations)
+        if saved:
+            policy.save(run.mark_checkpoint(), metadata={"global_step": counters["global_step"]})
+            _save_state(run, learner, gen, current)
+        run.report(row, saved)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(kl=f"{row['approx_kl']:.3f}", w=f"{row['is_weight_mean']:.3f}")
     if bar is not None:
         bar.close()
-    log.close()
+    run.close()
     return run_dir
 
 
-def _save_state(path: Path, learner: Learner, gen: torch.Generator, current: _Round, counters: dict) -> None:
-    meta = {"round": {k: getattr(current, k) for k in ("digest", "steps", "source", "iterations", "done")}}
-    arrays = {} if current.order is None else {"order": current.order}
-    save_training_state(
-        path, learner.policy, learner.optimizer, gen, meta, arrays, dict(counters), learner.state_tensors()
-    )
+def _save_state(run: Run, learner: Learner, gen: torch.Generator, current: _Round) -> None:
+    name, version = DATA
+    section = {"version": version, "round": {k: getattr(current, k) for k in ("digest", "steps", "source",
+                                                                               "iterations", "done")}}  # fmt: skip
+    arrays = {} if current.order is None else {f"{name}.order": current.order}
+    run.save_state(learner, gen, {name: section}, arrays)
 
 
 def _logs_trees(run_dir: Path) -> bool:
@@ -550,11 +536,11 @@ def run_state(run_dir: str | Path) -> dict | None:
     path = Path(run_dir) / "state.safetensors"
     if not path.exists():
         return None
-    _, meta = load_training_state(path)
-    return {**meta["counters"], **meta["env"]["round"]}
+    tensors, meta = load_training_state(path)
+    return {**meta["counters"], **state_section(meta, tensors, *DATA, path)[0]["round"]}
 
 
-def _progress(cfg: TrainConfig, current: _Round):
+def _progress(cfg: PPOConfig, current: _Round):
     if not cfg.progress_bar:
         return None
     from tqdm import tqdm

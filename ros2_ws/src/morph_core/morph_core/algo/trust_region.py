@@ -1,7 +1,7 @@
 """The table of trust-region rules: how far one PPO update may move the policy on a sample.
 
-Every rule is defined and named here, once. The trainer's ``clip_mode``
-option, the update's policy loss, the clip-probability theory and the
+Every rule is defined and named here, once. The trainers' ``rule``
+option (``PPOConfig.rule``), the update's policy loss, the clip-probability theory and the
 comparison plots all read ``RULES``, so a rule added to the table shows up
 in each of them without another edit.
 

@@ -1,6 +1,6 @@
 """The settings of one PPO update: the trust-region rule and its parameters, epochs, minibatch size, loss
 weights, and how samples of an older policy enter (``UpdateConfig``). The trainers' configs supply them
-(``train.TrainConfig.update_config``)."""
+(``ppo_config.PPOConfig.update_config``)."""
 
 from __future__ import annotations
 

@@ -53,6 +53,12 @@ class UpdateStats:
         return row
 
 
+def update_columns(dims) -> list[str]:
+    """The log columns of ``UpdateStats.row`` per dimension (``<name>_d<d>``) and per epoch (``epoch_columns``):
+    what every trainer's log has after its own columns."""
+    return [*[f"{name}_d{d}" for name in PerDimensionStats.PER_DIM for d in dims], *epoch_columns(dims)]
+
+
 def epoch_columns(dims) -> list[str]:
     """The log columns of ``UpdateStats.row`` beyond the pooled statistics: epochs run, beta, and the
     first and last epoch's statistics, overall and per dimension (``<name>_first_d<d>``)."""

@@ -16,6 +16,7 @@ import numbers
 import sys
 import textwrap
 import typing
+import warnings
 
 BOOL_WORDS = ("true", "false", "1", "0", "yes", "no", "on", "off")
 """what a boolean option takes (any case)"""
@@ -152,14 +153,66 @@ def parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
 
 
+def renamed_fields(**old_to_new: str):
+    """A dataclass decorator for fields that were renamed: the constructor still takes each old name (with a
+    ``DeprecationWarning``; silently when the new one is given too, with the same value, as ``to_dict`` writes
+    both), an error about the field names the old one when the caller wrote it, and the old name reads the
+    new field. ``add_dataclass_options`` adds the old options as deprecated aliases and ``overrides_from_args``
+    maps them. Fields the class sets from others (``init=False``, listed in its ``derived``) are taken too
+    when they agree, so that ``cls(**obj.to_dict())`` makes ``obj`` again. A subclass needs the decorator
+    again (it gets a new ``__init__``)."""
+
+    def wrap(cls):
+        init = cls.__init__
+
+        def __init__(self, *args, **kwargs):
+            used = [old for old in old_to_new if old in kwargs]
+            for old in used:
+                new = old_to_new[old]
+                if new not in kwargs:
+                    warnings.warn(f"{cls.__name__}({old}=...) is deprecated: write {new}", DeprecationWarning,
+                                  stacklevel=2)  # fmt: skip
+                elif kwargs[new] != kwargs[old]:
+                    raise ValueError(f"{old} is the old name of {new}: give {new} alone")
+                kwargs[new] = kwargs.pop(old)
+            given = {k: kwargs.pop(k) for k in getattr(cls, "derived", ()) if k in kwargs}
+            try:
+                init(self, *args, **kwargs)
+            except ValueError as err:  # said in the caller's words
+                text = str(err)
+                for old in used:
+                    if text.startswith(f"{old_to_new[old]} "):
+                        raise ValueError(old + text[len(old_to_new[old]) :]) from None
+                raise
+            for k, v in given.items():
+                if getattr(self, k) != v:
+                    raise ValueError(f"{k} {v} disagrees with the other fields, which make it {getattr(self, k)}")
+
+        __init__.__doc__ = init.__doc__
+        cls.__init__ = __init__
+        cls.renamed = {**getattr(cls, "renamed", {}), **old_to_new}
+        for old, new in old_to_new.items():
+            setattr(cls, old, property(lambda self, new=new: getattr(self, new), doc=f"deprecated: {new}"))
+        return cls
+
+    return wrap
+
+
 def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=(), defaults=None) -> None:
     """Add one option per field; defaults are left to the dataclass (argparse default: None). ``defaults``, an
     instance of ``cls``, is what the help shows as defaults when a tool starts from other values than the
-    class's own."""
+    class's own. Fields set from others (``init=False``) are no options; a field renamed (``renamed_fields``)
+    keeps its old option as a deprecated alias (dest: the old name)."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
+    for old, new in getattr(cls, "renamed", {}).items():
+        if new not in skip:
+            flag, kind = f"--{prefix}{new}".replace("_", "-"), hints[new]
+            parser.add_argument(f"--{prefix}{old}".replace("_", "-"), dest=f"{prefix}{old}".replace("-", "__"),
+                                action=DeprecatedAlias, new=flag, type=parse_bool if kind is bool else kind,
+                                default=None, help=argparse.SUPPRESS)  # fmt: skip
     for f in dataclasses.fields(cls):
-        if f.name in skip:
+        if f.name in skip or not f.init:
             continue
         kind = hints[f.name]
         if dataclasses.is_dataclass(kind):
@@ -192,6 +245,13 @@ def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict
         value = getattr(args, f"{prefix}{f.name}", None)
         if value is not None:
             out[f.name] = value
+    for old, new in getattr(cls, "renamed", {}).items():
+        value = getattr(args, f"{prefix}{old}", None)
+        if value is not None:
+            if out.get(new, value) != value:
+                raise ValueError(f"--{old.replace('_', '-')} is the old name of --{new.replace('_', '-')}: "
+                                 "give the new one alone")  # fmt: skip
+            out[new] = value
     return out
 
 
