@@ -56,7 +56,7 @@ def test_a_two_worker_run_resumes_exactly_as_an_uninterrupted_run(local_ray, tmp
     assert pools[0].bounds == [(0, 2), (2, 4)]
     (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
     assert ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
-    assert {"rng.worker0", "rng.worker1"} <= wa.keys() and len(ma["env"]["envs"]) == 4
+    assert {"rng.worker0", "rng.worker1"} <= wa.keys() and len(ma["sections"]["swimmers"]["envs"]) == 4
     assert wa.keys() == wb.keys()
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k  # weights, Adam, every worker's generator and swimmers
