@@ -8,7 +8,7 @@ episodes on each of the lengths 2..10, 15 and 20, 1,000 steps each), by:
 the code at ``--before`` (a ``git worktree`` of that revision first on
 PYTHONPATH; default: before the NumPy evaluation and ``--processes``), this
 code with one process, and this code with two. Each runs ``python -m
-trainer.eval_cli`` on its own copy of the chosen checkpoints, one after the
+trainer.cli.eval`` on its own copy of the chosen checkpoints, one after the
 other on the same machine; the table gives seconds per checkpoint, the time
 projected for all of the run's checkpoints (``--stride 1``) and the rate
 against ``--before``. Beside it, the physics alone: MuJoCo's env steps of
@@ -47,7 +47,7 @@ def timed_eval(tree: Path, run: Path, chosen: list[Path], work: Path, processes:
             if part.exists():
                 shutil.copy(part, copy / "checkpoints")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(tree / p) for p in PACKAGES))
-    cmd = [sys.executable, "-m", "trainer.eval_cli", "--run", str(copy)]
+    cmd = [sys.executable, "-m", "trainer.cli.eval", "--run", str(copy)]
     if processes > 1:
         cmd += ["--processes", str(processes)]
     start = time.perf_counter()

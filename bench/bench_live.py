@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from morph_core.protocol.trust import public_key_path
-from trainer.live_bringup import run_key_pair
+from trainer.live.bringup import run_key_pair
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -160,7 +160,7 @@ def bench(
         alone = counter.rate(seconds)
         run = work / f"run{k}"
         # The update compiled as by default: the compiling ends before the measured window.
-        cmd = [sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces, "--out", str(run),
+        cmd = [sys.executable, "-m", "trainer.cli.train", "--live", "--namespaces", *namespaces, "--out", str(run),
                "--tensorboard", "false", "--progress-bar", "false", "--signing-key", str(work_key(work))]  # fmt: skip
         cmd += trainer_args
         if ingest_only:

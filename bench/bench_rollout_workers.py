@@ -54,7 +54,7 @@ def train_rate(options: list[str], iterations: int, compile: bool, out: Path) ->
     # Ray workers: a local Ray of 2 CPUs and a small object store, started before morph-train would start its
     # own; the other settings run without Ray, as they do.
     ray = f"{RAY_INIT}; " if options[0] == "--rollout-workers" and int(options[1]) > 1 else ""
-    code = f"import sys; {ray}from trainer.train_cli import main; sys.exit(main({args!r}))"
+    code = f"import sys; {ray}from trainer.cli.train import main; sys.exit(main({args!r}))"
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
     with (out / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))

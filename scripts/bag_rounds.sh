@@ -2,10 +2,10 @@
 # Set everything up, then learn from bags alone: rounds of recording episodes with the current policy
 # (sim + sampling policy + morph-record, as ROS 2 processes) and one PPO update from the round's bag
 # (morph-train --from-bags), in a private network namespace (scripts/in_netns.sh: DDS discovery needs
-# multicast). Options go to trainer.bag_rounds, e.g.
+# multicast). Options go to trainer.bags.rounds, e.g.
 #   bash scripts/bag_rounds.sh --rounds 20 --out runs/bag-rounds --deadline-minutes 40 -- --compile false
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"
 bash scripts/setup.sh
-exec bash scripts/in_netns.sh .venv/bin/python -m trainer.bag_rounds "$@"
+exec bash scripts/in_netns.sh .venv/bin/python -m trainer.bags.rounds "$@"

@@ -36,8 +36,8 @@ import sys, torch
 from rosbags.typesys import Stores, get_typestore
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
-from trainer.bag_messages import record_message
-from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
+from trainer.bags.messages import record_message
+from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
 ts = get_typestore(Stores.ROS2_JAZZY)
 types = {"episode_start": "std_msgs/msg/Int64MultiArray", "joint_states": "sensor_msgs/msg/JointState",
          "odom": "nav_msgs/msg/Odometry", "effort_commands": "std_msgs/msg/Float64MultiArray",
@@ -65,7 +65,7 @@ def _run(root: Path, args: list[str]) -> None:
 
 def make(root: Path, out: Path, resume_with: Path) -> None:
     out.mkdir(parents=True, exist_ok=False)
-    train = ["-m", "trainer.train_cli"]
+    train = ["-m", "trainer.cli.train"]
     _run(root, [*train, "--out", str(out / "sim-p1"), *SIM, "--total-timesteps", "18432"])
     _run(root, [*train, "--out", str(out / "sim-p2"), *SIM, "--total-timesteps", "18432", "--processes", "2"])
     _run(root, [*train, "--out", str(out / "sim-trees"), *SIM, "--total-timesteps", "18432", "--bodies", "2-4,y:2x2"])
@@ -75,7 +75,7 @@ def make(root: Path, out: Path, resume_with: Path) -> None:
     if not bag.exists():
         _run(root, ["-c", MAKE_BAG, str(bag)])
     _run(root, [*train, "--from-bags", str(bag), "--out", str(out / "bags"), *BAG_OPTIONS])
-    _run(root, ["-m", "trainer.live_in_process", "--out", str(out / "live"), *LIVE])
+    _run(root, ["-m", "trainer.live.in_process", "--out", str(out / "live"), *LIVE])
 
 
 def _rows(path: Path) -> tuple[list[str], list[dict]]:

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set everything up, then train live: K lockstep sim+policy pairs (chains of 2..10 joints) in namespaces
 # /swimmer0.. plus morph-train --live, all ROS 2 processes in a private network namespace
-# (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up (trainer.live_bringup;
+# (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up (trainer.live.bringup;
 # --help lists them with their defaults), options after -- to morph-train; relative paths are taken from
 # the folder it runs in, e.g.
 #   bash scripts/live.sh --pairs 4 --out runs/live --max-updates 50
@@ -13,7 +13,7 @@ export MORPH_PROG="$0"  # the bring-up's help and errors name this script
 for arg in "$@"; do  # help needs no network namespace
     [ "$arg" = "--" ] && break
     if [ "$arg" = "-h" ] || [ "$arg" = "--help" ]; then
-        exec "$root/.venv/bin/python" -m trainer.live_bringup "$@"
+        exec "$root/.venv/bin/python" -m trainer.live.bringup "$@"
     fi
 done
-exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.live_bringup "$@"
+exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.live.bringup "$@"

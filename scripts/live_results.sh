@@ -30,4 +30,4 @@ for s in $(seq 1 "$seeds"); do echo "$s"; done | xargs -P 2 -I{} bash -c '
     if [ -f "$run/state.safetensors" ]; then resume=--resume; else resume=; fi
     .venv/bin/morph-train --seed {} --total-timesteps "$1" --out "$run" --progress-bar false $resume \
         > "$run.log" 2>&1 && echo "done $run"' "$out" "$steps"
-.venv/bin/python -m trainer.live_compare "$out"/live-s*/ --simulator "$out"/simulator-s*/ --plot docs/figures/live
+.venv/bin/python -m trainer.live.compare "$out"/live-s*/ --simulator "$out"/simulator-s*/ --plot docs/figures/live

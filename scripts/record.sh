@@ -3,7 +3,7 @@
 # rosbag2 bag: sim (lockstep, as fast as possible) + policy (deterministic:=false, publishes
 # policy_info) + morph-record, as three ROS 2 processes in a private network namespace
 # (scripts/in_netns.sh: DDS discovery needs multicast). Options go to the bring-up
-# (trainer.record_bringup; --help lists them with their defaults); relative paths are taken from the
+# (trainer.bags.record_bringup; --help lists them with their defaults); relative paths are taken from the
 # folder it runs in, e.g.
 #   bash scripts/record.sh --out bags/run1 --episodes 10 --joints 6 --storage mcap
 set -euo pipefail
@@ -12,7 +12,7 @@ bash "$root/scripts/setup.sh"
 export MORPH_PROG="$0"  # the bring-up's help and errors name this script
 for arg in "$@"; do  # help needs no network namespace
     if [ "$arg" = "-h" ] || [ "$arg" = "--help" ]; then
-        exec "$root/.venv/bin/python" -m trainer.record_bringup "$@"
+        exec "$root/.venv/bin/python" -m trainer.bags.record_bringup "$@"
     fi
 done
-exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.record_bringup "$@"
+exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.bags.record_bringup "$@"

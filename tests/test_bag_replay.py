@@ -22,7 +22,7 @@ from morph_core.msgs.records import EpisodeStartRecord
 from morph_core.policy.actor_critic import GraphActorCritic, gaussian_log_prob
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transitions import assemble
-from trainer.bag_io import BagReader
+from trainer.bags.io import BagReader
 
 STEPS = 60
 JOINTS = 3
@@ -32,7 +32,7 @@ SEED = 4
 @pytest.mark.timeout(240)
 def test_exported_bag_equals_a_replay_in_the_env(untrained_checkpoint, tmp_path, namespace):
     bag = tmp_path / "bag"
-    cmd = [sys.executable, "-m", "trainer.record_bringup", "--out", str(bag), "--episodes", "2"]
+    cmd = [sys.executable, "-m", "trainer.bags.record_bringup", "--out", str(bag), "--episodes", "2"]
     cmd += ["--steps-per-episode", str(STEPS), "--joints", str(JOINTS), "--seed", str(SEED)]
     cmd += ["--namespace", namespace, "--checkpoint", str(untrained_checkpoint), "--timeout", "150"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=220)

@@ -1,4 +1,4 @@
-"""Learning from bags alone, end to end on real nodes: trainer.bag_rounds records episodes with the sim,
+"""Learning from bags alone, end to end on real nodes: trainer.bags.rounds records episodes with the sim,
 the sampling policy node and morph-record (separate processes, real DDS), trains from each bag with
 morph-train --from-bags, and records the next round with the checkpoint that training wrote. A failed
 round stops cleanly and the same command continues."""
@@ -25,7 +25,7 @@ def _rows(path):
 @pytest.mark.timeout(900)
 def test_rounds_record_with_the_trained_checkpoint_and_continue_after_a_failure(tmp_path, namespace):
     out = tmp_path / "rounds"
-    base = [sys.executable, "-m", "trainer.bag_rounds", "--out", str(out), "--namespace", namespace]
+    base = [sys.executable, "-m", "trainer.bags.rounds", "--out", str(out), "--namespace", namespace]
     base += ["--episodes-per-round", "2", "--episode-steps", "30", "--min-joints", "2", "--max-joints", "5"]
     base += ["--compare-with", str(ROOT / "docs" / "results_data" / "compensated-s*"), "--record-timeout", "240"]
     train = ["--", "--compile", "false", "--update-epochs", "2", "--tensorboard", "false"]

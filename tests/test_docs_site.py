@@ -20,7 +20,7 @@ API_PAGES = {
     "msgs": "morph_core.msgs.records.JointStateRecord",
     "protocol": "morph_core.protocol.transitions.TransitionAssembler",
     "util": "morph_core.util.atomic.atomic_writer",
-    "trainer": "trainer.bag_io.BagReader",
+    "trainer": "trainer.bags.io.BagReader",
 }
 """API page -> an object whose heading it must hold (the page rendered its package's modules)"""
 

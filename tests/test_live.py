@@ -27,8 +27,16 @@ from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.episode_start import unpack_episode_start
 from morph_core.protocol.transitions import TransitionAssembler
-from trainer.live import CHUNK_QOS, DATA_TOPICS, EPISODE_QOS, STREAM_TOPICS, WEIGHTS_QOS, WEIGHTS_TOPIC, chunk_message
-from trainer.live_learner import LIVE_LEARNING_RATE
+from trainer.live.learner import LIVE_LEARNING_RATE
+from trainer.live.trainer_node import (
+    CHUNK_QOS,
+    DATA_TOPICS,
+    EPISODE_QOS,
+    STREAM_TOPICS,
+    WEIGHTS_QOS,
+    WEIGHTS_TOPIC,
+    chunk_message,
+)
 
 STARTUP = 120.0
 SMALL = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
@@ -77,7 +85,7 @@ def reads(listen: str) -> list[str]:
 
 def Trainer(namespaces: list[str], out: Path, log_path: Path, key, *extra: str, prefix: list[str] = ()) -> Proc:  # noqa: N802
     """``morph-train --live`` as a process, signing with ``key`` (conftest's ``TrainerKey``)."""
-    cmd = [*prefix, sys.executable, "-m", "trainer.train_cli", "--live", "--namespaces", *namespaces,
+    cmd = [*prefix, sys.executable, "-m", "trainer.cli.train", "--live", "--namespaces", *namespaces,
            "--out", str(out), "--signing-key", str(key.path), *SMALL, *extra]  # fmt: skip
     return Proc(cmd, log_path)
 
@@ -131,12 +139,12 @@ def progress(out: Path) -> list[dict]:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
 def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen):
-    """``python -m trainer.live_bringup`` (what ``scripts/live.sh`` runs): K = 2 pairs paced at real time (its
+    """``python -m trainer.live.bringup`` (what ``scripts/live.sh`` runs): K = 2 pairs paced at real time (its
     default) and the trainer, which updates on both (reading their topics or their policy nodes' chunks) and
     ends the bring-up."""
     out = tmp_path / "run"
     trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")] + reads(listen)
-    cmd = [sys.executable, "-m", "trainer.live_bringup", "--pairs", "2", "--out", str(out), "--max-updates", "2",
+    cmd = [sys.executable, "-m", "trainer.live.bringup", "--pairs", "2", "--out", str(out), "--max-updates", "2",
            "--episode-steps", "60", "--startup-timeout", str(STARTUP), "--timeout", "200",
            "--", *trainer_options]  # fmt: skip
     bringup = Proc(cmd, tmp_path / "bringup.log")
@@ -475,9 +483,9 @@ def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, 
     from morph_core.protocol.loopback import SamplingController, record_episodes
     from morph_core.protocol.transition_batch import TransitionBatch
     from morph_core.protocol.transitions import SkipCounts, assemble
-    from trainer.bag_messages import TYPESTORE, record_message
-    from trainer.live import LiveTrainer
-    from trainer.live_learner import LiveOptions, live_train_config
+    from trainer.bags.messages import TYPESTORE, record_message
+    from trainer.live.learner import LiveOptions, live_train_config
+    from trainer.live.trainer_node import LiveTrainer
 
     trees = (swimmer_tree(star_parents(2, 2)), swimmer_tree(y_parents(1, 2)))
     policy = GraphActorCritic.load(untrained_checkpoint)

@@ -28,12 +28,12 @@ from morph_core.msgs.records import (
 )
 from morph_core.policy.tree import read_urdf
 from morph_core.protocol.transitions import TransitionConfig
-from trainer.bag_cli import main as bag_main
-from trainer.bag_cli import summarize_bag
-from trainer.bag_io import BagError, BagReader
-from trainer.bag_messages import DESCRIPTION_TOPIC
-from trainer.bag_writer import jazzy_metadata_problems
-from trainer.record import KNOWN_TYPES
+from trainer.bags.cli import main as bag_main
+from trainer.bags.cli import summarize_bag
+from trainer.bags.io import BagError, BagReader
+from trainer.bags.messages import DESCRIPTION_TOPIC
+from trainer.bags.record import KNOWN_TYPES
+from trainer.bags.writer import jazzy_metadata_problems
 
 STARTUP = 60.0
 STEP_NS = 40_000_000
@@ -204,7 +204,7 @@ def test_sigkilled_recorder_leaves_a_readable_prefix(probe, launch, untrained_ch
 @pytest.mark.timeout(240)
 def test_bringup_records_and_exits(untrained_checkpoint, tmp_path, namespace):
     bag = tmp_path / "bag"
-    cmd = [sys.executable, "-m", "trainer.record_bringup", "--out", str(bag), "--episodes", "2"]
+    cmd = [sys.executable, "-m", "trainer.bags.record_bringup", "--out", str(bag), "--episodes", "2"]
     # Episodes long enough to outlast DDS matching the policy to the recorder (a lockstep loop can run
     # many steps before it completes: the sim may hear the policy first).
     cmd += ["--steps-per-episode", "100", "--joints", "3", "--namespace", namespace]

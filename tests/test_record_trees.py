@@ -21,9 +21,9 @@ from morph_core.msgs.records import DescriptionRecord, EpisodeStartRecord, Joint
 from morph_core.policy.actor_critic import GraphActorCritic, gaussian_log_prob
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transitions import TransitionConfig
-from trainer.bag_cli import summarize_bag
-from trainer.bag_io import BagReader
-from trainer.train_cli import main as train_main
+from trainer.bags.cli import summarize_bag
+from trainer.bags.io import BagReader
+from trainer.cli.train import main as train_main
 
 STARTUP = 60.0
 SPEC = "star:2x2,y:1x2"

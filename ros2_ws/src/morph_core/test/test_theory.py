@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from morph_core.theory import clip_analysis as theory
-from trainer.theory_cli import TheoryConfig, load_run, main, parse_config
+from trainer.cli.theory import TheoryConfig, load_run, main, parse_config
 
 
 def phi_cdf(x: float) -> float:

@@ -4,7 +4,7 @@ ros2 launch trainer live_training.launch.py pairs:=4 out:=runs/live [updates:=0]
     [resume:=false] [min_joints:=2] [max_joints:=10] [real_time_factor:=1.0]
     [train_args:='--num-steps 1024 --seed 1']
 
-The same processes as ``python -m trainer.live_bringup`` (which needs no ``launch``): each pair's sim runs
+The same processes as ``python -m trainer.live.bringup`` (which needs no ``launch``): each pair's sim runs
 in lockstep at real_time_factor (1: real time; 0: as fast as it goes) with its chain length redrawn from
 min_joints..max_joints at each reset; its policy samples (``deterministic:=false``) and takes the weights
 the trainer pushes on ``policy_weights``. A key pair is made for each launch (in a private temporary
@@ -21,7 +21,7 @@ from launch_ros.actions import Node
 
 import morph_policy_node
 from morph_core.protocol.trust import public_key_path
-from trainer.live_bringup import run_key_pair
+from trainer.live.bringup import run_key_pair
 
 # The nodes' Fast DDS profile (quick discovery, UDP only: docs/design.md), unless the user set their own.
 PROFILE = os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))

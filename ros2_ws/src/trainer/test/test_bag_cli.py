@@ -1,6 +1,6 @@
 """``morph-bag`` on real bags: a swimmer and a real policy stepped in lockstep in this process, every
 message serialized with the Jazzy type store and written by rosbags (MCAP and sqlite3), then read back
-through trainer.bag_io. The export must equal the transitions of the records that were written."""
+through trainer.bags.io. The export must equal the transitions of the records that were written."""
 
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
-from trainer.bag_cli import main, summarize_bag
-from trainer.bag_messages import header, record_message, stamp
+from trainer.bags.cli import main, summarize_bag
+from trainer.bags.messages import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -236,7 +236,7 @@ def test_bad_bags_give_clear_errors(tmp_path, capsys):
 def test_runs_as_a_module(tmp_path, sampled_records):
     bag = write_bag(tmp_path / "run", sampled_records)
     done = subprocess.run(
-        [sys.executable, "-m", "trainer.bag_cli", "info", str(bag)], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "trainer.bags.cli", "info", str(bag)], capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 0, done.stderr
     assert f"{NS}/joint_states" in done.stdout and "usable for PPO: 35" in done.stdout

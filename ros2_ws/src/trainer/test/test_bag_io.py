@@ -1,4 +1,4 @@
-"""Bags written for real (rosbags' own writer and trainer.bag_writer, MCAP and sqlite3, messages
+"""Bags written for real (rosbags' own writer and trainer.bags.writer, MCAP and sqlite3, messages
 serialized with the Jazzy type store) read back into records; every bad input gets a clear error."""
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from morph_core.msgs.records import (
 )
 from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.protocol.loopback import GaussianController, record_episodes
-from trainer.bag_io import BagError, BagReader, read_bag
-from trainer.bag_messages import TOPIC_TYPES, record_message
-from trainer.bag_writer import BagTopic, BagWriter, BagWriterError, WriterOptions, jazzy_metadata_problems
+from trainer.bags.io import BagError, BagReader, read_bag
+from trainer.bags.messages import TOPIC_TYPES, record_message
+from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions, jazzy_metadata_problems
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -425,7 +425,7 @@ _KILLED_WRITER = textwrap.dedent(
     import os, signal, sys
     sys.path[:0] = {paths!r}
     from test_bag_io import joint_state, ser, NS
-    from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
+    from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
     w = BagWriter({bag!r}, WriterOptions(storage={storage!r}))
     tid = w.add_topic(BagTopic(NS + "/joint_states", "sensor_msgs/msg/JointState"))
     for k in range(60):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-LIVE = [sys.executable, "-m", "trainer.live_bringup"]
+LIVE = [sys.executable, "-m", "trainer.live.bringup"]
 ROOT = Path(__file__).resolve().parents[4]
 
 

@@ -49,7 +49,7 @@ def test_a_centipede_run_has_twelve_globals_and_resumes_bit_for_bit(centipede_ru
 
 
 def test_morph_eval_on_trained_and_zero_shot_centipedes(centipede_run, capsys):
-    from trainer.eval_cli import main
+    from trainer.cli.eval import main
 
     assert main(["--run", str(centipede_run), "--bodies", "centipede:2,centipede:5", "--episodes", "2"]) == 0
     with (centipede_run / "eval.csv").open() as f:
@@ -76,7 +76,7 @@ def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
     args = ["--checkpoint", ckpt, "--bodies", "centipede:2", "--seconds", "0.8", "--width", "160", "--height", "96"]
     done = subprocess.run(
-        [sys.executable, "-m", "trainer.render_cli", *args, "--gif", str(gif)],
+        [sys.executable, "-m", "trainer.cli.render", *args, "--gif", str(gif)],
         capture_output=True, text=True, timeout=300, env=env,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr

@@ -10,29 +10,29 @@ import pytest
 
 # module, prog, arguments that parse, a truncated option of the tool (with its value, if it takes one)
 TOOLS = [
-    ("train_cli", "morph-train", ["--out", "run"], ["--total-timestep", "5"]),
-    ("eval_cli", "morph-eval", ["--checkpoint", "p.safetensors"], ["--episode", "3"]),
-    ("export_cli", "morph-export", ["p.safetensors", "p.onnx"], ["--with-val"]),
-    ("render_cli", "morph-render", ["--untrained", "--gif", "x.gif"], ["--second", "2"]),
-    ("gait_cli", "morph-gait", [], ["--second", "2"]),
-    ("keys_cli", "morph-keys", ["new", "key"], ["--forc"]),
-    ("bag_cli", "morph-bag", ["info", "bag"], ["--jso"]),
-    ("theory_cli", "morph-theory", ["--out", "th"], ["--run-cs", "x.csv"]),
-    ("record", "morph-record", [], ["--hel"]),
-    ("record_bringup", "python -m trainer.record_bringup", ["--out", "bag"], ["--episode", "3"]),
-    ("live_bringup", "python -m trainer.live_bringup", ["--out", "run"], ["--pair", "2"]),
-    ("live_in_process", "python -m trainer.live_in_process", ["--out", "run"], ["--total-timestep", "5"]),
-    ("live_compare", "python -m trainer.live_compare", ["run"], ["--simulato", "sim"]),
-    ("bag_rounds", "bag_rounds", ["--out", "rounds"], ["--round", "3"]),
-    ("ship", "python -m trainer.ship", ["--run", "run", "--dest", "p.safetensors"], ["--replac"]),
-    ("summary", "python -m trainer.summary", ["--run", "run"], ["--ru", "run"]),
+    ("cli.train", "morph-train", ["--out", "run"], ["--total-timestep", "5"]),
+    ("cli.eval", "morph-eval", ["--checkpoint", "p.safetensors"], ["--episode", "3"]),
+    ("cli.export", "morph-export", ["p.safetensors", "p.onnx"], ["--with-val"]),
+    ("cli.render", "morph-render", ["--untrained", "--gif", "x.gif"], ["--second", "2"]),
+    ("cli.gait", "morph-gait", [], ["--second", "2"]),
+    ("cli.keys", "morph-keys", ["new", "key"], ["--forc"]),
+    ("bags.cli", "morph-bag", ["info", "bag"], ["--jso"]),
+    ("cli.theory", "morph-theory", ["--out", "th"], ["--run-cs", "x.csv"]),
+    ("bags.record", "morph-record", [], ["--hel"]),
+    ("bags.record_bringup", "python -m trainer.bags.record_bringup", ["--out", "bag"], ["--episode", "3"]),
+    ("live.bringup", "python -m trainer.live.bringup", ["--out", "run"], ["--pair", "2"]),
+    ("live.in_process", "python -m trainer.live.in_process", ["--out", "run"], ["--total-timestep", "5"]),
+    ("live.compare", "python -m trainer.live.compare", ["run"], ["--simulato", "sim"]),
+    ("bags.rounds", "bag_rounds", ["--out", "rounds"], ["--round", "3"]),
+    ("reports.ship", "python -m trainer.reports.ship", ["--run", "run", "--dest", "p.safetensors"], ["--replac"]),
+    ("reports.summary", "python -m trainer.reports.summary", ["--run", "run"], ["--ru", "run"]),
     ("sweep.cli", "morph-sweep", ["--out", "sweep", "--dry-run"], ["--gri", "seed=1"]),
 ]
 
 
 def _fails(module: str, argv: list[str], capsys) -> tuple[int, str]:
     main = importlib.import_module(f"trainer.{module}").main
-    if module == "record":  # a ROS node's main takes the whole argv, its program name first
+    if module == "bags.record":  # a ROS node's main takes the whole argv, its program name first
         argv = ["morph-record", *argv]
     with pytest.raises(SystemExit) as exit_:
         main(argv)
@@ -60,10 +60,10 @@ def test_an_abbreviated_option_is_refused(module, prog, good, truncated, capsys,
 
 
 def test_a_missing_argument_is_one_line_too(capsys):
-    code, err = _fails("train_cli", ["--total-timesteps", "5"], capsys)
+    code, err = _fails("cli.train", ["--total-timesteps", "5"], capsys)
     assert code == 2
     assert err == "morph-train: error: the following arguments are required: --out\nsee morph-train --help\n"
-    code, err = _fails("train_cli", ["--out", "run", "--total-timesteps", "five"], capsys)
+    code, err = _fails("cli.train", ["--out", "run", "--total-timesteps", "five"], capsys)
     assert err.splitlines() == [
         "morph-train: error: argument --total-timesteps: invalid int value: 'five'",
         "see morph-train --help",
@@ -71,7 +71,9 @@ def test_a_missing_argument_is_one_line_too(capsys):
 
 
 def test_every_boolean_is_flag_true_or_false_and_a_bare_flag_takes_no_positional():
-    from trainer import bag_cli, export_cli, train_cli
+    from trainer.bags import cli as bag_cli
+    from trainer.cli import export as export_cli
+    from trainer.cli import train as train_cli
 
     parse = train_cli.build_parser().parse_args
     for given, compile_, resume in (([], None, False), (["--compile"], True, False),
@@ -97,7 +99,7 @@ def test_no_tool_declares_a_boolean_another_way():
 
 
 def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_path, capsys):
-    from trainer.eval_cli import main
+    from trainer.cli.eval import main
 
     (tmp_path / "config.json").write_text("{}")
     main(["--run", str(tmp_path), "--no-eval"])  # nothing to evaluate, nothing to plot
@@ -106,7 +108,8 @@ def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_pa
 
 
 def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
-    from trainer import eval_cli, live_bringup
+    from trainer.cli import eval as eval_cli
+    from trainer.live import bringup as live_bringup
 
     (tmp_path / "config.json").write_text("{}")
     eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--threads", "2"])  # as morph-train: --env-threads
@@ -117,5 +120,5 @@ def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
     with pytest.raises(SystemExit):  # refused (a run there), but --updates was read as --max-updates first
         live_bringup.main(["--out", str(run), "--updates", "3"])
     err = capsys.readouterr().err.splitlines()
-    assert err[0] == "python -m trainer.live_bringup: warning: --updates is deprecated: write --max-updates"
+    assert err[0] == "python -m trainer.live.bringup: warning: --updates is deprecated: write --max-updates"
     assert err[1].startswith("morph-train: error:")

@@ -18,9 +18,9 @@ from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.policy_updates import checkpoint_trust
 from morph_core.protocol.trust import TrustedKeys, load_public_key
-from trainer.eval_cli import EvalConfig, evaluate_run
-from trainer.keys_cli import main as keys_main
-from trainer.ship import body_key, scored_bodies
+from trainer.cli.eval import EvalConfig, evaluate_run
+from trainer.cli.keys import main as keys_main
+from trainer.reports.ship import body_key, scored_bodies
 
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
@@ -41,7 +41,7 @@ def test_evaluation_is_deterministic_and_covers_every_length():
 def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     runs = [train(TrainConfig(total_timesteps=256, clip_mode=m, seed=1, **SMALL), tmp_path / m)
             for m in ("compensated", "fixed")]  # fmt: skip
-    cli = [sys.executable, "-m", "trainer.eval_cli", "--episodes", "2", "--lengths", "2", "3"]
+    cli = [sys.executable, "-m", "trainer.cli.eval", "--episodes", "2", "--lengths", "2", "3"]
     subprocess.run([*cli, "--run", *map(str, runs), "--plots", str(tmp_path / "fig")], check=True)
     with (runs[0] / "eval.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -56,7 +56,10 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     assert "| 2 |" in table and "| 3 |" in table and "compensated (1 seeds)" in table
     assert "| 3 |" in (tmp_path / "fig" / "late_eval_table.md").read_text()
     summary = subprocess.run(
-        [sys.executable, "-m", "trainer.summary", "--run", *map(str, runs)], check=True, capture_output=True, text=True
+        [sys.executable, "-m", "trainer.reports.summary", "--run", *map(str, runs)],
+        check=True,
+        capture_output=True,
+        text=True,
     ).stdout
     assert "| compensated | never | never |" in summary and "| fixed | never | never |" in summary
     assert "clip fraction per dimension, fixed (1 runs): 2:" in summary
@@ -67,7 +70,9 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
         assert keys_main(["sign", str(checkpoint), "--key", str(tmp_path / "key")]) == 0
     # Ship the best evaluated checkpoint: it loads, and says where it came from and how it scored.
     dest = tmp_path / "models" / "swimmer_gnn.safetensors"
-    subprocess.run([sys.executable, "-m", "trainer.ship", "--run", *map(str, runs), "--dest", str(dest)], check=True)
+    subprocess.run(
+        [sys.executable, "-m", "trainer.reports.ship", "--run", *map(str, runs), "--dest", str(dest)], check=True
+    )
     trust = checkpoint_trust(load_checkpoint(dest), TrustedKeys([load_public_key(tmp_path / "key.pub")]))
     assert trust.order is not None and "(trusted)" in trust.description
     meta = json.loads(dest.with_suffix(".json").read_text())["metadata"]
@@ -87,7 +92,7 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     GraphActorCritic.load(dest)
 
     # Shipping again: the policy at --dest is a candidate too, scored on its recorded evaluation.
-    ship = [sys.executable, "-m", "trainer.ship", "--run", *map(str, runs), "--dest", str(dest)]
+    ship = [sys.executable, "-m", "trainer.reports.ship", "--run", *map(str, runs), "--dest", str(dest)]
     meta_path = dest.with_suffix(".json")
     shipped = json.loads(meta_path.read_text())
 
@@ -115,7 +120,7 @@ def rows_of(run):
 
 def test_eval_cli_refuses_a_directory_that_is_not_a_run(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "trainer.eval_cli", "--run", str(tmp_path)], capture_output=True, text=True
+        [sys.executable, "-m", "trainer.cli.eval", "--run", str(tmp_path)], capture_output=True, text=True
     )
     assert out.returncode != 0 and "not a training run" in out.stderr
 
@@ -247,7 +252,7 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
     with pytest.raises(ValueError, match="random family"):
         evaluate_run(run, EvalConfig(lengths=[], bodies="random:3-5"), log=lambda _: None)
     # One policy file (a shipped model): a table of the same returns, nothing written.
-    from trainer.eval_cli import main
+    from trainer.cli.eval import main
 
     ckpt = run / "checkpoints" / "policy_00000256.safetensors"
     assert main(["--checkpoint", str(ckpt), "--lengths", "--bodies", "y:1x1", "--episodes", "1"]) == 0

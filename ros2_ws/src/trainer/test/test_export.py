@@ -32,11 +32,11 @@ from morph_core.policy.onnx_export import (
     scaled_difference,
 )
 from morph_core.policy.weights import CheckpointError, load_checkpoint
-from trainer import export_cli
-from trainer.keys_cli import main as keys_main
+from trainer.cli import export as export_cli
+from trainer.cli.keys import main as keys_main
 
 SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
-CLI = [sys.executable, "-m", "trainer.export_cli"]
+CLI = [sys.executable, "-m", "trainer.cli.export"]
 
 
 def trained_shaped(config: PolicyConfig, seed: int) -> GraphActorCritic:

@@ -4,7 +4,7 @@ import pytest
 
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.gait import TravellingWave, run_gait
-from trainer.gait_cli import main
+from trainer.cli.gait import main
 
 
 def test_morph_gait_prints_each_bodys_speed(capsys):

@@ -9,7 +9,7 @@ import torch
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.trust import load_public_key
-from trainer.keys_cli import main
+from trainer.cli.keys import main
 
 
 def test_new_sign_check_and_every_mistake_refused(tmp_path, capsys):

@@ -1,5 +1,5 @@
-"""trainer.live_compare on hand-made progress rows: returns read at each run's last update before a mark,
-smoothed as trainer.summary does, and the table and figure written from them."""
+"""trainer.live.compare on hand-made progress rows: returns read at each run's last update before a mark,
+smoothed as trainer.reports.summary does, and the table and figure written from them."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trainer.live_compare import plot, return_at, stability_table, table
-from trainer.runs import Run
+from trainer.live.compare import plot, return_at, stability_table, table
+from trainer.reports.runs import Run
 
 
 def run(name: str, steps: list[int], returns: list[float]) -> Run:

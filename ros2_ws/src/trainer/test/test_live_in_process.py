@@ -1,4 +1,4 @@
-"""Live training without DDS (``trainer.live_in_process``): lost states cut episodes into runs as the live
+"""Live training without DDS (``trainer.live.in_process``): lost states cut episodes into runs as the live
 trainer cuts them, the behaviour policy lags the set number of versions, and the run directory is a live run's."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import json
 import pytest
 
 from morph_core.algo.train import TrainConfig
-from trainer.live_in_process import InProcessOptions, main, train_in_process
-from trainer.live_learner import LIVE_LEARNING_RATE
+from trainer.live.in_process import InProcessOptions, main, train_in_process
+from trainer.live.learner import LIVE_LEARNING_RATE
 
 TINY = TrainConfig(num_envs=1, num_steps=256, minibatch_size=64, update_epochs=1, total_timesteps=1200,
                    min_joints=2, max_joints=4, tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
@@ -78,7 +78,7 @@ def test_lost_states_are_warned_about_and_a_restarted_sim_is_not():
     from morph_core.policy.actor_critic import GraphActorCritic
     from morph_core.protocol.loopback import SamplingController, record_episodes
     from morph_core.protocol.transitions import TransitionAssembler
-    from trainer.live import lost_messages_warning  # rclpy is imported, nothing is started
+    from trainer.live.trainer_node import lost_messages_warning  # rclpy is imported, nothing is started
 
     policy = GraphActorCritic()
     first = record_episodes(SamplingController(policy, 1), [(3, 50)], seed=1)

@@ -22,7 +22,7 @@ from morph_core.protocol.loopback import LoopbackRecording, SamplingController, 
 from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
-from trainer.live_learner import LiveLearner, LiveOptions, NonFiniteUpdate
+from trainer.live.learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
 SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
                     tensorboard=False, progress_bar=False, compile=False)  # fmt: skip

@@ -12,7 +12,7 @@ from morph_core.algo.ppo_config import PPOConfig
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import TransitionAssembler
-from trainer.live_learner import LiveLearner
+from trainer.live.learner import LiveLearner
 
 
 def test_the_live_learner_resumes_an_old_state_with_a_new_learning_rate_and_hears_rows(tmp_path):

@@ -4,7 +4,7 @@ argument is refused. Neither starts a recorder nor leaves a bag behind."""
 import subprocess
 import sys
 
-CLI = [sys.executable, "-m", "trainer.record"]
+CLI = [sys.executable, "-m", "trainer.bags.record"]
 
 
 def test_help_prints_the_parameters_and_creates_nothing(tmp_path):

@@ -18,7 +18,7 @@ import pytest
 from PIL import Image
 
 from morph_core.policy.weights import load_checkpoint, untrained_weights
-from trainer.render_cli import VideoConfig, caption, training_rule
+from trainer.cli.render import VideoConfig, caption, training_rule
 
 BIN = Path(sys.executable).parent
 # The shipped policy swims from its first steps, so consecutive frames surely differ.

@@ -1,4 +1,4 @@
-"""Rollout workers on Ray actors (``trainer.ray_rollouts``), on a real local Ray: a run of two workers
+"""Rollout workers on Ray actors (``trainer.sim.ray_rollouts``), on a real local Ray: a run of two workers
 resumes bit for bit from its checkpoint, and one whose worker is killed with SIGKILL goes on, the restart
 logged with what went back."""
 
@@ -19,8 +19,8 @@ from morph_core.algo.checkpoint import load_training_state  # noqa: E402
 from morph_core.algo.rollout_workers import RolloutWorker, worker_seed  # noqa: E402
 from morph_core.algo.train import TrainConfig, rollout_spec, train  # noqa: E402
 from morph_core.policy.actor_critic import GraphActorCritic  # noqa: E402
-from trainer import train_cli  # noqa: E402
-from trainer.ray_rollouts import RayRolloutPool, ray_rollout_pool  # noqa: E402
+from trainer.cli import train as train_cli  # noqa: E402
+from trainer.sim.ray_rollouts import RayRolloutPool, ray_rollout_pool  # noqa: E402
 
 SMALL = dict(
     num_envs=4, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=256, tensorboard=False,
@@ -84,7 +84,7 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_goes_on(local_ray, tmp
             killed.append(pools[0].pids()[1])
             os.kill(killed[0], signal.SIGKILL)
 
-    caplog.set_level(logging.WARNING, logger="trainer.ray_rollouts")
+    caplog.set_level(logging.WARNING, logger="trainer.sim.ray_rollouts")
     run = train(TrainConfig(total_timesteps=768, seed=5, **SMALL), tmp_path / "k", on_row=kill_worker_1,
                 rollout_pool=make)  # fmt: skip
     rows = _rows(run)
@@ -139,7 +139,7 @@ def test_a_worker_killed_while_collecting_collects_again_from_its_restored_state
     try:
         theta = torch.nn.utils.parameters_to_vector(GraphActorCritic(cfg.policy).parameters()).detach()
         pid = pool.pids()[0]
-        caplog.set_level(logging.WARNING, logger="trainer.ray_rollouts")
+        caplog.set_level(logging.WARNING, logger="trainer.sim.ray_rollouts")
         pool.start(theta)
         time.sleep(0.1)
         os.kill(pid, signal.SIGKILL)

@@ -8,7 +8,8 @@ import pytest
 
 from morph_core.algo.train import TrainConfig
 from morph_core.util.config_cli import overrides_from_args
-from trainer import live_in_process, train_cli
+from trainer.cli import train as train_cli
+from trainer.live import in_process as live_in_process
 
 
 def test_rule_and_its_deprecated_alias_reach_the_config(capsys):

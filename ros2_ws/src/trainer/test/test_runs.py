@@ -12,8 +12,10 @@ import pytest
 
 from morph_core.algo.train import TrainConfig, log_columns
 from morph_core.algo.trust_region import ClippedRatio, register, unregister
-from trainer import eval_cli, plots, summary, train_cli
-from trainer.runs import load_run, load_runs, series, smooth
+from trainer.cli import eval as eval_cli
+from trainer.cli import train as train_cli
+from trainer.reports import plots, summary
+from trainer.reports.runs import load_run, load_runs, series, smooth
 
 TEST_RULE = "eighth-root"
 
@@ -144,11 +146,13 @@ def test_summary_ranks_the_rules_claim_by_claim_and_reports_zero_shot(tmp_path, 
 
 def test_ship_needs_an_explicit_destination(tmp_path):
     run = write_run(tmp_path / "fixed-s1", "fixed", 1)
-    out = subprocess.run([sys.executable, "-m", "trainer.ship", "--run", str(run)], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "trainer.reports.ship", "--run", str(run)], capture_output=True, text=True
+    )
     assert out.returncode != 0 and "--dest" in out.stderr
     # The best evaluated checkpoint's file is gone (a run kept as data only): the error says how to get it back.
     dest = tmp_path / "model.safetensors"
-    out = subprocess.run([sys.executable, "-m", "trainer.ship", "--run", str(run), "--dest", str(dest)],
+    out = subprocess.run([sys.executable, "-m", "trainer.reports.ship", "--run", str(run), "--dest", str(dest)],
                          capture_output=True, text=True)  # fmt: skip
     assert out.returncode == 2 and not dest.exists()
     assert "best evaluated checkpoint is fixed-s1 at step 18432" in out.stderr

@@ -82,8 +82,10 @@ def test_the_results_sweeps_make_the_runs_of_docs_results():
     """sweeps/*.yaml: the configs the results scripts ran, so that their figures stay reproducible."""
     sweeps = Path(__file__).resolve().parents[4] / "sweeps"
     trials = {p.stem: load_spec(p).expand() for p in sorted(sweeps.glob("*.yaml"))}
-    assert {k: len(v) for k, v in trials.items()} == {"rules": 70, "train": 10, "trees": 10, "two_joint": 8}
-    rules = {(t.train_config().clip_mode, t.train_config().anneal_lr) for t in trials["rules"]}
+    assert {k: len(v) for k, v in trials.items()} == {
+        "centipedes": 10, "families": 2, "rules": 70, "train": 10, "trees": 10, "two_joint": 8
+    }  # fmt: skip
+    rules = {(t.train_config().rule, t.train_config().anneal_lr) for t in trials["rules"]}
     assert {rule for rule, _ in rules} == set(rule_names())  # a new rule joins the comparison here
     assert len(rules) == 14 and all(t.train_config().total_timesteps == 1_000_000 for t in trials["rules"])
     assert {t.train_config().bodies for t in trials["trees"]} == {"2-10,random:3-10"}
@@ -93,12 +95,15 @@ def test_the_results_sweeps_make_the_runs_of_docs_results():
     }
     assert two == {(0.98, 2, 2, 500_000), (0.999, 2, 2, 500_000), (0.9999, 2, 2, 500_000), (0.9999, 2, 10, 500_000)}
     assert trials["train"][0].eval_config(1_000_000).from_step == 0  # the curves: every 24th checkpoint
+    centipedes = {(t.train_config().rule, t.train_config().bodies) for t in trials["centipedes"]}
+    assert centipedes == {("fixed", "centipede:2-4"), ("compensated", "centipede:2-4")}
+    assert {t.train_config().bodies for t in trials["families"]} == {"2-10,centipede:2-4", "2-10"}
 
 
 @pytest.mark.parametrize(
     "text, words",
     [
-        ("grid: {clip_mode: [fixed, nonsense]}", "clip_mode must be one of"),
+        ("grid: {clip_mode: [fixed, nonsense]}", "rule must be one of"),
         ("grid: {seed: []}", "non-empty list"),
         ("grid: {seed: 3}", "non-empty list"),
         ("set: {totl_timesteps: 5}", "unknown train config fields"),
@@ -167,7 +172,7 @@ def test_fuzz_garbled_specs_give_a_spec_error_never_a_traceback(tmp_path):
 
 
 def test_a_2x2_grid_makes_four_run_directories_the_tools_read(tmp_path):
-    from trainer.runs import load_runs
+    from trainer.reports.runs import load_runs
 
     out = tmp_path / "sweep"
     done = run_sweep(sweep_command(out, ["clip-mode=fixed,compensated", "seed=1,2"]))

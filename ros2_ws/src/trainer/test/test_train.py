@@ -52,7 +52,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
 def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
-    cli = [sys.executable, "-m", "trainer.train_cli"]
+    cli = [sys.executable, "-m", "trainer.cli.train"]
     subprocess.run([*cli, "--out", str(tmp_path / "ref"), "--total-timesteps", "2048", *args], check=True)
     run = tmp_path / "killed"
     proc = subprocess.Popen([*cli, "--out", str(run), "--total-timesteps", "2048", *args])
@@ -75,7 +75,7 @@ def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
 
 
 def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
-    cli = [sys.executable, "-m", "trainer.train_cli"]
+    cli = [sys.executable, "-m", "trainer.cli.train"]
     help_text = subprocess.run([*cli, "--help"], capture_output=True, text=True, check=True).stdout
     for opt in ("--clip-mode", "--total-timesteps", "--seed", "--resume", "--policy-bidirectional", "--gae-lambda"):
         assert opt in help_text
@@ -88,7 +88,7 @@ def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
 
 
 def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_path, capsys):
-    from trainer.train_cli import main
+    from trainer.cli.train import main
 
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]

@@ -1,6 +1,6 @@
 """``morph-train --from-bags`` on real bags: a swimmer and a sampling policy stepped in lockstep in this
 process (protocol.loopback), every message serialized with the Jazzy type store and written by
-trainer.bag_writer (MCAP and sqlite3), read back through trainer.bag_io. PPO from the bag, resume after a
+trainer.bags.writer (MCAP and sqlite3), read back through trainer.bags.io. PPO from the bag, resume after a
 SIGKILL equal to an uninterrupted run, the refusal of bags without policy_info, every bad input."""
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from morph_core.msgs.records import (
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transitions import SkipCounts
-from trainer.bag_messages import record_message
-from trainer.bag_writer import BagTopic, BagWriter, WriterOptions
-from trainer.train_cli import main, read_bags
+from trainer.bags.messages import record_message
+from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
+from trainer.cli.train import main, read_bags
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -45,7 +45,7 @@ SMALL = [
     "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "2",
     "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
 ]  # fmt: skip
-CLI = [sys.executable, "-m", "trainer.train_cli"]
+CLI = [sys.executable, "-m", "trainer.cli.train"]
 
 
 # -- a lockstep recording as the nodes' messages, in a bag ----------------------------------------

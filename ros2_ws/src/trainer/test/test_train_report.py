@@ -1,4 +1,4 @@
-"""``trainer.train_report``: the KL warnings and the summary morph-train reads from a run's progress.csv as
+"""``trainer.cli.train_report``: the KL warnings and the summary morph-train reads from a run's progress.csv as
 the trainer appends to it (real files, written as ``algo.run_log`` writes them: a header, then a row per
 update, appended and flushed; a resumed run's file replaced by a copy cut at its checkpoint)."""
 
@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from trainer.train_report import MAX_WARNINGS, ProgressFollower
+from trainer.cli.train_report import MAX_WARNINGS, ProgressFollower
 
 COLUMNS = ["global_step", "iteration", "episodes", "return_mean", "approx_kl"]
 

@@ -18,7 +18,7 @@ SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
     tensorboard=False, progress_bar=False, compile=False, min_joints=2, max_joints=3,
 )  # fmt: skip
-CLI = [sys.executable, "-m", "trainer.train_cli"]
+CLI = [sys.executable, "-m", "trainer.cli.train"]
 CLI_SMALL = [
     "--num-envs", "2", "--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2",
     "--min-joints", "2", "--max-joints", "3", "--tensorboard", "false", "--progress-bar", "false",

@@ -10,7 +10,7 @@ checkpoints. ``RolloutWorker`` is that one mechanism, and it runs
   generator: the one-process loop),
 - in the helper processes of ``algo.data_parallel`` (each helper's share,
   its columns in shared memory),
-- in a Ray actor (``trainer.ray_rollouts``), which sends its columns back.
+- in a Ray actor (``trainer.sim.ray_rollouts``), which sends its columns back.
 
 The train loop sees a ``RolloutPool``: start a collection under the current
 parameters, finish it (the whole rollout filled, the episodes), the workers'

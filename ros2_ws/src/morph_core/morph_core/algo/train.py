@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 PoolFactory = Callable[[RolloutSpec, int], RolloutPool]
 """makes the pool of ``rollout_workers`` > 1 workers for a run's rollout: ``pool(spec, workers)`` (the core
-has no such pool: ``trainer.ray_rollouts`` makes one of Ray actors)"""
+has no such pool: ``trainer.sim.ray_rollouts`` makes one of Ray actors)"""
 
 
 @renamed_fields(clip_mode="rule")

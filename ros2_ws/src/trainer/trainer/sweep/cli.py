@@ -10,7 +10,7 @@ morph-eval's options, ``from_step`` half the run's steps unless given). A trial 
 dies is started again (``--max-failures``) and resumes from its run directory's last state, with the result
 of a run never interrupted. A sweep stopped as a whole (Ctrl-C, a lost head) resumes with the same command;
 another spec into the same ``--out`` is refused. At the end ``OUT/summary.md`` holds a table of the trials
-(node, steps, the last 10 updates' training return, the late evaluation) and ``trainer.summary``'s tables,
+(node, steps, the last 10 updates' training return, the late evaluation) and ``trainer.reports.summary``'s tables,
 the rules ranked claim by claim, for each group of trials that differ only in rule and seed; it is printed.
 
 Local by default: Ray starts here with ``--cpus`` CPUs, one trial per ``--cpus-per-trial``. ``--address``
@@ -175,8 +175,8 @@ def _status(trials: list[Trial], results) -> dict:
 
 def groups(trials: list[Trial]) -> dict[str, list[Trial]]:
     """Trials that differ only in how they ran (seed, threads ...) and their rule, under a label of what the
-    rest of their overrides says; trainer.summary refuses to pool runs of one rule trained differently."""
-    from trainer.runs import HOW_RUN
+    rest of their overrides says; trainer.reports.summary refuses to pool runs of one rule trained differently."""
+    from trainer.reports.runs import HOW_RUN
 
     out: dict[str, list[Trial]] = {}
     for t in trials:
@@ -186,13 +186,13 @@ def groups(trials: list[Trial]) -> dict[str, list[Trial]]:
 
 
 def summary(out: Path, trials: list[Trial], status: dict) -> str:
-    """The sweep's Markdown: its trials, then trainer.summary's tables for each group of trials."""
+    """The sweep's Markdown: its trials, then trainer.reports.summary's tables for each group of trials."""
     import warnings
 
     import numpy as np
 
-    from trainer import summary as tables
-    from trainer.runs import load_run
+    from trainer.reports import summary as tables
+    from trainer.reports.runs import load_run
 
     warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's "mean of empty slice": a '–' or nan in a cell
     lines = [f"# Sweep {out}\n", "| trial | node | steps | last 10 updates | late eval, trained lengths | "
@@ -206,7 +206,7 @@ def summary(out: Path, trials: list[Trial], status: dict) -> str:
                      f"{tables.training_marks(run)['last']:.0f} | {'–' if np.isnan(trained) else f'{trained:.0f}'} "
                      f"| {per_length} |")  # fmt: skip
     for label, members in groups(trials).items():
-        lines.append(f"\n## {label or 'all trials'}: trainer.summary\n")
+        lines.append(f"\n## {label or 'all trials'}: trainer.reports.summary\n")
         text, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(text), contextlib.redirect_stderr(err):
             try:

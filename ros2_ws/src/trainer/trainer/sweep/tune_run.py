@@ -57,8 +57,8 @@ def run_trial(config: dict) -> None:
     from ray import tune
 
     from morph_core.algo.train import train
-    from trainer.eval_cli import evaluate_run, one_blas_thread
-    from trainer.summary import late_means
+    from trainer.cli.eval import evaluate_run, one_blas_thread
+    from trainer.reports.summary import late_means
 
     trial = Trial.from_dict(config["trial"])
     run_dir = Path(config["sweep_dir"]) / trial.name
@@ -83,7 +83,7 @@ def run_trial(config: dict) -> None:
     one_blas_thread()
     eval_cfg = trial.eval_config(cfg.total_timesteps)
     evaluate_run(run_dir, eval_cfg, log=lambda _: None)  # checkpoints already in eval.csv are skipped
-    from trainer.runs import load_run
+    from trainer.reports.runs import load_run
 
     run = load_run(run_dir)
     late = late_means(run)

@@ -1,0 +1,281 @@
+"""``morph-bag``: what recorded bags hold for learning, and their transitions as arrays.
+
+    morph-bag info BAG...                   topics and message counts, the robot's description (or that
+                                            there is none: chains), episodes, steps per chain length and
+                                            per body, steps usable for PPO, skipped steps and unused
+                                            messages by reason
+    morph-bag export BAG... --out FILE.npz  the transitions, one row per step
+                                            (layout: ``morph_core.protocol.transition_batch``)
+
+A BAG is a rosbag2 folder, its ``metadata.yaml`` or one storage file (MCAP or
+sqlite3), read by ``trainer.bags.io``. Each bag is its own stream: an episode
+never spans two bags. Records become transitions as
+``morph_core.protocol.transitions`` describes (pairing by stamp, episode
+boundaries, nothing guessed: every step left out is counted under its
+reason). The robot is the bag's ``robot_description`` (the sim latches its
+URDF before each body's first state, and ``morph-record`` records it): its
+tree, the joints bound by name. States recorded before the bag's first
+description (a recorder whose description reader matched after its state
+reader) are read on that first one, the URDF in force when they were
+published (``bag_io.first_description``). A bag without one holds chains,
+each state's joints in the message's order, and ``info`` says so. The options after the
+command tune the assembly (``--control-period``, ``--settle-states``, ...);
+``--namespace`` picks the robot when a bag holds several.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from morph_core.algo.train_from_data import describe_bodies
+from morph_core.env.bodies import body_label
+from morph_core.msgs.records import DescriptionRecord
+from morph_core.protocol.joint_map import JointMap
+from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
+from morph_core.protocol.transitions import (
+    SkipCounts,
+    StreamStats,
+    TransitionAssembler,
+    TransitionConfig,
+)
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
+from trainer.bags.io import BagError, BagReader, first_description
+from trainer.bags.messages import DESCRIPTION_TOPIC
+
+NO_DESCRIPTION = "no robot_description: joints taken as chains in message order"
+
+
+@dataclass
+class BagSummary:
+    """One bag (or the total over several): what it held and what became of it."""
+
+    path: str
+    topics: list[tuple[str, str, int]] = field(default_factory=list)
+    """(topic, type, messages) of every topic in the bag"""
+    rejected: Counter = field(default_factory=Counter)
+    """messages the reader could not decode, by (topic, reason)"""
+    warnings: list[str] = field(default_factory=list)
+    skips: SkipCounts = field(default_factory=SkipCounts)
+    stats: StreamStats = field(default_factory=StreamStats)
+    steps_per_chain: Counter = field(default_factory=Counter)
+    """transitions per number of joints"""
+    descriptions: int = 0
+    """robot_description messages read"""
+    described: list[str] = field(default_factory=list)
+    """the bodies (``env.bodies.body_label``) the descriptions that read as a robot described, in order"""
+    steps_per_body: Counter = field(default_factory=Counter)
+    """transitions per body label"""
+    ppo_steps: int = 0
+    """transitions with their behaviour log-prob (policy_info)"""
+    batch: TransitionBatch = field(default_factory=TransitionBatch.empty)
+
+    def as_dict(self) -> dict:
+        return {
+            "path": self.path,
+            "topics": [{"topic": t, "type": ty, "messages": n} for t, ty, n in self.topics],
+            "rejected": {f"{topic}: {reason}": n for (topic, reason), n in sorted(self.rejected.items())},
+            "warnings": list(self.warnings),
+            "episodes": self.stats.episodes,
+            "boundaries": {c: getattr(self.stats, f"boundaries_{c}") for c in StreamStats.BOUNDARY_CAUSES},
+            "states": self.stats.states,
+            "resent_states": self.stats.resent_states,
+            "steps": self.stats.transitions,
+            "steps_usable_for_ppo": self.ppo_steps,
+            "steps_without_policy_info": self.stats.without_policy_info,
+            "steps_applied_unverified": self.stats.applied_unverified,
+            "steps_per_chain": {str(n): c for n, c in sorted(self.steps_per_chain.items())},
+            "robot_description": {"messages": self.descriptions, "bodies": list(self.described)},
+            "steps_per_body": dict(self.steps_per_body),
+            "skipped_steps": {r: getattr(self.skips, r) for r in SkipCounts.STEP_REASONS},
+            "unused_messages": {r: getattr(self.skips, r) for r in SkipCounts.MESSAGE_REASONS},
+        }
+
+
+def summarize_bag(
+    path: str | Path, config: TransitionConfig, namespace: str | None = None, joint_map: JointMap | None = None
+) -> BagSummary:
+    """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
+    ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
+    default ``bag_robot``'s."""
+    reader = BagReader(path, namespace=namespace)
+    asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
+    transitions, described = [], {}
+    for record in reader.records():
+        transitions += asm.push(record)
+        if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
+            described.setdefault(body_label(asm.joint_map.robot.tree))
+    transitions += asm.flush()
+    batch = TransitionBatch.from_transitions(transitions)
+    stats = reader.stats
+    logical = reader.logical_names(reader.namespaces[0])
+    topics = []
+    for name, info in sorted(reader.topics.items()):
+        if name in logical:
+            key = logical[name]
+            count = stats.counts[key] + sum(n for (t, _), n in stats.rejected.items() if t == key)
+        else:
+            count = stats.skipped[name]
+        topics.append((name, info.msgtype, count))
+    return BagSummary(
+        path=str(path),
+        topics=topics,
+        rejected=Counter(stats.rejected),
+        warnings=list(stats.warnings),
+        skips=asm.skips,
+        stats=asm.stats,
+        steps_per_chain=Counter(batch.num_joints.tolist()),
+        descriptions=stats.counts[DESCRIPTION_TOPIC],
+        described=list(described),
+        steps_per_body=Counter(batch.steps_per_body()),
+        ppo_steps=int(batch.has_policy_info.sum()),
+        batch=batch,
+    )
+
+
+def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
+    """The robot of a bag's first states: its first robot_description, if it reads as one (else None: the
+    assembler's fallback, chains in message order, until a description in the stream says otherwise)."""
+    first = first_description(path, namespace)
+    if first is None:
+        return None
+    try:
+        return JointMap.from_urdf(first.text)
+    except ValueError:  # no robot: the stream counts it (bad_description) when it reaches it
+        return None
+
+
+def total(summaries: list[BagSummary]) -> BagSummary:
+    """The sum over several bags (topics by name, counts added; batches concatenated)."""
+    out = BagSummary(path=f"total over {len(summaries)} bags")
+    topics: dict[str, tuple[str, int]] = {}
+    for s in summaries:
+        for name, ty, n in s.topics:
+            topics[name] = (ty, topics.get(name, (ty, 0))[1] + n)
+        out.rejected.update(s.rejected)
+        out.warnings += s.warnings
+        out.skips.merge(s.skips)
+        out.stats.merge(s.stats)
+        out.steps_per_chain.update(s.steps_per_chain)
+        out.descriptions += s.descriptions
+        out.described += [label for label in s.described if label not in out.described]
+        out.steps_per_body.update(s.steps_per_body)
+        out.ppo_steps += s.ppo_steps
+    out.topics = [(name, ty, n) for name, (ty, n) in sorted(topics.items())]
+    out.batch = TransitionBatch.concatenate([s.batch for s in summaries])
+    return out
+
+
+def format_summary(s: BagSummary) -> str:
+    lines = [f"{s.path}"]
+    width = max((len(t) for t, _, _ in s.topics), default=0)
+    lines.append("  topics:")
+    lines += [f"    {t:<{width}}  {n:>8}  {ty}" for t, ty, n in s.topics] or ["    none"]
+    if s.rejected:
+        lines.append("  undecodable messages: " + _counts({f"{t} ({r})": n for (t, r), n in s.rejected.items()}))
+    if s.descriptions:
+        bodies = ", ".join(s.described) or "none that reads as a robot"
+        lines.append(f"  robot_description: {s.descriptions} ({bodies})")
+    else:
+        lines.append(f"  {NO_DESCRIPTION}")
+    st = s.stats
+    boundaries = {c.replace("_", " "): getattr(st, f"boundaries_{c}") for c in StreamStats.BOUNDARY_CAUSES}
+    lines.append(
+        f"  states: {st.states} ({st.resent_states} re-sent); episode boundaries: {_counts(boundaries) or 'none'}"
+    )
+    lines.append(f"  episodes: {st.episodes} (runs of consecutive steps)")
+    chains = ", ".join(f"{n} joints: {c}" for n, c in sorted(s.steps_per_chain.items()))
+    lines.append(f"  steps: {st.transitions}" + (f" ({chains})" if chains else ""))
+    if s.steps_per_body:
+        lines.append("  bodies: " + ", ".join(f"{label} {n}" for label, n in s.steps_per_body.items()))
+    lines.append(
+        f"  usable for PPO: {s.ppo_steps}"
+        + (f" ({st.without_policy_info} without policy_info: no behaviour log-prob)" if st.without_policy_info else "")
+    )
+    if st.applied_unverified:
+        lines.append(f"  applied effort not reported by the state (command trusted): {st.applied_unverified}")
+    skipped = {r: getattr(s.skips, r) for r in SkipCounts.STEP_REASONS}
+    unused = {r: getattr(s.skips, r) for r in SkipCounts.MESSAGE_REASONS}
+    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}")
+    lines.append(f"  unused messages: {_counts(unused) or 'none'}")
+    lines += [f"  warning: {w}" for w in s.warnings]
+    return "\n".join(lines)
+
+
+def _counts(counts: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+
+
+# -- command line ---------------------------------------------------------------------------------
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
+        prog="morph-bag", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    info = commands.add_parser("info", help="what the bags hold for learning")
+    export = commands.add_parser("export", help="the bags' transitions as one .npz")
+    for sub in (info, export):
+        sub.add_argument("bags", nargs="+", metavar="BAG", help="bag folder, metadata.yaml or storage file")
+        sub.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
+        add_dataclass_options(sub, TransitionConfig)
+    info.add_argument("--json", action=BoolAction, default=False, help="print JSON instead of text")
+    export.add_argument("--out", required=True, type=Path, help="the .npz to write (replaced atomically)")
+    export.add_argument(
+        "--require-policy-info",
+        action=BoolAction,
+        default=False,
+        help="refuse (write nothing) if any step lacks its behaviour log-prob, as PPO needs",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        config = replace_nested(TransitionConfig(), overrides_from_args(args, TransitionConfig))
+        summaries = [summarize_bag(bag, config, args.namespace) for bag in args.bags]
+    except (BagError, ValueError) as err:
+        print(f"morph-bag: error: {err}", file=sys.stderr)
+        return 1
+    overall = summaries[0] if len(summaries) == 1 else total(summaries)
+    if args.command == "info":
+        if args.json:
+            doc = {"bags": [s.as_dict() for s in summaries], "total": overall.as_dict()}
+            print(json.dumps(doc, indent=2))
+        else:
+            print("\n".join(format_summary(s) for s in summaries))
+            if len(summaries) > 1:
+                print(format_summary(overall))
+        return 0
+    print("\n".join(format_summary(s) for s in summaries))
+    batch = overall.batch
+    if not len(batch):
+        print(f"morph-bag: error: no usable steps in {', '.join(args.bags)}: nothing written", file=sys.stderr)
+        return 1
+    if args.require_policy_info:
+        try:
+            batch.require_policy_info()
+        except MissingPolicyInfoError as err:
+            print(f"morph-bag: error: {err}: nothing written", file=sys.stderr)
+            return 1
+    batch.to_npz(args.out)
+    print(
+        f"wrote {len(batch)} steps ({batch.num_episodes} episodes, {describe_bodies(batch)}, "
+        f"{int(batch.has_policy_info.sum())} with policy_info) to {args.out}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

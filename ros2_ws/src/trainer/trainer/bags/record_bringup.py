@@ -1,0 +1,220 @@
+"""Record episodes of the sampling policy on the simulated swimmer into a bag: sim + policy + recorder.
+
+    bash scripts/record.sh --out bags/run1 --episodes 10 [--joints 6] [--storage mcap]
+    python -m trainer.bags.record_bringup --out bags/run1 ...      (the same, without set-up or network namespace)
+
+What a launch file would do on a Jazzy install, for machines without
+``launch``: the recorder starts first (so it sees the first episode), then the
+sim (lockstep, as fast as possible) and the policy (``deterministic:=false``,
+so it samples and publishes ``policy_info``). If the sim has episodes (its
+``episode_steps`` parameter), the recorder stops by itself when episode
+N+1 is announced; otherwise it stops after N x ``--steps-per-episode``
+policy answers. Then the nodes are stopped and the bag's contents printed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
+
+
+class BringupError(RuntimeError):
+    """A node of the bring-up exited or never came up: said in one line (its own error is above), no traceback."""
+
+
+def fastdds_profile() -> str | None:
+    """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
+    try:
+        import morph_policy_node
+    except ImportError:
+        return None
+    return str(morph_policy_node.FASTDDS_PROFILE)
+
+
+def _start(module: str, namespace: str, params: dict) -> subprocess.Popen:
+    args = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace or '/'}"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={v}"]
+    return subprocess.Popen(args)
+
+
+def _stop(procs: list[subprocess.Popen], sig=signal.SIGTERM) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(sig)
+    for p in procs:
+        try:
+            p.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
+    """Whether node ``target`` declares parameter ``name`` (asked over its parameter service)."""
+    import rclpy
+    from rcl_interfaces.srv import ListParameters
+
+    client = node.create_client(ListParameters, f"{target}/list_parameters")
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise BringupError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
+    future = client.call_async(ListParameters.Request(names=[name]))
+    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
+    if future.result() is None:
+        raise BringupError(f"no answer from {target}/list_parameters")
+    return name in future.result().result.names
+
+
+def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, timeout: float) -> None:
+    """Until node ``name`` subscribes to every topic of one of ``alternatives`` (as the ROS graph shows it)."""
+    import rclpy
+
+    def missing(topics: list[str]) -> list[str]:
+        return [t for t in topics if not any(i.node_name == name for i in node.get_subscriptions_info_by_topic(t))]
+
+    deadline = time.monotonic() + timeout
+    while True:
+        left = [missing(topics) for topics in alternatives]
+        if not all(left):
+            return
+        said = " or ".join(str(m) for m in left)
+        if proc.poll() is not None:
+            raise BringupError(f"{name} exited (code {proc.returncode}) before it subscribed to {said}: see its "
+                               "error above")  # fmt: skip
+        if time.monotonic() > deadline:
+            raise BringupError(f"{name} did not subscribe to {said} within {timeout} s (DDS discovery failed?)")
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+
+def run(args) -> int:
+    profile = fastdds_profile()
+    if profile:
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    import rclpy
+
+    out = Path(args.out)
+    if out.exists():
+        print(f"record_bringup: error: {out} exists already: choose a new --out", file=sys.stderr)
+        return 1
+    ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
+    recorder_params = {"output": str(out), "storage": args.storage}
+    sim_params = {
+        "num_joints": args.joints,
+        "lockstep": "true",
+        "real_time_factor": 0.0,
+        "effort_timeout": 2.0,
+        "episode_steps": args.steps_per_episode,  # ignored by a sim without episodes
+        "seed": args.seed,
+    }
+    policy_params = {"deterministic": "false", "seed": args.seed}
+    if args.checkpoint:
+        policy_params["checkpoint"] = args.checkpoint
+
+    rclpy.init()
+    node = rclpy.create_node("record_bringup", namespace=ns or "/")
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(_start("swimmer_sim_node.sim_node", ns, sim_params))
+        episodes = _has_parameter(node, f"{ns}/swimmer_sim", "episode_steps", args.startup_timeout)
+        if episodes:
+            recorder_params["max_episodes"] = args.episodes
+            what = f"{args.episodes} episodes of {args.steps_per_episode} steps"
+        else:
+            recorder_params["max_messages"] = args.episodes * args.steps_per_episode
+            recorder_params["count_topic"] = "policy_info"
+            what = f"{args.episodes * args.steps_per_episode} steps (this sim has no episodes)"
+        # The lockstep sim publishes its first state once someone listens to joint_states: the
+        # recorder, started now, so the bag begins with the reset state. The policy starts once the
+        # recorder listens to everything (its own topics are subscribed in advance), or the loop
+        # could run many steps before the recorder hears of the policy.
+        recorder = _start("trainer.bags.record", ns, recorder_params)
+        procs.insert(0, recorder)
+        topics = ["joint_states", "effort_commands", "policy_info"] + (["episode_start"] if episodes else [])
+        _wait_for_subscriber(node, recorder, [[f"{ns}/{t}" for t in topics]], "morph_record", args.startup_timeout)
+        procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
+        print(f"record_bringup: recording {what}, {args.joints} joints, into {out}", flush=True)
+        deadline = time.monotonic() + args.timeout
+        while recorder.poll() is None:
+            if any(p.poll() is not None for p in procs[1:]):
+                raise BringupError("a node exited early; see its output above")
+            if time.monotonic() > deadline:
+                print(f"record_bringup: timed out after {args.timeout} s: closing the bag early", flush=True)
+                _stop([recorder], signal.SIGINT)
+                break
+            time.sleep(0.2)
+    finally:
+        _stop(procs)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    if recorder.returncode not in (0, None):
+        print(f"record_bringup: error: the recorder failed (exit {recorder.returncode})", file=sys.stderr)
+        return 1
+    return _summarise(out, ns)
+
+
+def _summarise(out: Path, ns: str) -> int:
+    from morph_core.msgs.records import EpisodeStartRecord, JointStateRecord, PolicyInfoRecord
+    from trainer.bags.io import BagError, BagReader
+
+    try:
+        reader = BagReader(out, required=("joint_states", "effort_commands", "policy_info"), namespace=ns)
+        records = reader.read()
+    except BagError as err:
+        print(f"record_bringup: error: the bag is not usable: {err}", file=sys.stderr)
+        return 1
+    starts = sum(isinstance(r, EpisodeStartRecord) for r in records)
+    counts = ", ".join(f"{k}: {v}" for k, v in sorted(reader.stats.counts.items()))
+    print(f"record_bringup: bag {out}: {counts}; {starts} episode announcements", flush=True)
+    first_state = min(r.stamp_ns for r in records if isinstance(r, JointStateRecord))
+    first_info = min(r.stamp_ns for r in records if isinstance(r, PolicyInfoRecord))
+    if first_info > first_state:
+        # DDS matches each pair of nodes on its own: the sim can hear the policy before the recorder does.
+        print(
+            f"record_bringup: warning: policy_info recorded from t={first_info * 1e-9:.2f} s of sim time on "
+            f"(states from t={first_state * 1e-9:.2f} s): the first steps have no policy data",
+            flush=True,
+        )
+    for w in reader.stats.warnings:
+        print(f"record_bringup: warning: {w}", flush=True)
+    return 0
+
+
+PROG_ENV = "MORPH_PROG"
+"""the name a wrapper script runs a bring-up under (its help and errors name the script)"""
+
+
+def main(argv=None) -> int:
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.bags.record_bringup"),
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog="A relative --out or --checkpoint is taken from the folder the command runs in.",
+    )
+    ap.add_argument("--out", required=True, help="bag folder to create (must not exist)")
+    ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
+    ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")
+    ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="the bag's storage format")
+    ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the sim's resets and the policy's sampling")
+    ap.add_argument("--namespace", default="", help="ROS namespace of the three nodes ('': the root)")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds before closing the bag early")
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the sim")
+    args = ap.parse_args(argv)
+    if args.episodes < 1 or args.steps_per_episode < 1:
+        ap.error("--episodes and --steps-per-episode must be >= 1")
+    try:
+        return run(args)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per command-line tool (morph-train, morph-eval, morph-export, ...)."""

@@ -1,0 +1,395 @@
+"""``morph-train``: PPO on swimmers of mixed chain lengths, under a trust-region rule of the table.
+
+Every TrainConfig field is an option (``--rule``, ``--total-timesteps``,
+``--policy-bidirectional`` ...; ``--clip-mode`` is the deprecated name of
+``--rule``). ``--resume`` continues the run in ``--out`` from its last
+checkpoint, with the config it was started with; options given again
+override it (e.g. a larger ``--total-timesteps``, a new ``--learning-rate``:
+the optimizer's state comes back with the rate and epsilon given) and are
+written back to its config.json. A run that reached its
+``--total-timesteps`` says so and does nothing.
+
+From recorded topics instead of the simulator (``morph_core.algo.train_from_data``):
+
+    morph-train --from-bags BAG... --out DIR [--init POLICY.safetensors] [--iterations N]
+    morph-train --from-bags BAG... --out DIR --resume               after a kill: the same bags
+    morph-train --from-bags NEW... --out DIR --resume --new-data    the next round, on new bags
+
+PPO updates of up to num_envs x num_steps samples (6144 by default) on the
+bags' transitions, each bag its own stream (``morph-bag info`` shows what a
+bag holds). The bags must carry ``policy_info`` (the behaviour log-prob):
+record with ``morph_policy_node`` ``deterministic:=false`` (scripts/record.sh
+does). ``--iterations`` defaults to one pass over the data. Without
+``--init`` the policy starts fresh from ``--seed``. The run directory is laid
+out as for simulator training; a resume on other bags than the run trains
+on is refused. The learning rate is the paper's 0.01, at which a fresh
+policy's updates on bags stayed near the KL target; a trained policy given
+with ``--init`` wants a lower one: the shipped policy, on a bag of its own
+episodes, reached approximate KL 17.6 on its first update at 0.01 (and then
+diverged), 0.19 at 0.003 and 0.05 at 0.001 (a one-off check: docs/guides/bags.md).
+
+What it says: the progress bar shows ``ret`` (simulator: the mean return of
+the last 50 episodes), ``sps`` (steps per second) and ``kl`` (the last
+update's approximate KL); from bags ``kl`` and ``w``, the mean truncated
+importance weight min(pi_prox / pi_behav, proximal_weight_cap) of the
+update's samples (1 while the data are the policy's own, lower as it moves
+away from the policy that acted). An update whose approximate KL exceeds 10
+x ``--kl-target`` (0.1 by default) is warned about (the first 3; the
+summary counts them all). At the end, two lines: the steps and updates, the
+final training return (from bags: the recorded episodes' return) and where
+the run's files are. Every file is in ``--out``: config.json (the config,
+options given with ``--resume`` written back), progress.csv (a row per
+update), tb/ (TensorBoard), checkpoints/policy_<step>.safetensors (the
+policy) and state.safetensors (what ``--resume`` continues from).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from pathlib import Path
+
+from morph_core.algo.checkpoint import TrainingStateError
+from morph_core.algo.rollout_workers import RolloutWorkerError
+from morph_core.algo.train import TrainConfig, train
+from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
+from morph_core.algo.trust_region import RULES
+from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.trust import load_signing_key
+from morph_core.util.config_cli import (
+    BoolAction,
+    CommandLineParser,
+    DeprecatedAlias,
+    add_dataclass_options,
+    overrides_from_args,
+    replace_nested,
+)
+from trainer.bags.cli import bag_robot
+from trainer.bags.io import BagError, BagReader
+from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
+from trainer.cli.train_session import (
+    ResumedConfig,
+    ResumeError,
+    finished_data_message,
+    finished_message,
+    saved_counters,
+)
+from trainer.live.learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
+
+PPO_TOPICS = ("joint_states", "odom")
+"""topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
+(``MissingPolicyInfoError``), effort_commands may be missing (policy_info holds the action)"""
+
+
+class CliError(Exception):
+    """A one-line error for the command line."""
+
+
+def build_parser() -> CommandLineParser:
+    parser = CommandLineParser(
+        prog="morph-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--out", type=Path, required=True, help="run directory")
+    parser.add_argument(
+        "--resume", action=BoolAction, default=False, help="continue the run in --out from its last checkpoint"
+    )
+    bags = parser.add_argument_group("training from recorded bags")
+    bags.add_argument(
+        "--from-bags",
+        nargs="+",
+        metavar="BAG",
+        default=None,
+        help="train on these rosbag2 bags (folder, metadata.yaml or storage file) instead of the simulator",
+    )
+    bags.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="start a new run from this policy checkpoint (.safetensors, its .json beside it)",
+    )
+    bags.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="PPO updates on these bags (default: one pass, ceil(steps / (num_envs * num_steps)))",
+    )
+    bags.add_argument(
+        "--new-data",
+        action=BoolAction,
+        default=False,
+        help="with --resume: the bags are new data for the run, trained on after what it has done "
+        "(policy, critic, optimizer and generator carry over)",
+    )
+    bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
+    live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live.trainer_node)")
+    live.add_argument("--live", action=BoolAction, default=False,
+                      help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
+                      f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
+    live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
+    live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
+                      help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
+    live.add_argument("--max-staleness", type=int, default=LiveOptions.max_staleness,
+                      help="drop steps sampled by weights more than this many versions old")  # fmt: skip
+    live.add_argument("--silence-timeout", type=float, default=LiveOptions.silence_timeout,
+                      help="seconds without a new state before a pair's partial episode is dropped")  # fmt: skip
+    live.add_argument("--max-updates", type=int, default=LiveOptions.max_updates,
+                      help="stop after this many updates (0: at --total-timesteps)")  # fmt: skip
+    live.add_argument("--weights-period", type=float, default=LiveOptions.weights_period,
+                      help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
+    live.add_argument("--nice", type=int, default=LiveOptions.nice,
+                      help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
+    live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
+                      help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
+                      "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
+    live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
+                      help="take each pair's messages from its policy node's stream_chunks instead "
+                      f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
+    # The rule's choices and their help come from the table of trust-region rules.
+    rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
+    parser.add_argument(
+        "--rule", dest="rule", choices=list(RULES), default=None, help=f"trust-region rule ({rules}) (default: "
+        f"{TrainConfig.rule})"
+    )  # fmt: skip
+    parser.add_argument("--clip-mode", dest="clip_mode", choices=list(RULES), default=None, action=DeprecatedAlias,
+                        new="--rule", help=argparse.SUPPRESS)  # fmt: skip
+    add_dataclass_options(parser, TrainConfig, skip=("rule",))
+    parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
+                        help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray start "
+                        "--head printed it); default: a local Ray on this machine")  # fmt: skip
+    return parser
+
+
+def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[TransitionBatch, list[str], SkipCounts]:
+    """The transitions of ``bags`` (each its own stream), the reader's warnings and the steps skipped;
+    raises ``BagError`` for a bag that cannot be read."""
+    batches, warnings, skips = [], [], SkipCounts()
+    for bag in bags:
+        reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
+        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
+        batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
+        warnings += reader.stats.warnings
+        skips.merge(asm.skips)
+    return TransitionBatch.concatenate(batches), warnings, skips
+
+
+def _train_from_bags(args) -> None:
+    overrides = overrides_from_args(args, TrainConfig)
+    if args.init is not None:
+        if args.resume:
+            raise CliError("--init starts a new run; --resume continues the run in --out from its own state")
+        try:
+            GraphActorCritic.load(args.init)
+        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
+            raise CliError(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})") from None
+    source = [str(Path(b).resolve()) for b in args.from_bags]
+    resumed = None
+    if args.resume:
+        if not (args.out / "config.json").exists():
+            raise CliError(f"--resume: no run to resume in {args.out} (config.json missing)")
+        resumed = ResumedConfig(args.out, overrides)
+        cfg = resumed.cfg
+        if not args.new_data and (done := finished_data_message(args.out, source, args.iterations)):
+            print(f"morph-train: {done}")
+            return
+    else:
+        if (args.out / "state.safetensors").exists():
+            raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
+        cfg = replace_nested(TrainConfig(), overrides)
+    data, warnings, skips = read_bags(args.from_bags, args.namespace)
+    for w in warnings:
+        print(f"morph-train: warning: {w}", file=sys.stderr)
+    if not len(data):
+        skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
+        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {skipped or 'none'})")
+    missing = int((~data.has_policy_info).sum())
+    if missing == len(data):
+        try:
+            data.require_policy_info()
+        except MissingPolicyInfoError as err:
+            hint = "record with morph_policy_node deterministic:=false (scripts/record.sh does)"
+            raise CliError(f"{err}; {hint}") from None
+    if missing:
+        print(f"morph-train: warning: {missing} of {len(data)} steps have no policy_info (lost, or another "
+              "controller acted): they enter the advantages, not the updates", file=sys.stderr)  # fmt: skip
+    updates = args.iterations or passes_cut(len(data) - missing, cfg.batch_size)
+    print(
+        f"morph-train: {len(data)} steps ({data.num_episodes} episodes, {describe_bodies(data)}) from "
+        f"{len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
+        f"update(s) of up to {cfg.batch_size} samples into {args.out}",
+        flush=True,
+    )
+    follower = _follower(args.out, cfg, args.resume, args.init)
+    if cfg.progress_bar:
+        print(f"morph-train: progress bar: kl = the update's approximate KL (warned above {follower.kl_limit:g}), "
+              "w = its samples' mean importance weight min(pi_prox / pi_behav, proximal_weight_cap): 1 on the "
+              "policy's own data, lower as it moves away from the policy that acted", file=sys.stderr)  # fmt: skip
+    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        if resumed:
+            resumed.write_back()
+        with follower:
+            train_from_data(
+                cfg,
+                data,
+                args.out,
+                iterations=args.iterations,
+                init=args.init,
+                resume=args.resume,
+                new_data=args.new_data,
+                source=source,
+                on_row=follower.on_row,
+            )
+    print("\n".join(follower.summary(args.out, data=True)), flush=True)
+
+
+def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
+    """The live run's config, options and (on ``--resume``) what changes in its config.json; ``parser.error``
+    for what the trainer refuses before it starts ROS, and a finished run resumed is said and exits 0."""
+    if not args.namespaces:
+        parser.error("--live needs --namespaces NS [NS ...]")
+    if args.from_bags is not None:
+        parser.error("--live and --from-bags are two data sources: choose one")
+    overrides = overrides_from_args(args, TrainConfig)
+    try:
+        if args.resume:
+            if not (args.out / "state.safetensors").exists():
+                parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
+            resumed = ResumedConfig(args.out, overrides)
+            cfg = resumed.cfg
+        else:
+            if (args.out / "state.safetensors").exists():
+                parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
+            cfg, resumed = replace_nested(live_train_config(), overrides), None
+        options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
+                              args.silence_timeout, args.max_updates, args.weights_period, args.nice,
+                              args.stream_chunks, args.signing_key)  # fmt: skip
+    except (OSError, TypeError, ValueError) as err:
+        parser.error(str(err))
+    if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):
+        print(f"morph-train: {done}")
+        parser.exit(0)
+    return cfg, options, resumed
+
+
+def check_live(argv: list[str]) -> None:
+    """Refuse ``morph-train --live`` arguments (``argv``, without the program) as the trainer would, with its
+    one-line error and exit code 2, before anything starts: a bring-up checks its trainer's command first."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.live:
+        parser.error("check_live: a command without --live")
+    _live_config(args, parser)
+
+
+def _train_live(args, parser) -> int:
+    from trainer.live.trainer_node import run_live  # rclpy only here
+
+    cfg, options, resumed = _live_config(args, parser)
+    try:
+        signer = None if args.signing_key is None else load_signing_key(args.signing_key)
+    except ValueError as err:  # KeyFileError is a ValueError
+        parser.error(str(err))
+    follower = _follower(args.out, cfg, args.resume)
+    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        if resumed:
+            resumed.write_back()
+        with follower:
+            code = run_live(cfg, options, signer=signer, on_row=follower.on_row)
+    print("\n".join(follower.summary(args.out)), flush=True)
+    return code
+
+
+def _follower(out: Path, cfg: TrainConfig, resume: bool, init: Path | None = None) -> ProgressFollower:
+    """The reader of the run's progress.csv that warns of high KL while it trains and sums the session up."""
+    counters = saved_counters(out) if resume else None
+    start = 0 if counters is None else counters["global_step"]
+    hint = "a lower --learning-rate keeps it closer"
+    if init is not None:
+        hint += " (a trained policy given with --init: e.g. --learning-rate 0.001)"
+    return ProgressFollower(out, KL_WARN_FACTOR * cfg.kl_target, start_step=start, hint=hint)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        overrides_from_args(args, TrainConfig)  # --rule and --clip-mode given with two rules: said here
+    except ValueError as err:
+        parser.error(str(err))
+    if args.live:
+        return _train_live(args, parser)
+    if args.from_bags is not None:
+        if args.iterations is not None and args.iterations < 1:
+            parser.error("--iterations must be >= 1")
+        if args.new_data and not args.resume:
+            parser.error("--new-data continues a run: pass --resume too")
+        try:
+            _train_from_bags(args)
+        except (CliError, BagError, ValueError, TypeError) as err:
+            # ValueError: bad option values (the config's checks), data that do not fit the run
+            print(f"morph-train: error: {err}", file=sys.stderr)
+            return 1
+        return 0
+    if args.namespaces or args.signing_key:
+        parser.error("--namespaces, --signing-key: only with --live")
+    given = [opt for opt, v in (("--init", args.init), ("--iterations", args.iterations),
+                                ("--new-data", args.new_data), ("--namespace", args.namespace)) if v]  # fmt: skip
+    if given:
+        parser.error(f"{', '.join(given)}: only with --from-bags")
+    overrides = overrides_from_args(args, TrainConfig)
+    resumed = None
+    if args.resume:
+        if not (args.out / "config.json").exists():
+            parser.error(f"--resume: no run to resume in {args.out} (config.json missing)")
+        try:
+            resumed = ResumedConfig(args.out, overrides)
+        except ResumeError as err:
+            parser.error(str(err))
+        except (OSError, TypeError, ValueError) as err:  # a hand-edited config.json: said before anything runs
+            print(f"morph-train: error: {args.out / 'config.json'}: {err}", file=sys.stderr)
+            return 1
+        cfg = resumed.cfg
+        if done := finished_message(args.out, cfg):
+            print(f"morph-train: {done}")
+            return 0
+    else:
+        if (args.out / "state.safetensors").exists():
+            parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
+        try:
+            cfg = replace_nested(TrainConfig(), overrides)
+        except (TypeError, ValueError) as err:
+            parser.error(str(err))
+    pool = None
+    if cfg.rollout_workers > 1:
+        try:
+            from trainer.sim.ray_rollouts import ray_rollout_pool  # Ray, the trainer[ray] extra, only here
+        except ImportError as err:
+            parser.error(f"--rollout-workers {cfg.rollout_workers} runs on Ray ({err}): install trainer[ray]")
+        pool = ray_rollout_pool(args.ray_address)
+    elif args.ray_address is not None:
+        parser.error("--ray-address: only with --rollout-workers > 1")
+    follower = _follower(args.out, cfg, args.resume)
+    if cfg.progress_bar:
+        print("morph-train: progress bar: ret = the mean return of the last 50 episodes, sps = steps per second, "
+              f"kl = the last update's approximate KL (warned above {follower.kl_limit:g})",
+              file=sys.stderr)  # fmt: skip
+    try:
+        with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+            if resumed:
+                resumed.write_back()
+            with follower:
+                train(cfg, args.out, resume=args.resume, on_row=follower.on_row, rollout_pool=pool)
+    except (TrainingStateError, RolloutWorkerError) as err:
+        print(f"morph-train: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # a full disk: every file is written atomically, so the last checkpoint is intact
+        print(f"morph-train: error: {err}; the run stopped, its last complete checkpoint is kept", file=sys.stderr)
+        return 1
+    print("\n".join(follower.summary(args.out)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,198 @@
+"""Live training on this machine: K lockstep sim+policy pairs in namespaces plus the live trainer.
+
+    bash scripts/live.sh --pairs 4 --out runs/live [--max-updates N] [--resume] [-- MORPH-TRAIN OPTIONS]
+    python -m trainer.live.bringup --out runs/live ...      (the same, without set-up or network namespace)
+
+What ``trainer/launch/live_training.launch.py`` does on a Jazzy install, for
+machines without ``launch``. The trainer starts first (``morph-train --live``,
+its subscriptions made in advance), then each pair in ``/swimmer<i>``: the
+sim (lockstep, paced at ``--real-time-factor``, real time by default; chain
+length redrawn from 2..10 at each reset, seed i) and, once the trainer listens to the pair, the sampling policy
+(``deterministic:=false``, seed i). The bring-up makes a key pair for the run
+(``protocol.trust``, in a private temporary directory removed at the end): the
+trainer signs its weights with the private key, and every policy node trusts
+the public key and no other. The trainer pushes its weights to every policy
+node and sets each sim's episode length. The bring-up ends when the
+trainer does (``--max-updates``, or the config's total_timesteps) and stops the
+pairs; the run directory is ``--out``. Options after ``--`` go to
+``morph-train`` (e.g. ``-- --num-steps 256 --seed 3``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
+from morph_core.protocol.trust import public_key_path, write_key_pair
+from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
+from trainer.bags.messages import DATA_TOPIC_TYPES
+from trainer.bags.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
+
+TRAINER_NODE = "morph_live_trainer"
+TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
+"""what the trainer subscribes to per pair before its policy node starts: the data topics, or with
+``--stream-chunks`` the policy node's chunks"""
+
+
+def pair_params(
+    index: int,
+    min_joints: int,
+    max_joints: int,
+    checkpoint: str | None,
+    real_time_factor: float = 1.0,
+    trusted_key: str | Path | None = None,
+) -> tuple[dict, dict]:
+    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``."""
+    sim = {
+        "lockstep": "true",
+        "real_time_factor": real_time_factor,
+        "effort_timeout": 2.0,
+        "min_joints": min_joints,
+        "max_joints": max_joints,
+        "seed": index,
+    }
+    policy = {"deterministic": "false", "seed": index}
+    if trusted_key is not None:
+        policy["trusted_keys"] = json.dumps([str(trusted_key)])  # a YAML list of one path
+    if checkpoint is not None:
+        policy["checkpoint"] = checkpoint if checkpoint else "''"
+        if not checkpoint:  # the node runs an untrained policy only when asked; the trainer's weights follow
+            policy["allow_untrained"] = "true"
+    return sim, policy
+
+
+def run_key_pair(directory: str | Path) -> Path:
+    """A new signing key for this run in ``directory``; returns the private key's path (the public one: .pub)."""
+    key = Path(directory) / "trainer_key"
+    write_key_pair(key, comment="morph-live-run")
+    return key
+
+
+def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    """``morph-train``'s arguments (without the program)."""
+    cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
+    if signing_key is not None:
+        cmd += ["--signing-key", str(signing_key)]
+    cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
+    if args.resume:
+        cmd.append("--resume")
+    return cmd + extra
+
+
+def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
+    return [sys.executable, "-m", "trainer.cli.train", *trainer_arguments(namespaces, args, extra, signing_key)]
+
+
+def run(args, extra: list[str]) -> int:
+    import subprocess
+
+    from trainer.cli.train import check_live
+
+    namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
+    # What the trainer would refuse (an --out that holds a run, no run to --resume, a bad option after --) it
+    # refuses here, with its own one-line error, before any process starts.
+    check_live(trainer_arguments(namespaces, args, extra))
+    profile = fastdds_profile()
+    if profile:
+        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    import rclpy
+
+    keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
+    key = run_key_pair(keys)
+    rclpy.init()
+    node = rclpy.create_node("live_bringup")
+    trainer = subprocess.Popen(trainer_command(namespaces, args, extra, key))
+    procs: list[subprocess.Popen] = []
+    specs: list[tuple[str, str, dict]] = []
+    try:
+        for i, ns in enumerate(namespaces):
+            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
+                                      public_key_path(key))  # fmt: skip
+            specs.append(("swimmer_sim_node.sim_node", ns, sim))
+            procs.append(_start(*specs[-1]))
+            inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
+            _wait_for_subscriber(node, trainer, inputs, TRAINER_NODE, args.startup_timeout)
+            specs.append(("morph_policy_node.policy_node", ns, policy))
+            procs.append(_start(*specs[-1]))
+        print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
+        deadline = time.monotonic() + args.timeout
+        while trainer.poll() is None:
+            if time.monotonic() > deadline:
+                print(f"live_bringup: timed out after {args.timeout} s: stopping the trainer", flush=True)
+                break
+            # A node that ended (killed, or stuck in the middleware and ended by its runner) comes back, as
+            # a launch file's respawn would do; the trainer takes its pair back when it answers again.
+            for k, proc in enumerate(procs):
+                if proc.poll() is not None:
+                    module, ns, _ = specs[k]
+                    print(f"live_bringup: {module} in {ns} ended ({proc.returncode}): restarting it", flush=True)
+                    procs[k] = _start(*specs[k])
+            time.sleep(0.5)
+    finally:
+        _stop([trainer])
+        _stop(procs)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        shutil.rmtree(keys, ignore_errors=True)
+    return 0 if trainer.returncode in (0, None) else 1
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        cut = argv.index("--")
+        argv, extra = argv[:cut], argv[cut + 1 :]
+    ap = CommandLineParser(
+        prog=os.environ.get(PROG_ENV, "python -m trainer.live.bringup"),
+        usage="%(prog)s [-h] --out DIR [options] [-- MORPH-TRAIN OPTIONS]",
+        description=__doc__,
+        formatter_class=DefaultsHelpFormatter,
+        epilog=textwrap.fill(
+            "Everything after -- goes to the trainer, morph-train --live (.venv/bin/morph-train --help lists its "
+            "options), e.g. -- --num-steps 256 --seed 3 --learning-rate 0.003. A relative --out or --checkpoint "
+            "is taken from the folder the command runs in.",
+            100,
+        ),
+    )
+    ap.add_argument("--pairs", type=int, default=2, help="sim+policy pairs (K)")
+    ap.add_argument("--out", type=Path, required=True, help="the trainer's run directory")
+    ap.add_argument("--max-updates", type=int, default=0,
+                    help="stop after this many updates (0: at the run's total_timesteps)")  # fmt: skip
+    ap.add_deprecated_alias("--updates", "--max-updates")
+    ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
+    ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
+    ap.add_argument(
+        "--real-time-factor",
+        type=float,
+        default=1.0,
+        help="the sims' pace (1: real time, as robots run; 0: as fast as the loop goes). Unpaced pairs "
+        "can outrun the trainer's ingest on a loaded machine, which then cuts their episodes",
+    )
+    ap.add_argument("--min-joints", type=int, default=2, help="shortest chain a sim draws at a reset")
+    ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
+    ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
+                    "weights replace it)")  # fmt: skip
+    ap.add_argument("--timeout", type=float, default=24 * 3600.0, help="wall seconds before stopping")
+    ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for each node")
+    args = ap.parse_args(argv)
+    if args.pairs < 1:
+        ap.error("--pairs must be >= 1")
+    if not args.real_time_factor >= 0:
+        ap.error("--real-time-factor must be >= 0")
+    try:
+        return run(args, extra)
+    except BringupError as err:
+        print(f"{ap.prog}: error: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

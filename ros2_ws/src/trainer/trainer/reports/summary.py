@@ -1,0 +1,231 @@
+"""Summary tables of training runs, as quoted in docs/results.md.
+
+    python -m trainer.reports.summary --run docs/results_data/*
+
+Prints, from each run's own files: the first step at which the training
+return (trailing mean over 5 updates) reached 100 and 200 and the mean of
+the last 10 updates; per trust-region rule the clip fraction and the KL per action dimension
+averaged over all updates and seeds, the epochs per update where a KL stop
+cut them short, and the KL penalty's final beta per run; and per rule the late-training
+(>= half the steps) deterministic eval return averaged over the training
+chain lengths; per run, whether the longest evaluated (unseen) chain
+scores above every trained length, late in training and per checkpoint;
+per rule the late return on every unseen length evaluated (zero-shot);
+per rule the training marks (runs that reached 200, median steps to 100 and
+200, the last 10 updates, the best trailing mean); one table that ranks
+the rules claim by claim; and, for runs evaluated on trees, the late return
+per tree and the last training returns on chains and on trees.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from morph_core.env.bodies import is_chain_label
+from morph_core.util.config_cli import CommandLineParser
+from trainer.reports.runs import Run, body_eval_means, eval_means, load_runs, series, smooth
+
+COLLAPSE = 0.5
+"""a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = CommandLineParser(prog="python -m trainer.reports.summary", description=__doc__)
+    parser.add_argument("--run", type=Path, nargs="+", required=True)
+    args = parser.parse_args(argv)
+    try:
+        groups = load_runs(args.run)
+    except ValueError as e:
+        parser.error(str(e))
+
+    print("| run | >= 100 | >= 200 | mean of the last 10 updates |\n|---|---:|---:|---:|")
+    for runs in groups.values():
+        for run in runs:
+            marks = training_marks(run)
+            first = ["never" if marks[k] == np.inf else f"{int(marks[k]) // 1000}k" for k in ("to_100", "to_200")]
+            print(f"| {run.dir.name} | {first[0]} | {first[1]} | {marks['last']:.0f} |")
+
+    for rule, runs in groups.items():
+        dims = runs[0].trained_lengths
+        fracs = per_dimension(runs, "clip_frac")
+        print(f"\nclip fraction per dimension, {rule} ({len(runs)} runs): "
+              + " ".join(f"{d}:{f:.2f}" for d, f in zip(dims, fracs, strict=True)))  # fmt: skip
+        kls = per_dimension(runs, "approx_kl")
+        if np.isfinite(kls).all():
+            print(f"KL per dimension, {rule}: " + " ".join(f"{d}:{k:.4f}" for d, k in zip(dims, kls, strict=True)))
+        logged = [series(r.progress, "epochs")[1] for r in runs if "epochs" in r.progress[0]]
+        epochs = np.mean(np.concatenate(logged)) if logged else np.nan
+        if epochs < runs[0].config["update_epochs"]:  # the KL stop cut updates short (NaN: not logged)
+            print(f"epochs per update, {rule}: {epochs:.1f} of {runs[0].config['update_epochs']}")
+        betas = [series(r.progress, "kl_beta")[1][-1] for r in runs]
+        if np.isfinite(betas).all():
+            print(f"KL penalty beta at the end, {rule}: " + " ".join(f"{b:g}" for b in betas))
+        late = [late_trained_mean(run) for run in runs]
+        if all(np.isfinite(late)):
+            print(f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {rule}: {np.mean(late):.1f}")
+
+    print("\n| run | unseen n | late mean, unseen | late mean, best trained (n) | unseen on top at checkpoints |")
+    print("|---|---:|---:|---:|---:|")
+    for runs in groups.values():
+        for run in runs:
+            means = eval_means(run)
+            if not means:
+                continue
+            cfg = run.config
+            trained = [n for n in run.trained_lengths if n in means]
+            unseen = max(means)
+            if unseen <= cfg["max_joints"] or not trained:
+                continue  # no chain longer than the training range was evaluated
+            run_late = late_means(run)
+            late = {n: run_late.get(n, np.nan) for n in [*trained, unseen]}
+            best = max(trained, key=late.get)
+            steps = sorted(means[unseen])
+            on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
+            print(f"| {run.dir.name} | {unseen} | {late[unseen]:.0f} | {late[best]:.0f} ({best}) "
+                  f"| {on_top} of {len(steps)} |")  # fmt: skip
+
+    print(training_table(groups))
+    print(zero_shot_table(groups))
+    print(tree_table(groups))
+    print(ranking_table(groups))
+
+
+def per_dimension(runs: list[Run], key: str) -> np.ndarray:
+    """Progress column ``key`` per trained action dimension, averaged over all updates and runs."""
+    return np.array([np.mean([np.nanmean(series(r.progress, f"{key}_d{d}")[1]) for r in runs])
+                     for d in runs[0].trained_lengths])  # fmt: skip
+
+
+def late_tree_means(run: Run) -> dict[str, float]:
+    """{tree label: mean eval return over the run's checkpoints from half its steps on}; chains left out."""
+    half = 0.5 * run.config["total_timesteps"]
+    by_body = {b: steps for b, steps in body_eval_means(run).items() if not is_chain_label(b)}
+    late = {b: [r for s, r in steps.items() if s >= half] for b, steps in by_body.items()}
+    return {b: float(np.mean(v)) for b, v in late.items() if v}
+
+
+def tree_table(groups: dict[str, list[Run]]) -> str:
+    """Late eval return per rule on every tree evaluated (mean +- std over runs), and the training return of
+    the last 10 updates on chains and on trees for runs that trained on both."""
+    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)})
+    lines = []
+    if trees:
+        lines += ["\n| rule | runs | " + " | ".join(trees) + " |", "|---|---:|" + "---:|" * len(trees)]
+        for rule, runs in groups.items():
+            cells = [_mean_std([late_tree_means(r).get(b, np.nan) for r in runs]) for b in trees]
+            lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    mixed = {rule: [r for r in runs if "return_trees" in r.progress[0]] for rule, runs in groups.items()}
+    if any(mixed.values()):
+        lines += ["\n| rule | runs | training return, last 10 updates: chains | trees |", "|---|---:|---:|---:|"]
+        for rule, runs in mixed.items():
+            last = {k: [float(np.nanmean(series(r.progress, k)[1][-10:])) for r in runs]
+                    for k in ("return_chains", "return_trees")}  # fmt: skip
+            if runs:
+                lines.append(f"| {rule} | {len(runs)} | {_mean_std(last['return_chains'])} | "
+                             f"{_mean_std(last['return_trees'])} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def late_means(run: Run) -> dict[int, float]:
+    """{num_joints: mean eval return over the run's checkpoints from half its steps on}."""
+    half = 0.5 * run.config["total_timesteps"]
+    late = {n: [r for s, r in by_step.items() if s >= half] for n, by_step in eval_means(run).items()}
+    return {n: float(np.mean(v)) for n, v in late.items() if v}
+
+
+def late_trained_mean(run: Run) -> float:
+    """Late eval return averaged over the trained chain lengths (NaN if they were not all evaluated)."""
+    late = late_means(run)
+    if not all(n in late for n in run.trained_lengths):
+        return np.nan
+    return float(np.mean([late[n] for n in run.trained_lengths]))
+
+
+def training_marks(run: Run) -> dict[str, float]:
+    """First step at which the trailing mean (5 updates) of the training return reached 200 (inf if never),
+    the mean of the last 10 updates, and whether the run collapsed (last 10 below COLLAPSE x its best)."""
+    steps, ret = series(run.progress, "return_mean")
+    smoothed = smooth(ret, 5)
+    last = float(np.nanmean(ret[-10:]))
+    first = {t: next((float(s) for s, v in zip(steps, smoothed, strict=True) if v >= t), np.inf) for t in (100, 200)}
+    best = float(np.nanmax(smoothed)) if np.isfinite(smoothed).any() else np.nan
+    collapsed = float(last < COLLAPSE * best)
+    return {"to_100": first[100], "to_200": first[200], "last": last, "best": best, "collapsed": collapsed}
+
+
+def training_table(groups: dict[str, list[Run]]) -> str:
+    """Per rule: runs that reached 200, median steps to 100 and 200, the last 10 updates (mean [min..max])
+    and the best trailing mean, averaged over runs."""
+    lines = ["\n| rule | reached 200 | steps to 100, median | steps to 200, median | last 10 updates, mean [min..max] "
+             "| best trailing mean (5 updates), mean |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for rule, runs in groups.items():
+        marks = [training_marks(r) for r in runs]
+        to = {t: float(np.median([m[f"to_{t}"] for m in marks])) for t in (100, 200)}
+        steps = {t: "never" if to[t] == np.inf else f"{to[t] / 1000:.0f}k" for t in to}
+        last = [m["last"] for m in marks]
+        reached = sum(np.isfinite(m["to_200"]) for m in marks)
+        lines.append(f"| {rule} | {reached} of {len(runs)} | {steps[100]} | {steps[200]} | {np.mean(last):.0f} "
+                     f"[{min(last):.0f}..{max(last):.0f}] | {np.mean([m['best'] for m in marks]):.0f} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def zero_shot_table(groups: dict[str, list[Run]]) -> str:
+    """Late eval return per rule: the trained lengths' mean, then every unseen length (mean +- std over runs)."""
+    unseen = sorted({n for runs in groups.values() for r in runs for n in late_means(r) if n > r.config["max_joints"]})
+    if not unseen:
+        return ""
+    lines = ["\n| rule | runs | trained (mean) | " + " | ".join(f"{n} (unseen)" for n in unseen) + " |",
+             "|---|---:|---:|" + "---:|" * len(unseen)]  # fmt: skip
+    for rule, runs in groups.items():
+        cells = [_mean_std([late_trained_mean(r) for r in runs])]
+        cells += [_mean_std([late_means(r).get(n, np.nan) for r in runs]) for n in unseen]
+        lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _mean_std(values: list[float]) -> str:
+    """Mean +- std over runs; '–' unless every run has the value."""
+    v = np.array(values, dtype=float)
+    return f"{v.mean():.0f} ± {v.std():.0f}" if v.size and np.isfinite(v).all() else "–"
+
+
+def ranking_table(groups: dict[str, list[Run]]) -> str:
+    """The rules ranked claim by claim (1 = best; means over runs, the median for steps to 200). Zero-shot is
+    compared on one length for all rules: the longest evaluated late in every run, if no run trained on it."""
+    runs_all = [r for runs in groups.values() for r in runs]
+    common = set.intersection(*[set(late_means(r)) for r in runs_all])
+    unseen = max(common, default=0)
+    if unseen <= max(r.config["max_joints"] for r in runs_all):
+        unseen = 0
+    claims = {  # name: (per-rule value, higher is better)
+        "steps to 200 (median)": (lambda runs: float(np.median([training_marks(r)["to_200"] for r in runs])), False),
+        "last 10 updates": (lambda runs: float(np.mean([training_marks(r)["last"] for r in runs])), True),
+        "collapsed runs": (lambda runs: float(sum(training_marks(r)["collapsed"] for r in runs)), False),
+        "late eval, trained lengths": (lambda runs: float(np.mean([late_trained_mean(r) for r in runs])), True),
+        f"late eval, {unseen or 'no'} joints (unseen)": (
+            lambda runs: float(np.mean([late_means(r)[unseen] for r in runs])) if unseen else np.nan,
+            True,
+        ),
+    }
+    values = {claim: {rule: f(runs) for rule, runs in groups.items()} for claim, (f, _) in claims.items()}
+    lines = ["\n| rule | " + " | ".join(claims) + " |", "|---|" + "---:|" * len(claims)]
+    for rule in groups:
+        cells = [_ranked(values[claim], rule, higher, steps="steps" in claim) for claim, (_, higher) in claims.items()]
+        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _ranked(values: dict[str, float], rule: str, higher: bool, steps: bool) -> str:
+    """'value (rank)' of ``rule`` among ``values``; inf ('never') ranks last, NaN ('–') is not ranked."""
+    v = values[rule]
+    if np.isnan(v):
+        return "–"
+    rank = 1 + sum((x > v) if higher else (x < v) for x in values.values() if not np.isnan(x))
+    text = "never" if v == np.inf else f"{v / 1000:.0f}k" if steps else f"{v:.0f}"
+    return f"{text} ({rank})"
+
+
+if __name__ == "__main__":
+    main()
