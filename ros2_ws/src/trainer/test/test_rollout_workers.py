@@ -16,7 +16,11 @@ import torch
 ray = pytest.importorskip("ray")
 
 from morph_core.algo.checkpoint import load_training_state  # noqa: E402
-from morph_core.algo.rollout_workers import RolloutWorker, worker_seed  # noqa: E402
+from morph_core.algo.rollout_workers import (  # noqa: E402
+    RolloutWorker,
+    RolloutWorkerError,  # noqa: E402
+    worker_seed,
+)
 from morph_core.algo.train import TrainConfig, rollout_spec, train  # noqa: E402
 from morph_core.policy.actor_critic import GraphActorCritic  # noqa: E402
 from trainer.cli import train as train_cli  # noqa: E402
@@ -129,6 +133,14 @@ def test_the_pool_factory_uses_a_running_ray_and_leaves_it_running(local_ray):
     finally:
         pool.close()
     assert ray.is_initialized()
+
+
+def test_more_workers_than_the_cluster_has_cpus_is_refused_not_a_hang(local_ray):
+    """Each worker actor takes a CPU: 3 workers on the 2-CPU Ray would wait forever for the third."""
+    cfg = TrainConfig(**{**SMALL, "rollout_workers": 3})
+    with pytest.raises(RolloutWorkerError, match="3 rollout workers need 3 CPUs; the Ray cluster has 2"):
+        ray_rollout_pool()(rollout_spec(cfg), 3)
+    assert ray.is_initialized()  # a Ray it did not start is left running
 
 
 def test_a_worker_killed_while_collecting_collects_again_from_its_restored_state(local_ray, caplog):

@@ -210,7 +210,14 @@ def ray_rollout_pool(address: str | None = None, **init) -> Callable[[RolloutSpe
     def make(spec: RolloutSpec, workers: int) -> RayRolloutPool:
         started = not ray.is_initialized()
         if started:
+            if address is None:  # a local Ray: a CPU per worker, as many as asked even beyond the cores
+                init.setdefault("num_cpus", max(workers, os.cpu_count() or 1))
             ray.init(address=address, include_dashboard=False, **init)
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if cpus < workers:  # each actor takes a CPU: more workers than CPUs would wait for one forever
+            if started:
+                ray.shutdown()
+            raise RolloutWorkerError(f"{workers} rollout workers need {workers} CPUs; the Ray cluster has {cpus:g}")
         return RayRolloutPool(spec, workers, shutdown=started)
 
     return make
