@@ -180,10 +180,6 @@ class PPOConfig:
     derived = ()
     """fields set from others (``init=False``): taken by the constructor only when they agree"""
 
-    def ppo(self) -> PPOConfig:
-        """The ``PPOConfig`` fields alone."""
-        return PPOConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(PPOConfig)})
-
 
 @dataclass
 class SimConfig:
@@ -209,7 +205,3 @@ class SimConfig:
         for name in ("num_envs", "num_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-
-    def sim(self) -> SimConfig:
-        """The ``SimConfig`` fields alone."""
-        return SimConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(SimConfig)})
