@@ -15,6 +15,8 @@ from PIL import Image
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train import TrainConfig, train
+from morph_core.policy.config import PolicyConfig
+from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint, untrained_weights
 
 SMALL = dict(
@@ -67,6 +69,36 @@ def test_a_swimmer_policy_cannot_evaluate_a_centipede(tmp_path):
 
     with pytest.raises(ValueError, match="reads 4 global features, a centipede 12"):
         evaluate_policy(untrained_weights(seed=0), [Centipede(2)], episodes=1, max_steps=2)
+
+
+class _Hop(NumpyPolicy):
+    """Every joint at +1 for two steps, then -1 for two: a 2-pair centipede jumps above Ant-v5's healthy
+    height (1.0 m) within ~15 steps, each episode at its own step."""
+
+    calls = 0
+
+    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None):
+        sign, self.calls = (1.0 if self.calls % 4 < 2 else -1.0), self.calls + 1
+        return np.full(joint_pos.shape, sign, np.float32)
+
+
+def test_an_evaluated_centipede_stops_where_it_fell_its_length_and_distance_the_envs():
+    from morph_core.algo.evaluate import evaluate_episodes
+    from morph_core.env.bodies import Centipede
+    from morph_core.env.centipede import MorphCentipedeEnv
+
+    weights = untrained_weights(PolicyConfig(global_features=12))
+    results = evaluate_episodes(_Hop(weights), [Centipede(2)], episodes=3, max_steps=100)[Centipede(2)]
+    for k in range(3):
+        env = MorphCentipedeEnv(leg_pairs=2)
+        env.reset(seed=10_000 + k)
+        x0, total, steps, terminated = env.data.qpos[0], 0.0, 0, False
+        while not terminated and steps < 100:
+            _, reward, terminated, _, info = env.step(np.full(8, 1.0 if steps % 4 < 2 else -1.0))
+            total, steps = total + reward, steps + 1
+        assert terminated and info["x_position"] != x0  # it jumped too high: the episode ended there
+        assert (results.returns[k], results.steps[k], results.distance[k]) == (total, steps, info["x_position"] - x0)
+    assert len(set(results.steps)) > 1  # the episodes ended at different steps: the batch went on without each
 
 
 @pytest.mark.timeout(300)

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from morph_core.algo.evaluate import evaluate_policy
+from morph_core.algo.evaluate import evaluate_episodes, evaluate_policy
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -47,6 +47,7 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
         rows = list(csv.DictReader(f))
     assert {(r["global_step"], r["num_joints"]) for r in rows} == {(s, n) for s in ("128", "256") for n in ("2", "3")}
     assert len(rows) == 8
+    assert all(int(r["steps"]) == 1000 and np.isfinite(float(r["distance"])) for r in rows)  # swimmers never end early
     mtime = (runs[0] / "eval.csv").stat().st_mtime_ns
     out = subprocess.run([*cli, "--run", str(runs[0])], check=True, capture_output=True, text=True)
     assert out.stdout == "" and (runs[0] / "eval.csv").stat().st_mtime_ns == mtime  # nothing redone
@@ -178,6 +179,25 @@ def test_a_swimmer_whose_physics_diverges_ends_its_episode_while_the_others_go_o
     np.testing.assert_allclose(mixed[3], evaluate_policy(policy, [3], episodes=3, max_steps=30)[3], rtol=1e-6)
 
 
+def test_episode_lengths_and_distances_are_those_of_the_env_stepped_alone():
+    # How long each episode lasted and how far its root travelled, beside its return: the diverged episode
+    # stopped where it ended, the others ran to max_steps.
+    policy = _BangBang(GraphActorCritic())
+    results = evaluate_episodes(policy, [64, 3], episodes=3, max_steps=30)
+    for k in range(3):
+        env = MorphSwimmerEnv(num_joints=64)
+        env.reset(seed=10_000 + k)
+        x0, steps, terminated = env.data.qpos[0], 0, False
+        while not terminated and steps < 30:
+            _, _, terminated, _, info = env.step(bang(64))
+            steps += 1
+        assert results[64].steps[k] == steps
+        assert results[64].distance[k] == info["x_position"] - x0
+    assert list(results[64].steps) == [30, 30, 1] and list(results[3].steps) == [30, 30, 30]
+    assert np.all(results[3].distance != 0)  # the 3-joint swimmers moved
+    np.testing.assert_array_equal(results[3].returns, evaluate_policy(policy, [64, 3], episodes=3, max_steps=30)[3])
+
+
 def test_evaluation_runs_the_policy_the_torch_network_computes():
     # The NumPy forward pass the evaluation uses, against the torch policy's own mean action, step by step.
     import torch
@@ -249,6 +269,10 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
         w.writerows({k: r[k] for k in w.fieldnames} for r in old)
     rows = evaluate_run(run, EvalConfig(lengths=[2], episodes=1), log=lambda _: None)
     assert sorted((int(r["global_step"]), r["body"]) for r in rows) == [(128, "chain-2"), (256, "chain-2")]
+    evaluate_run(run, EvalConfig(lengths=[3], episodes=1), log=lambda _: None)  # rewrites it with today's columns
+    with (run / "eval.csv").open() as f:
+        got = {(r["body"], r["steps"] == "", r["distance"] == "") for r in csv.DictReader(f)}
+    assert got == {("chain-2", True, True), ("chain-3", False, False)}  # the old rows kept, their new fields empty
     with pytest.raises(ValueError, match="random family"):
         evaluate_run(run, EvalConfig(lengths=[], bodies="random:3-5"), log=lambda _: None)
     # One policy file (a shipped model): a table of the same returns, nothing written.

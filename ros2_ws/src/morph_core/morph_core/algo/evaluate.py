@@ -7,6 +7,7 @@ torch policy to 1e-5): one batched forward pass per step, without torch's per-op
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,6 +23,18 @@ Body = int | KinematicTree | Centipede
 """a chain length, a tree, or a centipede (an episode of it ends when it falls)"""
 
 
+@dataclass(frozen=True)
+class Episodes:
+    """One body's evaluation episodes, an entry per episode."""
+
+    returns: np.ndarray
+    steps: np.ndarray
+    """control steps the episode lasted (``max_steps`` unless it ended early: a fall, a blow-up)"""
+    distance: np.ndarray
+    """the root's x displacement from reset to the episode's end, metres (forward is +x for both families):
+    what tells walking or swimming from standing or drifting where the returns alone do not"""
+
+
 def evaluate_policy(
     policy,
     bodies: Sequence[Body],
@@ -30,8 +43,22 @@ def evaluate_policy(
     max_steps: int = MAX_EPISODE_STEPS,
     num_threads: int = 1,
 ) -> dict[Body, np.ndarray]:
-    """Return per body (as given: a chain length or a ``KinematicTree``) the ``episodes`` returns of the
-    policy's mean action.
+    """Return per body the ``episodes`` returns of the policy's mean action (``evaluate_episodes``'
+    returns)."""
+    results = evaluate_episodes(policy, bodies, episodes, seed, max_steps, num_threads)
+    return {body: result.returns for body, result in results.items()}
+
+
+def evaluate_episodes(
+    policy,
+    bodies: Sequence[Body],
+    episodes: int,
+    seed: int = 10_000,
+    max_steps: int = MAX_EPISODE_STEPS,
+    num_threads: int = 1,
+) -> dict[Body, Episodes]:
+    """Return per body (as given: a chain length, a ``KinematicTree`` or a ``Centipede``) the ``episodes``
+    episodes of the policy's mean action: returns, lengths and distances.
 
     ``policy``: a torch ``GraphActorCritic``, a ``weights.PolicyWeights`` or a ``NumpyPolicy``.
     Episode k of every body starts from reset seed ``seed + k``, so every
@@ -60,7 +87,8 @@ def evaluate_policy(
         parents[r, : swimmers.num_joints] = swimmers.parents
     for swimmers, r in zip(groups, rows, strict=True):
         swimmers.write_observation(pos[r], vel[r], glob[r])
-    returns = np.zeros(count)
+    returns, steps = np.zeros(count), np.zeros(count, dtype=np.int64)
+    x_start = np.concatenate([g.root_x() for g in groups])
     alive = np.ones(count, dtype=bool)
     applied = np.zeros((count, width))
     for _ in range(max_steps):
@@ -82,6 +110,11 @@ def evaluate_policy(
             else:
                 continue
             returns[r][going] += reward
+            steps[r][going] += 1
             alive[r][going] = ~diverged
             swimmers.write_observation(pos[r], vel[r], glob[r])
-    return {body: returns[r].copy() for body, r in zip(bodies, rows, strict=True)}
+    distance = np.concatenate([g.root_x() for g in groups]) - x_start  # an ended episode's root was not stepped since
+    return {
+        body: Episodes(returns[r].copy(), steps[r].copy(), distance[r].copy())
+        for body, r in zip(bodies, rows, strict=True)
+    }

@@ -1,5 +1,5 @@
 """Centipedes of one size stepped side by side for an evaluation: ``SwimmerBatch``'s interface (``size``,
-``num_joints``, ``parents``, ``advance``, ``write_observation``) over one ``MorphCentipedeEnv`` per episode.
+``num_joints``, ``parents``, ``advance``, ``root_x``, ``write_observation``) over one ``MorphCentipedeEnv`` per episode.
 
 ``advance`` reports an episode's end where ``SwimmerBatch`` reports divergence: a centipede that falls
 (Ant-v5's health rule) or blows up ends there, as in training. One env per centipede rather than one
@@ -36,6 +36,10 @@ class CentipedeBatch:
         rows = range(self.size) if ids is None else ids
         outcomes = [self.envs[k].advance(np.asarray(a, dtype=np.float64)) for k, a in zip(rows, actions, strict=True)]
         return np.array([r for r, _ in outcomes]), np.array([t for _, t in outcomes], dtype=bool)
+
+    def root_x(self) -> np.ndarray:
+        """Every centipede's root x position (Ant-v5's ``x_position``: the free joint's), metres."""
+        return np.array([env.data.qpos[0] for env in self.envs])
 
     def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
         """Every centipede's graph observation into its row (12 global features; wider rows keep zeros)."""

@@ -69,6 +69,10 @@ class SwimmerBatch:
         reward = swimmer_reward(x_before, self._qpos[rows, 0], self.dt, actions, *self._weights)
         return reward, self._diverged[rows] > diverged_before
 
+    def root_x(self) -> np.ndarray:
+        """Every swimmer's root x position (Swimmer-v5's ``x_position``), metres."""
+        return self._qpos[:, 0].copy()
+
     def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
         """Every swimmer's graph observation into its row of padded arrays (``size`` rows, as
         ``MorphSwimmerEnv.write_observation`` writes one)."""

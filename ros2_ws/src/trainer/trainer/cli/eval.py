@@ -20,8 +20,8 @@ trained or zero-shot); an episode ends when the centipede falls. With centipedes
 cannot drive a centipede (12): refused.
 
 ``--checkpoint FILE`` instead of ``--run`` evaluates one policy file (a shipped
-model, say) on the same bodies and prints a table of its returns (mean ± std
-over the episodes, per body), writing nothing.
+model, say) on the same bodies and prints a table of its returns, episode lengths and distances
+(mean ± std over the episodes, per body), writing nothing.
 """
 
 from __future__ import annotations
@@ -35,10 +35,9 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from threadpoolctl import threadpool_limits
 
-from morph_core.algo.evaluate import Body, evaluate_policy
+from morph_core.algo.evaluate import Body, Episodes, evaluate_episodes
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
 from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import CheckpointError, load_checkpoint
@@ -52,7 +51,9 @@ from morph_core.util.config_cli import (
 )
 
 CKPT = re.compile(r"policy_(\d+)\.safetensors$")
-EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body"]
+EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body", "steps", "distance"]
+"""A row per episode. ``steps``: how long it lasted; ``distance``: the root's x displacement, metres (empty in
+rows written before they were recorded)."""
 
 
 @dataclass
@@ -129,11 +130,11 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
         if (todo := [b for b in bodies if (step, body_label(b)) not in done])
     ]
     for step, results in _evaluated(jobs, cfg):
-        for body, returns in results.items():  # once per body, even one given twice (evaluate_policy)
+        for body, result in results.items():  # once per body, even one given twice (evaluate_episodes)
             rows += [
                 {"global_step": step, "num_joints": num_joints(body), "episode": k, "return": float(r),
-                 "body": body_label(body)}
-                for k, r in enumerate(returns)
+                 "body": body_label(body), "steps": int(n), "distance": float(d)}
+                for k, (r, n, d) in enumerate(zip(result.returns, result.steps, result.distance, strict=True))
             ]  # fmt: skip
         rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), r["body"], int(r["episode"])))
         # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
@@ -141,14 +142,14 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
             w.writeheader()
             w.writerows(rows)
-        means = " ".join(f"{body_label(body)}:{returns.mean():.1f}" for body, returns in results.items())
+        means = " ".join(f"{body_label(body)}:{result.returns.mean():.1f}" for body, result in results.items())
         log(f"{run_dir.name} step {step}: {means}")
     return rows
 
 
-def evaluate_checkpoint(path: Path, bodies: list[Body], cfg: EvalConfig) -> dict[Body, np.ndarray]:
-    """The returns of the checkpoint at ``path`` per body (its weights read without torch)."""
-    return evaluate_policy(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.env_threads)
+def evaluate_checkpoint(path: Path, bodies: list[Body], cfg: EvalConfig) -> dict[Body, Episodes]:
+    """The episodes of the checkpoint at ``path`` per body (its weights read without torch)."""
+    return evaluate_episodes(load_checkpoint(path), bodies, cfg.episodes, seed=cfg.seed, num_threads=cfg.env_threads)
 
 
 def one_blas_thread() -> None:
@@ -172,11 +173,20 @@ def _evaluated(jobs: list[tuple[int, Path, list[Body]]], cfg: EvalConfig):
 
 
 def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
-    """A Markdown table of the returns of the policy file at ``path`` on ``cfg``'s bodies."""
+    """A Markdown table of the policy file at ``path`` on ``cfg``'s bodies: return, episode length and distance
+    travelled, mean ± std over the episodes."""
     results = evaluate_checkpoint(path, eval_bodies(cfg), cfg)
-    lines = [f"| body | joints | return, mean ± std over {cfg.episodes} episodes |", "|---|---:|---:|"]
-    for body, returns in results.items():
-        lines.append(f"| {body_label(body)} | {num_joints(body)} | {returns.mean():.1f} ± {returns.std():.1f} |")
+    lines = [
+        f"mean ± std over {cfg.episodes} episodes; distance: the root's forward travel",
+        "",
+        "| body | joints | return | steps | distance (m) |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for body, e in results.items():
+        lines.append(
+            f"| {body_label(body)} | {num_joints(body)} | {e.returns.mean():.1f} ± {e.returns.std():.1f} "
+            f"| {e.steps.mean():.0f} ± {e.steps.std():.0f} | {e.distance.mean():.2f} ± {e.distance.std():.2f} |"
+        )
     return "\n".join(lines)
 
 
