@@ -158,3 +158,31 @@ def test_ship_needs_an_explicit_destination(tmp_path):
     assert "best evaluated checkpoint is fixed-s1 at step 18432" in out.stderr
     assert "morph-train --clip-mode fixed --seed 1 " in out.stderr and "Traceback" not in out.stderr
     assert np.isfinite(float(load_run(run).progress[0]["return_mean"]))
+
+
+def test_the_body_tables_give_episode_lengths_and_distances_where_the_evaluation_recorded_them(tmp_path):
+    runs = []
+    for seed, distance in ((1, 1.0), (2, 3.0)):
+        run = write_run(tmp_path / f"c{seed}", "compensated", seed)
+        with (run / "eval.csv").open() as f:
+            chains = list(csv.DictReader(f))
+        with (run / "eval.csv").open("w", newline="") as f:
+            w = csv.DictWriter(f, ["global_step", "num_joints", "episode", "return", "body", "steps", "distance"])
+            w.writeheader()
+            w.writerows(chains)
+            for body, n in (("centipede-10", 40), ("centipede-2", 8)):  # late checkpoints only: 12288 and 18432
+                w.writerows({"global_step": s, "num_joints": n, "episode": 0, "return": 900.0 + n, "body": body,
+                             "steps": 1000 - n, "distance": distance * n} for s in (12288, 18432))  # fmt: skip
+        runs.append(run)
+    old = write_run(tmp_path / "f1", "fixed", 1)  # an evaluation from before lengths and distances
+    with (old / "eval.csv").open("w", newline="") as f:
+        csv.writer(f).writerows(
+            [["global_step", "num_joints", "episode", "return", "body"], [18432, 8, 0, 700, "centipede-2"]]
+        )
+    table = summary.tree_table(load_runs([*runs, old]))
+    assert "| rule | runs | centipede-2 | centipede-10 |" in table  # 10 after 2
+    assert "| compensated | 2 | 908 ± 0 | 940 ± 0 |" in table and "| fixed | 1 | 700 ± 0 | – |" in table
+    assert "| rule: episode length | runs | centipede-2 | centipede-10 |" in table
+    assert "| compensated | 2 | 992 ± 0 | 960 ± 0 |" in table
+    assert "| compensated | 2 | 16.00 ± 8.00 | 80.00 ± 40.00 |" in table  # the root's travel, mean ± std over runs
+    assert "| fixed | 1 | – | – |" in table  # recorded no distance: no figure rather than a zero

@@ -121,9 +121,11 @@ def eval_means(run: Run) -> dict[int, dict[int, float]]:
     return {n: {s: float(np.mean(v)) for s, v in by_step.items()} for n, by_step in acc.items()}
 
 
-def body_eval_means(run: Run) -> dict[str, dict[int, float]]:
-    """{body label: {global_step: mean return over episodes}} of one run, chains (``chain-N``) and trees."""
+def body_eval_means(run: Run, column: str = "return") -> dict[str, dict[int, float]]:
+    """{body label: {global_step: mean of ``column`` over episodes}} of one run, chains (``chain-N``) and trees.
+    ``column``: ``return``, ``steps`` or ``distance`` (rows that did not record it are left out)."""
     acc: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in run.eval:
-        acc[r.get("body") or chain_label(int(r["num_joints"]))][int(r["global_step"])].append(float(r["return"]))
+        if r.get(column) not in (None, ""):
+            acc[r.get("body") or chain_label(int(r["num_joints"]))][int(r["global_step"])].append(float(r[column]))
     return {b: {s: float(np.mean(v)) for s, v in by_step.items()} for b, by_step in acc.items()}

@@ -13,12 +13,15 @@ scores above every trained length, late in training and per checkpoint;
 per rule the late return on every unseen length evaluated (zero-shot);
 per rule the training marks (runs that reached 200, median steps to 100 and
 200, the last 10 updates, the best trailing mean); one table that ranks
-the rules claim by claim; and, for runs evaluated on trees, the late return
-per tree and the last training returns on chains and on trees.
+the rules claim by claim; and, for runs evaluated on trees or centipedes, the
+late return per body (then the episodes' length and the root's forward travel,
+where the evaluation recorded them) and the last training returns on chains and
+on trees.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -98,24 +101,29 @@ def per_dimension(runs: list[Run], key: str) -> np.ndarray:
                      for d in runs[0].trained_lengths])  # fmt: skip
 
 
-def late_tree_means(run: Run) -> dict[str, float]:
-    """{tree label: mean eval return over the run's checkpoints from half its steps on}; chains left out."""
+def late_tree_means(run: Run, column: str = "return") -> dict[str, float]:
+    """{tree label: mean eval ``column`` over the run's checkpoints from half its steps on}; chains left out."""
     half = 0.5 * run.config["total_timesteps"]
-    by_body = {b: steps for b, steps in body_eval_means(run).items() if not is_chain_label(b)}
+    by_body = {b: steps for b, steps in body_eval_means(run, column).items() if not is_chain_label(b)}
     late = {b: [r for s, r in steps.items() if s >= half] for b, steps in by_body.items()}
     return {b: float(np.mean(v)) for b, v in late.items() if v}
 
 
 def tree_table(groups: dict[str, list[Run]]) -> str:
-    """Late eval return per rule on every tree evaluated (mean +- std over runs), and the training return of
-    the last 10 updates on chains and on trees for runs that trained on both."""
-    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)})
+    """Late eval return per rule on every tree (or centipede) evaluated (mean +- std over runs), then the
+    episodes' length and the root's forward travel where the evaluation recorded them, and the training return
+    of the last 10 updates on chains and on trees for runs that trained on both."""
+    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)}, key=_natural)
     lines = []
-    if trees:
-        lines += ["\n| rule | runs | " + " | ".join(trees) + " |", "|---|---:|" + "---:|" * len(trees)]
-        for rule, runs in groups.items():
-            cells = [_mean_std([late_tree_means(r).get(b, np.nan) for r in runs]) for b in trees]
-            lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    for column, what in (("return", "rule"), ("steps", "rule: episode length"), ("distance", "rule: distance, m")):
+        late = {rule: [late_tree_means(r, column) for r in runs] for rule, runs in groups.items()}
+        if not trees or not any(m for means in late.values() for m in means):
+            continue
+        lines += [f"\n| {what} | runs | " + " | ".join(trees) + " |", "|---|---:|" + "---:|" * len(trees)]
+        digits = 2 if column == "distance" else 0
+        for rule, means in late.items():
+            cells = [_mean_std([m.get(b, np.nan) for m in means], digits) for b in trees]
+            lines.append(f"| {rule} | {len(means)} | " + " | ".join(cells) + " |")
     mixed = {rule: [r for r in runs if "return_trees" in r.progress[0]] for rule, runs in groups.items()}
     if any(mixed.values()):
         lines += ["\n| rule | runs | training return, last 10 updates: chains | trees |", "|---|---:|---:|---:|"]
@@ -185,10 +193,15 @@ def zero_shot_table(groups: dict[str, list[Run]]) -> str:
     return "\n".join(lines)
 
 
-def _mean_std(values: list[float]) -> str:
+def _natural(label: str) -> list:
+    """Sort key putting centipede-10 after centipede-8, star-3x2 after star-3x1."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", label)]
+
+
+def _mean_std(values: list[float], digits: int = 0) -> str:
     """Mean +- std over runs; '–' unless every run has the value."""
     v = np.array(values, dtype=float)
-    return f"{v.mean():.0f} ± {v.std():.0f}" if v.size and np.isfinite(v).all() else "–"
+    return f"{v.mean():.{digits}f} ± {v.std():.{digits}f}" if v.size and np.isfinite(v).all() else "–"
 
 
 def ranking_table(groups: dict[str, list[Run]]) -> str:
