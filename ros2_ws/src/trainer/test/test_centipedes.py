@@ -120,3 +120,18 @@ def test_morph_render_films_a_centipede(centipede_run, tmp_path):
             frames.append(np.asarray(im.convert("RGB")))
     assert len(frames) == 11 and all(f.shape == (96, 160, 3) and f.std() > 20 for f in frames)
     assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5  # it moved (or the camera followed it)
+
+
+def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
+    # --processes 2: the helper steps half the centipedes and shares the 12-wide global rollout.
+    two = {**SMALL, "num_envs": 4, "processes": 2, "checkpoint_interval": 256}
+    straight = train(TrainConfig(total_timesteps=768, seed=5, **two), tmp_path / "a")
+    part = train(TrainConfig(total_timesteps=256, seed=5, **two), tmp_path / "b")
+    train(TrainConfig(total_timesteps=768, seed=5, **two), part, resume=True)
+    (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
+    assert "rng.helper1" in wa and ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
+    assert load_checkpoint(straight / "checkpoints" / "policy_00000768.safetensors").config.global_features == 12
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+    with (straight / "progress.csv").open() as f, (part / "progress.csv").open() as g:
+        assert [r["policy_loss"] for r in csv.DictReader(f)] == [r["policy_loss"] for r in csv.DictReader(g)]

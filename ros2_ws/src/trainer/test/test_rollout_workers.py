@@ -168,3 +168,16 @@ def test_a_worker_killed_while_collecting_collects_again_from_its_restored_state
             assert np.array_equal(getattr(mine, name), getattr(alone.rollout, name)), name
     finally:
         pool.close()
+
+
+def test_centipedes_on_two_ray_workers_train_a_twelve_feature_policy(local_ray, tmp_path):
+    from morph_core.policy.weights import load_checkpoint
+
+    legged = {**SMALL, "bodies": "centipede:2-3"}
+    run = train(TrainConfig(total_timesteps=512, seed=6, **legged), tmp_path / "a", rollout_pool=RayRolloutPool)
+    assert load_checkpoint(run / "checkpoints" / "policy_00000512.safetensors").config.global_features == 12
+    weights, meta = load_training_state(run / "state.safetensors")
+    assert {"rng.worker0", "rng.worker1"} <= weights.keys() and meta["counters"]["global_step"] == 512
+    envs = meta["sections"]["swimmers"]["envs"]  # each worker's centipedes, saved for a resume
+    assert len(envs) == 4 and all(e["leg_pairs"] in (2, 3) for e in envs)
+    assert {"return_d8", "return_d12"} <= _rows(run)[0].keys()
