@@ -8,8 +8,8 @@
 # Options go to the bring-up, e.g. --joints 10 --sim-seconds 60 --checkpoint PATH;
 # --bodies y:2x2 swims a branched swimmer (a body spec, docs/bodies.md) and
 # --model-file PATH runs your own robot's MJCF (docs/your_robot.md) instead of a chain;
-# --bodies centipede:3 --checkpoint PATH walks a centipede (docs/centipedes.md): no centipede
-# policy is shipped, so --checkpoint is required there (a morph-train --bodies centipede:... run's).
+# --bodies centipede:5 walks a centipede of 5 leg pairs with the shipped centipede policy
+# (docs/centipedes.md).
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$root"

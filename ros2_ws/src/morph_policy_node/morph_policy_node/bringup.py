@@ -14,9 +14,11 @@ spec of ``morph_core.env.bodies``, e.g. ``y:2x2``: the sim's ``topology``;
 one body for the whole run, the sim draws again only at a reset), or your own
 robot, ``--model-file`` (an MJCF of actuated hinges: the sim's ``model_file``,
 docs/your_robot.md). Without ``--checkpoint``, a chain or a robot is driven by
-the shipped chain model, and bodies with a tree among them by the shipped
+the shipped chain model, bodies with a tree among them by the shipped
 tree-trained model (``models/swimmer_trees_gnn.safetensors``, trained on
-chains and random trees: ``models/README.md``); a robot is driven zero-shot.
+chains and random trees: ``models/README.md``), and centipedes
+(``--bodies centipede:5``) by the shipped centipede model
+(``models/centipede_gnn.safetensors``); a robot is driven zero-shot.
 """
 
 from __future__ import annotations
@@ -124,6 +126,8 @@ def run(
 
 TREE_MODEL = "swimmer_trees_gnn.safetensors"
 """the shipped tree-trained policy, beside the chain one"""
+CENTIPEDE_MODEL = "centipede_gnn.safetensors"
+"""the shipped centipede policy (trained on 2..4 leg pairs; it walks on 3..6: models/README.md)"""
 
 
 def _has_trees(spec: str) -> bool:
@@ -153,21 +157,17 @@ def main(argv=None) -> int:
     body.add_argument("--model-file", default=None, help="MJCF of your own robot (the sim's model_file)")
     ap.add_argument("--sim-seconds", type=float, default=30.0, help="sim time to run")
     ap.add_argument(
-        "--checkpoint", default=None, help="policy .safetensors (default: the shipped model; trees: the tree one)"
+        "--checkpoint", default=None, help="policy .safetensors (default: the shipped model; trees, centipedes: theirs)"
     )
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
     args = ap.parse_args(argv)
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
-    if args.checkpoint is None and args.bodies and _has_centipedes(args.bodies):
-        # Refused rather than run untrained: a policy that cannot walk would look like a broken demo.
-        print("bringup: no centipede policy is shipped: give --checkpoint (a morph-train --bodies centipede:2-4 "
-              "run's checkpoints/policy_*.safetensors; docs/centipedes.md)", flush=True)  # fmt: skip
-        return 2
+    legged = bool(args.bodies) and _has_centipedes(args.bodies)
     if args.checkpoint is None:
         shipped = SHIPPED_MODEL
-        if args.bodies and _has_trees(args.bodies):
-            shipped = SHIPPED_MODEL.with_name(TREE_MODEL)
+        if legged or (args.bodies and _has_trees(args.bodies)):
+            shipped = SHIPPED_MODEL.with_name(CENTIPEDE_MODEL if legged else TREE_MODEL)
             args.checkpoint = str(shipped)
         if not shipped.is_file():
             print(f"bringup: no shipped policy at {shipped}: give --checkpoint", flush=True)
@@ -178,8 +178,9 @@ def main(argv=None) -> int:
         print(f"bringup: {err}", flush=True)
         return 1
     body = f"bodies {args.bodies}, " if args.bodies else f"robot {args.model_file}, " if args.model_file else ""
+    gait = "walk" if legged else "swim"
     print(
-        f"swim speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
+        f"{gait} speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
         f"over {r['sim_seconds']:.2f} s of sim time, {body}{r['joints'] or args.joints} joints; "
         f"closed loop over DDS at {r['rate']:.1f}x real time",
         flush=True,

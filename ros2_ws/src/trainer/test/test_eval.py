@@ -302,6 +302,10 @@ def test_a_tree_run_is_shipped_by_its_chains_and_trees_a_chain_run_by_its_chains
     assert scored_bodies(chains, table) == ["2", "3"]
     assert scored_bodies({**chains, "bodies": "2-3"}, table) == ["2", "3"]
     assert scored_bodies(trees, table) == ["2", "3", "y-1x2", "star-3x2"]
+    # A centipede run by the sizes it trained on; the zero-shot sizes are reported, not scored.
+    legged = {"centipede-2": 900.0, "centipede-4": 950.0, "centipede-5": 1500.0, "centipede-10": 300.0}
+    assert scored_bodies({**chains, "bodies": "centipede:2-4"}, legged) == ["centipede-2", "centipede-4"]
+    assert scored_bodies({**chains, "bodies": "2-3,centipede:2"}, {**table, **legged}) == ["2", "3", "centipede-2"]
     assert [body_key(label) for label in ("chain-2", "chain-40", "y-1x2", "tree-0a1b2c3d")] == [
         "2", "40", "y-1x2", "tree-0a1b2c3d"
     ]  # fmt: skip

@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.algo.train import TrainConfig
-from morph_core.env.bodies import is_chain_label, parse_bodies
+from morph_core.env.bodies import Centipede, is_chain_label, parse_bodies
+from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
 from morph_core.util.config_cli import BoolAction, CommandLineParser
 from trainer.reports.runs import body_eval_means, load_run
@@ -57,10 +58,23 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[str, float]]:
     return by_step
 
 
+def episodes_per_body(run_dir: Path, step: int) -> int:
+    """How many episodes per body the run's evaluation of the checkpoint at ``step`` holds."""
+    rows = [r for r in load_run(run_dir).eval if int(r["global_step"]) == step]
+    return max(sum(r["body"] == b for r in rows) for b in {r["body"] for r in rows})
+
+
 def scored_bodies(cfg: dict, table: dict[str, float]) -> list[str]:
-    """The evaluated bodies a checkpoint is chosen by: the chain lengths it trained on, and every evaluated
-    tree when it trained on trees."""
-    trees = bool(cfg.get("bodies")) and not parse_bodies(cfg["bodies"]).chains_only
+    """The evaluated bodies a checkpoint is chosen by: the chain lengths it trained on, every evaluated tree
+    when it trained on trees, and the centipede sizes it trained on (zero-shot sizes are reported, not
+    scored, as unseen chain lengths are)."""
+    spec = parse_bodies(cfg["bodies"]) if cfg.get("bodies") else None
+    if spec is not None and spec.has_centipedes:
+        members = spec.members() or []
+        trained = {m.label for m in members if isinstance(m, Centipede)}
+        chains = {str(m.num_joints) for m in members if isinstance(m, KinematicTree) and m.is_chain}
+        return [k for k in table if k in trained or k in chains]
+    trees = spec is not None and not spec.chains_only
     chains = [k for k in table if k.isdigit() and cfg["min_joints"] <= int(k) <= cfg["max_joints"]]
     return chains + ([k for k in table if not k.isdigit()] if trees else [])
 
@@ -140,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
             "clip_mode": cfg["clip_mode"],
             "seed": cfg["seed"],
             "training_command": training_command(cfg, run.name),
-            "eval": "deterministic, 10 episodes of 1000 steps per body (morph-eval)",
+            "eval": f"deterministic, {episodes_per_body(run, step)} episodes of up to 1000 steps per body (morph-eval)",
             "eval_mean_return": {b: round(r, 2) for b, r in sorted(table.items(), key=_body_order)},
             "chosen_by": f"mean return over {_described(bodies)} ({score:.1f})",
         },
@@ -156,9 +170,12 @@ def _body_order(item: tuple[str, float]) -> tuple:
 
 def _described(bodies: list[str]) -> str:
     lengths = sorted(int(b) for b in bodies if b.isdigit())
-    trees = [b for b in bodies if not b.isdigit()]
-    text = f"chain lengths {lengths[0]}..{lengths[-1]}" if lengths else "no chain"
-    return text + (f" and the trees {', '.join(trees)}" if trees else "")
+    legged = [b for b in bodies if b.startswith("centipede-")]
+    trees = [b for b in bodies if not b.isdigit() and b not in legged]
+    parts = [f"chain lengths {lengths[0]}..{lengths[-1]}"] if lengths else []
+    parts += [f"the trees {', '.join(trees)}"] if trees else []
+    parts += [f"the centipedes {', '.join(legged)}"] if legged else []
+    return " and ".join(parts) or "no body"
 
 
 if __name__ == "__main__":
