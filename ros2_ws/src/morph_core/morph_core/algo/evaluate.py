@@ -32,7 +32,8 @@ class Episodes:
     """control steps the episode lasted (``max_steps`` unless it ended early: a fall, a blow-up)"""
     distance: np.ndarray
     """the root's x displacement from reset to the episode's end, metres (forward is +x for both families):
-    what tells walking or swimming from standing or drifting where the returns alone do not"""
+    what tells walking or swimming from standing or drifting where the returns alone do not (of a swimmer whose
+    physics blew up: where MuJoCo's reset left it, as the env's ``x_position`` says)"""
 
 
 def evaluate_policy(
