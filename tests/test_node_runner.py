@@ -14,6 +14,9 @@ import pytest
 
 from morph_ros_util.node_runner import WEDGE_TIMEOUT
 
+LAUNCH_SIGTERM_TIMEOUT = 5.0
+"""seconds ROS 2 launch waits after SIGTERM before SIGKILL (``ExecuteProcess``'s ``sigterm_timeout`` default)"""
+
 NODE = textwrap.dedent(
     """
     import ctypes, sys, time
@@ -73,7 +76,10 @@ def test_a_node_stuck_holding_the_gil_ends_itself_in_time_for_sigterm():
     finally:
         proc.kill()
     assert proc.returncode == 1
-    assert took < WEDGE_TIMEOUT + 0.5, f"took {took:.2f} s"
+    # In time: before ROS 2 launch follows its SIGTERM with SIGKILL (sigterm_timeout, 5 s by default). The bound
+    # is that requirement, not WEDGE_TIMEOUT plus a guess: on a loaded machine the timer's thread and the exit
+    # are scheduled late (3.2 s here once, with a training run on the other core).
+    assert WEDGE_TIMEOUT - 0.5 < took < LAUNCH_SIGTERM_TIMEOUT, f"took {took:.2f} s"
     assert "Timeout" in out and "in tick" in out, out  # every thread's stack, the stuck callback among them
     assert "done" not in out
 
