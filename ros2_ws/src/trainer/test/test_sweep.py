@@ -83,7 +83,7 @@ def test_the_results_sweeps_make_the_runs_of_docs_results():
     sweeps = Path(__file__).resolve().parents[4] / "sweeps"
     trials = {p.stem: load_spec(p).expand() for p in sorted(sweeps.glob("*.yaml"))}
     assert {k: len(v) for k, v in trials.items()} == {
-        "centipedes": 10, "centipedes_long": 2, "families": 2, "rules": 70, "train": 10, "trees": 10, "two_joint": 8
+        "centipedes": 10, "centipedes_long": 3, "families": 2, "rules": 70, "train": 10, "trees": 10, "two_joint": 8
     }  # fmt: skip
     rules = {(t.train_config().rule, t.train_config().anneal_lr) for t in trials["rules"]}
     assert {rule for rule, _ in rules} == set(rule_names())  # a new rule joins the comparison here
@@ -97,8 +97,8 @@ def test_the_results_sweeps_make_the_runs_of_docs_results():
     assert trials["train"][0].eval_config(1_000_000).from_step == 0  # the curves: every 24th checkpoint
     centipedes = {(t.train_config().rule, t.train_config().bodies) for t in trials["centipedes"]}
     assert centipedes == {("fixed", "centipede:2-4"), ("compensated", "centipede:2-4")}
-    long = {(t.train_config().rule, t.train_config().total_timesteps) for t in trials["centipedes_long"]}
-    assert long == {("fixed", 3_000_000), ("compensated", 3_000_000)}
+    long = {(c.rule, c.anneal_lr, c.total_timesteps) for c in (t.train_config() for t in trials["centipedes_long"])}
+    assert long == {("fixed", False, 3_000_000), ("compensated", False, 3_000_000), ("compensated", True, 3_000_000)}
     assert trials["centipedes_long"][0].eval_config(3_000_000).from_step == 2_500_000
     assert {t.train_config().bodies for t in trials["families"]} == {"2-10,centipede:2-4", "2-10"}
 
