@@ -130,23 +130,18 @@ CENTIPEDE_MODEL = "centipede_gnn.safetensors"
 """the shipped centipede policy (trained on 2..4 leg pairs; it walks on 3..6: models/README.md)"""
 
 
-def _has_trees(spec: str) -> bool:
-    """Whether a body spec can draw a tree; a bad spec is the sim node's to refuse, with its reason."""
+def _family(spec: str | None) -> str:
+    """What a body spec draws: ``chains``, ``trees`` or ``centipedes`` (which picks the shipped model). A bad
+    spec reads as chains here: it is the sim node's to refuse, with its reason."""
     from morph_core.env.bodies import parse_bodies
 
     try:
-        return not parse_bodies(spec).chains_only
+        mix = parse_bodies(spec) if spec else None
     except ValueError:
-        return False
-
-
-def _has_centipedes(spec: str) -> bool:
-    from morph_core.env.bodies import parse_bodies
-
-    try:
-        return parse_bodies(spec).has_centipedes
-    except ValueError:
-        return False
+        return "chains"
+    if mix is None or mix.chains_only:
+        return "chains"
+    return "centipedes" if mix.has_centipedes else "trees"
 
 
 def main(argv=None) -> int:
@@ -163,11 +158,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
-    legged = bool(args.bodies) and _has_centipedes(args.bodies)
+    family = _family(args.bodies)
     if args.checkpoint is None:
         shipped = SHIPPED_MODEL
-        if legged or (args.bodies and _has_trees(args.bodies)):
-            shipped = SHIPPED_MODEL.with_name(CENTIPEDE_MODEL if legged else TREE_MODEL)
+        if family != "chains":
+            shipped = SHIPPED_MODEL.with_name(CENTIPEDE_MODEL if family == "centipedes" else TREE_MODEL)
             args.checkpoint = str(shipped)
         if not shipped.is_file():
             print(f"bringup: no shipped policy at {shipped}: give --checkpoint", flush=True)
@@ -178,7 +173,7 @@ def main(argv=None) -> int:
         print(f"bringup: {err}", flush=True)
         return 1
     body = f"bodies {args.bodies}, " if args.bodies else f"robot {args.model_file}, " if args.model_file else ""
-    gait = "walk" if legged else "swim"
+    gait = "walk" if family == "centipedes" else "swim"
     print(
         f"{gait} speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
         f"over {r['sim_seconds']:.2f} s of sim time, {body}{r['joints'] or args.joints} joints; "

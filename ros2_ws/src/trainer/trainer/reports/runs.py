@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,6 +120,12 @@ def eval_means(run: Run) -> dict[int, dict[int, float]]:
         if not r.get("body") or is_chain_label(r["body"]):  # files written before trees hold chains only
             acc[int(r["num_joints"])][int(r["global_step"])].append(float(r["return"]))
     return {n: {s: float(np.mean(v)) for s, v in by_step.items()} for n, by_step in acc.items()}
+
+
+def label_order(label: str) -> list:
+    """Sort key for body labels and keys: chain lengths first and by number, then named bodies with their
+    numbers compared as numbers (centipede-10 after centipede-8, star-3x2 after star-3x1)."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", label)]
 
 
 def body_eval_means(run: Run, column: str = "return") -> dict[str, dict[int, float]]:

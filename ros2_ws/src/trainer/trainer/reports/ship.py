@@ -38,7 +38,7 @@ from morph_core.env.bodies import Centipede, is_chain_label, parse_bodies
 from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
 from morph_core.util.config_cli import BoolAction, CommandLineParser
-from trainer.reports.runs import body_eval_means, load_run
+from trainer.reports.runs import body_eval_means, label_order, load_run
 
 
 def body_key(label: str) -> str:
@@ -155,17 +155,12 @@ def main(argv: list[str] | None = None) -> None:
             "seed": cfg["seed"],
             "training_command": training_command(cfg, run.name),
             "eval": f"deterministic, {episodes_per_body(run, step)} episodes of up to 1000 steps per body (morph-eval)",
-            "eval_mean_return": {b: round(r, 2) for b, r in sorted(table.items(), key=_body_order)},
+            "eval_mean_return": {b: round(table[b], 2) for b in sorted(table, key=label_order)},
             "chosen_by": f"mean return over {_described(bodies)} ({score:.1f})",
         },
         signed=source.signed,
     )
     print(f"shipped {run.name} step {step} (score {score:.1f}) to {args.dest}")
-
-
-def _body_order(item: tuple[str, float]) -> tuple:
-    key = item[0]
-    return (0, int(key), "") if key.isdigit() else (1, 0, key)
 
 
 def _described(bodies: list[str]) -> str:

@@ -21,14 +21,13 @@ on trees.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 
 from morph_core.env.bodies import is_chain_label
 from morph_core.util.config_cli import CommandLineParser
-from trainer.reports.runs import Run, body_eval_means, eval_means, load_runs, series, smooth
+from trainer.reports.runs import Run, body_eval_means, eval_means, label_order, load_runs, series, smooth
 
 COLLAPSE = 0.5
 """a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
@@ -113,7 +112,7 @@ def tree_table(groups: dict[str, list[Run]]) -> str:
     """Late eval return per rule on every tree (or centipede) evaluated (mean +- std over runs), then the
     episodes' length and the root's forward travel where the evaluation recorded them, and the training return
     of the last 10 updates on chains and on trees for runs that trained on both."""
-    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)}, key=_natural)
+    trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)}, key=label_order)
     lines = []
     for column, what in (("return", "rule"), ("steps", "rule: episode length"), ("distance", "rule: distance, m")):
         late = {rule: [late_tree_means(r, column) for r in runs] for rule, runs in groups.items()}
@@ -191,11 +190,6 @@ def zero_shot_table(groups: dict[str, list[Run]]) -> str:
         cells += [_mean_std([late_means(r).get(n, np.nan) for r in runs]) for n in unseen]
         lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def _natural(label: str) -> list:
-    """Sort key putting centipede-10 after centipede-8, star-3x2 after star-3x1."""
-    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", label)]
 
 
 def _mean_std(values: list[float], digits: int = 0) -> str:
