@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from morph_core.env.bodies import Centipede
+from morph_core.env.bodies import Centipede, is_walker
 from morph_core.env.centipede_batch import CentipedeBatch
+from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_batch import SwimmerBatch
 from morph_core.env.vec_env import MAX_EPISODE_STEPS
@@ -70,7 +71,11 @@ def evaluate_episodes(
     bodies = list(dict.fromkeys(bodies))  # a body asked twice is evaluated once
     seeds = [seed + k for k in range(episodes)]
     groups = [
-        CentipedeBatch(body.leg_pairs, seeds) if isinstance(body, Centipede) else SwimmerBatch(body, seeds, num_threads)
+        CentipedeBatch(body.leg_pairs, seeds)
+        if isinstance(body, Centipede)
+        else CentipedeBatch(body, seeds)
+        if is_walker(body) or isinstance(body, MjcfBody)
+        else SwimmerBatch(body, seeds, num_threads)
         for body in bodies
     ]
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
@@ -78,8 +83,8 @@ def evaluate_episodes(
     count, width = len(bodies) * episodes, max(g.num_joints for g in groups)
     pos, vel = np.zeros((count, width), np.float32), np.zeros((count, width), np.float32)
     global_width = actor.global_mlp[0][0].shape[0]  # the policy's; a swimmer's 4 features padded to it
-    if global_width < 12 and any(isinstance(b, Centipede) for b in bodies):
-        raise ValueError(f"this policy reads {global_width} global features, a centipede 12: train it on centipedes")
+    if global_width < 12 and any(is_walker(b) for b in bodies):
+        raise ValueError(f"this policy reads {global_width} global features, a walker 12: train it on walkers")
     glob = np.zeros((count, global_width), np.float32)
     num_joints = np.repeat(np.array([g.num_joints for g in groups], dtype=np.int64), episodes)
     parents = np.full((count, width), -1, np.int64)

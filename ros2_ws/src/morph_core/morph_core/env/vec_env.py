@@ -26,8 +26,10 @@ import mujoco
 import numpy as np
 from gymnasium.utils import seeding
 
-from morph_core.env.bodies import BodyMix, Centipede, parse_bodies, swimmer_tree
+from morph_core.env.bodies import BodyMix, Centipede, is_walker, parse_bodies, swimmer_tree
 from morph_core.env.centipede import MorphCentipedeEnv
+from morph_core.env.legged_model import LeggedBody
+from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 
@@ -86,9 +88,9 @@ class BodyEnv:
         self._reset_body(bodies.first())
 
     def _use(self, body) -> MorphSwimmerEnv | MorphCentipedeEnv:
-        if isinstance(body, Centipede):
+        if is_walker(body):  # Ant-v5's task
             if self._centipede is None:
-                self._centipede = MorphCentipedeEnv(leg_pairs=body.leg_pairs)
+                self._centipede = MorphCentipedeEnv(leg_pairs=body.leg_pairs if isinstance(body, Centipede) else 2)
             self.env = self._centipede
         else:
             if self._swimmer is None:
@@ -99,7 +101,10 @@ class BodyEnv:
 
     def _reset_body(self, body) -> None:
         env = self._use(body)
-        env.reset(options={"leg_pairs": body.leg_pairs} if isinstance(body, Centipede) else {"tree": body})
+        if isinstance(body, LeggedBody | MjcfBody):
+            env.reset(options={"body": body})
+        else:
+            env.reset(options={"leg_pairs": body.leg_pairs} if isinstance(body, Centipede) else {"tree": body})
 
     def reset(self, *, seed: int | None = None) -> None:
         if seed is not None:
@@ -112,7 +117,9 @@ class BodyEnv:
 
     @property
     def body(self) -> Centipede | object:
-        return Centipede(self.env.leg_pairs) if self.is_centipede else self.env.tree
+        if self.is_centipede:
+            return self.env.walker if self.env.walker is not None else Centipede(self.env.leg_pairs)
+        return self.env.tree
 
     def __getattr__(self, name):  # num_joints, parents, tree, body_label, model, data, dt
         if name == "env":
@@ -134,6 +141,12 @@ class BodyEnv:
 
     # -- state: the body, the generator, and what MuJoCo's integration state leaves out ---------
     def state_meta(self) -> dict:
+        mjcf = self.env.walker if self.is_centipede else self.env.mjcf
+        if isinstance(mjcf, MjcfBody):
+            return {"mjcf": mjcf.path, "rng": self.np_random.bit_generator.state}
+        if self.is_centipede and isinstance(self.env.walker, LeggedBody):
+            w = self.env.walker
+            return {"legged": [w.legs, w.joints_per_leg, w.torso, w.seed], "rng": self.np_random.bit_generator.state}
         if self.is_centipede:
             return {"leg_pairs": int(self.env.leg_pairs), "rng": self.np_random.bit_generator.state}
         body = {"num_joints": self.env.num_joints}
@@ -145,7 +158,10 @@ class BodyEnv:
         return {"root_xpos": self.env.data.xpos[self.env._root].copy()} if self.is_centipede else {}
 
     def restore_body(self, meta: dict) -> None:
-        if "leg_pairs" in meta:
+        if "legged" in meta or "mjcf" in meta:
+            body = LeggedBody(*meta["legged"]) if "legged" in meta else MjcfBody(meta["mjcf"])
+            self._use(body)._build(body)
+        elif "leg_pairs" in meta:
             env = self._use(Centipede(int(meta["leg_pairs"])))
             env._build(int(meta["leg_pairs"]))
         else:
@@ -296,6 +312,8 @@ class SwimmerVecEnv:
                 arrays |= {f"env{i}.{k}": v for k, v in env.extra_arrays().items()}
                 continue
             body = {"num_joints": env.num_joints} | ({} if env.tree.is_chain else {"parents": env.parents.tolist()})
+            if env.mjcf is not None:
+                body = {"mjcf": env.mjcf.path}
             meta["envs"].append(body | {"rng": env.np_random.bit_generator.state})
         arrays["episode_steps"] = self.episode_steps.copy()
         arrays["episode_returns"] = self.episode_returns.copy()
@@ -308,8 +326,11 @@ class SwimmerVecEnv:
         for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
             if isinstance(env, BodyEnv):
                 env.restore_body(m)
-            elif "leg_pairs" in m:
+            elif "leg_pairs" in m or "legged" in m:
                 raise ValueError("checkpoint holds a centipede; this run's bodies are swimmers")
+            elif "mjcf" in m:
+                env._build(MjcfBody(m["mjcf"]))
+                env.np_random.bit_generator.state = m["rng"]
             else:
                 n = int(m["num_joints"])
                 env._build(n if "parents" not in m else swimmer_tree(m["parents"]))
