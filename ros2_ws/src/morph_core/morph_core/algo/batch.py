@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
@@ -51,6 +52,9 @@ class RolloutBatch:
     """[N, J] int64 parent joint of each joint (-1: the torso, and at padding; ``policy.index_plan``); None
     when every sample is a chain, however given (checked at construction; chains-only parents become None, so
     that the update takes its chain path)"""
+    joint_desc: torch.Tensor | None = None
+    """[N, J, D] float32 each joint's description (``policy.joint_description``; zero at padding) for a policy
+    that reads them (``PolicyConfig.joint_features`` = D); None: none"""
 
     def __post_init__(self):
         n, j = self.joint_pos.shape if self.joint_pos.ndim == 2 else (None, None)
@@ -76,6 +80,13 @@ class RolloutBatch:
             mask = (torch.arange(j) < self.num_joints.unsqueeze(1)).numpy()
             parents = check_parents(self.parents.numpy(), mask)
             object.__setattr__(self, "parents", None if is_chain(parents, mask) else torch.from_numpy(parents))
+        if self.joint_desc is not None:
+            d = self.joint_desc
+            if d.ndim != 3 or tuple(d.shape[:2]) != (n, j) or d.dtype != torch.float32:
+                got = f"{list(d.shape)} {d.dtype}"
+                raise ValueError(f"RolloutBatch.joint_desc must be [{n}, {j}, D] float32, got {got}")
+            if not torch.isfinite(d).all():
+                raise ValueError("RolloutBatch.joint_desc holds NaN or inf")
         if n and (int(self.num_joints.min()) < 1 or int(self.num_joints.max()) > j):
             raise ValueError(f"RolloutBatch.num_joints must be in 1..{j}")
         for name in [*shapes][1:]:
@@ -103,7 +114,8 @@ class RolloutBatch:
         # The padding is zero (checked at construction), so from_padded's checks and zeroing of the padding
         # would change nothing (~15 us of a step's gather).
         parents = None if self.parents is None else self.parents.numpy()[rows, :width]
-        chains = ChainBatch.from_zero_padded(pos, vel, self.global_feats.numpy()[rows], num_joints, parents)
+        desc = None if self.joint_desc is None else np.ascontiguousarray(self.joint_desc.numpy()[rows, :width])
+        chains = ChainBatch.from_zero_padded(pos, vel, self.global_feats.numpy()[rows], num_joints, parents, desc)
         return chains, torch.from_numpy(actions)
 
 

@@ -14,9 +14,10 @@ import numpy as np
 from morph_core.env.bodies import Centipede, is_walker
 from morph_core.env.centipede_batch import CentipedeBatch
 from morph_core.env.mjcf_body import MjcfBody
+from morph_core.env.model import swimmer_model
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_batch import SwimmerBatch
-from morph_core.env.vec_env import MAX_EPISODE_STEPS
+from morph_core.env.vec_env import MAX_EPISODE_STEPS, model_descriptions
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 
@@ -91,6 +92,12 @@ def evaluate_episodes(
     rows = [slice(g * episodes, (g + 1) * episodes) for g in range(len(bodies))]
     for swimmers, r in zip(groups, rows, strict=True):
         parents[r, : swimmers.num_joints] = swimmers.parents
+    desc = None  # the joints' descriptions, for a policy that reads them
+    if actor.joint_features:
+        desc = np.zeros((count, width, actor.joint_features), np.float32)
+        for swimmers, r in zip(groups, rows, strict=True):
+            model = swimmers.envs[0].model if isinstance(swimmers, CentipedeBatch) else swimmer_model(swimmers.parents)
+            desc[r, : swimmers.num_joints] = model_descriptions(model)
     for swimmers, r in zip(groups, rows, strict=True):
         swimmers.write_observation(pos[r], vel[r], glob[r])
     returns, steps = np.zeros(count), np.zeros(count, dtype=np.int64)
@@ -102,10 +109,12 @@ def evaluate_episodes(
         if idx.size == 0:
             break
         if idx.size == count:  # every swimmer still going (the usual case)
-            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents)).astype(np.float64)
+            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents, desc)).astype(np.float64)
         else:  # the ended swimmers' rows keep their last actions and are not stepped
             applied[idx] = applied_action(
-                actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx], parents[idx])
+                actor.mean_actions(
+                    pos[idx], vel[idx], glob[idx], num_joints[idx], parents[idx], None if desc is None else desc[idx]
+                )
             )
         for swimmers, r in zip(groups, rows, strict=True):
             going = np.flatnonzero(alive[r])

@@ -32,6 +32,7 @@ from morph_core.env.legged_model import LeggedBody
 from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES, mujoco_descriptions
 
 MAX_EPISODE_STEPS = 1000
 R = TypeVar("R")
@@ -185,6 +186,9 @@ class PaddedObs:
     global_feats: np.ndarray
     num_joints: np.ndarray
     parents: np.ndarray
+    joint_desc: np.ndarray | None = None
+    """[E, J, D] each joint's description (``policy.joint_description``, zero at padding), when the vector env
+    was asked for them (``joint_descriptions``); else None"""
 
     def arrays(self) -> tuple[np.ndarray, ...]:
         """(joint_pos, joint_vel, global_feats, num_joints, parents): the policy's arguments, in order."""
@@ -223,6 +227,7 @@ class SwimmerVecEnv:
         seed: int,
         max_episode_steps: int = MAX_EPISODE_STEPS,
         num_threads: int = 1,
+        joint_descriptions: bool = False,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -242,6 +247,8 @@ class SwimmerVecEnv:
             np.zeros((num_envs, J), np.float32), np.zeros((num_envs, J), np.float32),
             np.zeros((num_envs, G), np.float32), np.zeros(num_envs, np.int64), np.full((num_envs, J), -1, np.int64),
         )  # fmt: skip
+        if joint_descriptions:  # written per body at each reset (``_write_body``)
+            self._padded.joint_desc = np.zeros((num_envs, J, NUM_DESCRIPTION_FEATURES), np.float32)
         for i, env in enumerate(self.envs):
             env.reset(seed=seed + i)
             self._write_body(i)
@@ -251,7 +258,8 @@ class SwimmerVecEnv:
         self._threads = EnvThreads(min(num_threads, num_envs))
 
     def observations(self) -> PaddedObs:
-        return PaddedObs(*(x.copy() for x in self._padded.arrays()))
+        desc = self._padded.joint_desc
+        return PaddedObs(*(x.copy() for x in self._padded.arrays()), None if desc is None else desc.copy())
 
     def _write(self, i: int) -> None:
         """Swimmer i's observation into row i."""
@@ -264,6 +272,9 @@ class SwimmerVecEnv:
         p.num_joints[i] = env.num_joints
         p.parents[i] = -1
         p.parents[i, : env.num_joints] = env.parents
+        if p.joint_desc is not None:
+            p.joint_desc[i] = 0.0
+            p.joint_desc[i, : env.num_joints] = model_descriptions(env.model)
 
     def step(self, actions: np.ndarray) -> StepResult:
         """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
@@ -278,6 +289,8 @@ class SwimmerVecEnv:
         for i in np.flatnonzero(terminated | truncated).tolist():
             env = self.envs[i]
             result.final_obs[i] = env._observation()
+            if self._padded.joint_desc is not None:
+                result.final_obs[i]["joint_desc"] = self._padded.joint_desc[i, : env.num_joints].copy()
             ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
             result.episodes.append(Episode(env.num_joints, ret, length, env.body_label))
             self.episode_steps[i], self.episode_returns[i] = 0, 0.0
@@ -344,6 +357,20 @@ class SwimmerVecEnv:
             self._write(i)
         self.episode_steps[:] = arrays["episode_steps"]
         self.episode_returns[:] = arrays["episode_returns"]
+
+
+_DESCRIPTIONS: dict[int, tuple[object, np.ndarray]] = {}
+
+
+def model_descriptions(model) -> np.ndarray:
+    """``joint_description.mujoco_descriptions`` of a compiled body, computed once per model (the envs' models
+    are cached and shared; each entry keeps its model alive, so its id is not reused)."""
+    hit = _DESCRIPTIONS.get(id(model))
+    if hit is None:
+        if len(_DESCRIPTIONS) >= 4096:
+            _DESCRIPTIONS.clear()
+        hit = _DESCRIPTIONS[id(model)] = (model, mujoco_descriptions(model).astype(np.float32))
+    return hit[1]
 
 
 def merge_env_states(parts: list[tuple[dict, dict[str, np.ndarray]]]) -> tuple[dict, dict[str, np.ndarray]]:
