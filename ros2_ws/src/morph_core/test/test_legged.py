@@ -112,3 +112,37 @@ def test_a_legged_spec_steps_vectorised_with_twelve_globals_and_restores_exactly
     actions = rng.uniform(-1, 1, (4, env.max_joints)).astype(np.float32)
     a, b = env.step(actions), other.step(actions)
     assert np.array_equal(a.obs.joint_pos, b.obs.joint_pos) and np.array_equal(a.reward, b.reward)
+
+
+def test_garbled_legged_specs_parse_or_say_why_not():
+    import random
+
+    rng = random.Random(51)
+    legs = ["4", "6", "8", "4-8", "5-8", "5", "0", "8-4", "99999", "", "-1"]
+    joints = ["2", "3", "2-3", "1", "4", ""]
+    torsos = ["", "", ":round", ":long", ":wide", ":ant"]
+    seeds = ["", ":s0", ":s5-9", ":s1000-1099", ":s9-5", ":s", ":s0-9999999999"]
+
+    def garbled() -> str:
+        spec = f"legged:{rng.choice(legs)}x{rng.choice(joints)}{rng.choice(torsos)}{rng.choice(seeds)}"
+        if rng.random() < 0.3:  # a character dropped or added
+            at = rng.randrange(len(spec))
+            spec = spec[:at] + rng.choice(["", "x", ":", "-", ",", "7"]) + spec[at + 1 :]
+        return spec
+
+    outcomes = {"read": 0, "refused": 0}
+    for _ in range(2000):
+        spec = garbled()
+        try:
+            mix = parse_bodies(spec)
+        except ValueError as err:
+            assert str(err) and "\n" not in str(err)
+            outcomes["refused"] += 1
+            continue
+        assert str(parse_bodies(str(mix))) == str(mix)
+        for item in mix.items:
+            if isinstance(item, LeggedFamily):
+                body = item.draw(np.random.default_rng(0))
+                assert body.legs in LEGGED_LEGS and body.joints_per_leg in LEGGED_JOINTS_PER_LEG
+        outcomes["read"] += 1
+    assert min(outcomes.values()) > 50, outcomes
