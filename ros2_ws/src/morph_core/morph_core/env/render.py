@@ -165,6 +165,7 @@ class Take:
 
         from morph_core.env.bodies import Centipede, is_walker, tree_depth
         from morph_core.env.centipede import MorphCentipedeEnv
+        from morph_core.env.mjcf_body import MjcfBody
         from morph_core.env.swimmer_env import MorphSwimmerEnv
 
         centipede = is_walker(body)
@@ -177,7 +178,8 @@ class Take:
             self._obs, _ = self.env.reset(seed=reset_seed)
         else:
             self.env = MorphSwimmerEnv(num_joints=self.num_joints)
-            self._obs, _ = self.env.reset(seed=reset_seed, options={"tree": body} if tree else None)
+            options = {"body": body} if isinstance(body, MjcfBody) else {"tree": body} if tree else None
+            self._obs, _ = self.env.reset(seed=reset_seed, options=options)
         self.tree, self.label = self.env.tree, self.env.body_label
         self._parents = None if self.tree.is_chain else self.env.parents
         model = self.env.model
