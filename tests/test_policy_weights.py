@@ -1,5 +1,6 @@
 """Checkpoints without torch: the loader, the NumPy actor built from arrays, the node's policy choice, and
-the nodes' imports (no torch, no torch_geometric, no mujoco in the policy node)."""
+the nodes' imports (no torch, no torch_geometric, no TensorBoard, Matplotlib or SciPy; no mujoco and no
+gymnasium in the policy node)."""
 
 from __future__ import annotations
 
@@ -124,7 +125,7 @@ def _modules_after(code: str) -> set[str]:
 def test_the_sim_node_imports_no_torch():
     modules = _modules_after("import swimmer_sim_node.sim_node")
     assert "swimmer_sim_node.sim_node" in modules and "mujoco" in modules
-    assert not {"torch", "torch_geometric"} & modules
+    assert not {"torch", "torch_geometric", "tensorboard", "matplotlib", "scipy"} & modules
 
 
 @pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason="no shipped model")
@@ -143,4 +144,5 @@ def test_the_policy_node_loads_and_acts_without_torch():
         """
     )
     assert "morph_policy_node.policy_node" in modules and "safetensors" in modules
-    assert not {"torch", "torch_geometric", "mujoco"} & modules
+    # nor the env's gymnasium (a robot that runs only this node has none installed: tests/test_robot_install.py)
+    assert not {"torch", "torch_geometric", "tensorboard", "matplotlib", "scipy", "mujoco", "gymnasium"} & modules

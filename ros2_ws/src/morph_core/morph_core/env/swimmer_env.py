@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+import morph_core.env.registration  # noqa: F401  (using an env registers the ids)
 from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmers_only
 from morph_core.env.model import body_parents, check_num_joints, swimmer_model
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, control_cost
