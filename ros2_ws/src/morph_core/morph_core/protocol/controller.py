@@ -230,6 +230,8 @@ class Observation:
     global_feats: np.ndarray
     parents: np.ndarray
     """the tree's parent array (-1: the torso)"""
+    names: tuple[str, ...]
+    """the tree's joints, in its order"""
 
 
 @dataclass(frozen=True, eq=False)
@@ -375,7 +377,7 @@ class Controller:
             info = pack_policy_info(
                 self._ordered(order, by_tree, out.action), self._ordered(order, by_tree, out.mean), self.policy.log_std
             )
-        observation = Observation(ready.joint_pos, ready.joint_vel, glob, tree.parents)
+        observation = Observation(ready.joint_pos, ready.joint_vel, glob, tree.parents, tree.names)
         return Answer(
             ready.stamp_ns, names, tree.layout_hash, self._ordered(order, by_tree, efforts),
             self._ordered(order, by_tree, out.action), info, observation, ready.generation > 0,

@@ -50,7 +50,7 @@ import numpy as np
 from morph_core.env.model import body_parents
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
+from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES, quaternion_from_yaw, world_to_body
 from morph_core.msgs.policy_info import unpack_policy_info
 from morph_core.msgs.records import (
     DescriptionRecord,
@@ -214,15 +214,22 @@ class LoopbackRecording:
         the last one (``same_stamp``: with the last one's stamp, as a sim that rebuilds without stepping its
         clock), and announced unless ``announce`` is False."""
         self.finish()
-        if num_joints is None:
-            num_joints = self.sim.num_joints if self.sim.tree.is_chain else self.sim.tree
-        self.sim.rebuild(num_joints)
+        if num_joints is None and self._robot() is not None:
+            self.sim.reset()  # a robot, or centipedes of a spec: the next body is the sim's to draw
+        else:
+            if num_joints is None:
+                num_joints = self.sim.num_joints if self.sim.tree.is_chain else self.sim.tree
+            self.sim.rebuild(num_joints)
         self._ticks += not same_stamp
         self._episode += 1
         self._announce_next = announce
         self._state_published = False
 
     # -- messages ---------------------------------------------------------------
+    def _robot(self):
+        """The sim's robot model (centipedes included), None for a swimmer."""
+        return getattr(self.sim, "robot", None)
+
     def _body(self) -> int | KinematicTree:
         """The sim's body: its tree (any sim that says), else its chain length."""
         tree = getattr(self.sim, "tree", None)
@@ -237,26 +244,18 @@ class LoopbackRecording:
         return values[[at[name] for name in env_names]]
 
     def _state_records(self) -> list[Record]:
-        stamp, torso = self.stamp_ns, self.sim.torso()
+        stamp = self.stamp_ns
         out: list[Record] = []
         if self.describe and body_parents(self._body()) != self._described:
-            text = swimmer_urdf(self._body(), self.prefix)  # as the sim node publishes it
+            # as the sim node publishes it
+            text = swimmer_urdf(self._body(), self.prefix) if self._robot() is None else self.sim.urdf(self.prefix)
             out.append(DescriptionRecord(self._log(), text))
             self._described = body_parents(self._body())
         if self._announce_next:
             out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints))
             self._announce_next = False
-        out.append(
-            OdometryRecord(
-                self._log(),
-                stamp,
-                torso.x,
-                torso.y,
-                quaternion_from_yaw(torso.yaw),
-                world_to_body(torso.yaw, torso.vx, torso.vy),
-                torso.yaw_rate,
-            )
-        )
+        odometry, glob = self._odometry(stamp)
+        out.append(odometry)
         names = tuple(self.sim.joint_names(self.prefix))
         pos, vel, applied = self.sim.joint_positions, self.sim.joint_velocities, self.sim.applied.copy()
         if self._shuffle is None:
@@ -265,13 +264,27 @@ class LoopbackRecording:
             k = self._shuffle.permutation(len(names))
             out.append(JointStateRecord(self._log(), stamp, tuple(names[i] for i in k), pos[k], vel[k], applied[k]))
         self._latest = self._answered(out)
-        observation = {
-            "joint_pos": pos,
-            "joint_vel": vel,
-            "global": np.array([torso.yaw, torso.yaw_rate, torso.vx, torso.vy]),
-        }
+        observation = {"joint_pos": pos, "joint_vel": vel, "global": glob}
         self.truth.append(StepTruth(stamp, self._episode, observation, None))
         return out
+
+    def _odometry(self, stamp: int) -> tuple[OdometryRecord, np.ndarray | None]:
+        """The torso's odometry as the sim node publishes it, and the env's global features there (a robot's:
+        those of the centipede env, None for another robot)."""
+        robot = self._robot()
+        if robot is None:
+            t = self.sim.torso()
+            body = world_to_body(t.yaw, t.vx, t.vy)
+            odometry = OdometryRecord(self._log(), stamp, t.x, t.y, quaternion_from_yaw(t.yaw), body, t.yaw_rate)
+            return odometry, np.array([t.yaw, t.yaw_rate, t.vx, t.vy])
+        root = self.sim.odometry()
+        (x, y, z), lin, ang = root.position, root.linear, root.angular
+        odometry = OdometryRecord(self._log(), stamp, x, y, root.orientation, lin[:2], ang[2], z, lin[2], ang[:2])
+        glob = None
+        if hasattr(robot, "write_observation"):  # the centipede env's own features, for comparison
+            glob, n = np.empty(LEGGED_GLOBAL_FEATURES), self.sim.num_joints
+            robot.write_observation(np.empty(n), np.empty(n), glob)
+        return odometry, glob
 
     def _answered(self, published: list[Record]) -> Answer:
         """The controller's answer to the state ``published`` ends with, fed those messages in their order as the

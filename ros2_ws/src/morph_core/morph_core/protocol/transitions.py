@@ -99,8 +99,9 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.tree import KinematicTree, UrdfRobot
-from morph_core.protocol.controller import Controller, check_odometry
+from morph_core.protocol.controller import Controller, check_odometry, global_width_error
 from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder
 from morph_core.protocol.transition_batch import TransitionBatch
 
@@ -348,10 +349,20 @@ class _Slot:
 class TransitionAssembler:
     """Records in, transitions out, for one stream (one robot); see the module docstring."""
 
-    def __init__(self, config: TransitionConfig | None = None, joint_map: JointMap | None = None):
+    def __init__(
+        self,
+        config: TransitionConfig | None = None,
+        joint_map: JointMap | None = None,
+        global_features: int = NUM_GLOBAL_FEATURES,
+    ):
         """``joint_map``: the robot's joints until a description in the stream replaces it (one known
         otherwise, e.g. ``JointMap.from_urdf`` of a URDF file); default ``JointMap()``, each state's joints a
-        chain in the message's order."""
+        chain in the message's order. ``global_features``: the width of the policy whose observations are
+        rebuilt (``protocol.controller.GLOBAL_FEATURES``: 4 a swimmer's, 12 a legged body's; the reward is
+        still a swimmer's)."""
+        if global_width_error(global_features) is not None:
+            raise ValueError(f"a policy that {global_width_error(global_features)}")
+        self.global_features = global_features
         self.config = config or TransitionConfig()
         self.joint_map = JointMap() if joint_map is None else joint_map
         self._generation = 0
@@ -376,7 +387,8 @@ class TransitionAssembler:
         self._states_seen = 0
         self._latest_state: int | None = None  # stamp, for untagged efforts
         self._judged: OrderedDict[int, None] = OrderedDict()
-        self._controller = Controller()  # the policy node's observation of each state (its unwrapping has memory)
+        # the policy node's observation of each state (its unwrapping has memory)
+        self._controller = Controller(global_features=self.global_features)
         self._held: dict | None = None  # the latest transition's fields but ``truncated``: known at the next judgement
         self._ready: list[Transition] = []
 
@@ -773,10 +785,14 @@ class Assembled:
 
 
 def assemble(
-    records: Iterable[Record], config: TransitionConfig | None = None, joint_map: JointMap | None = None
+    records: Iterable[Record],
+    config: TransitionConfig | None = None,
+    joint_map: JointMap | None = None,
+    global_features: int = NUM_GLOBAL_FEATURES,
 ) -> Assembled:
-    """Transitions of one finished stream of records in receive order (e.g. one bag)."""
-    asm = TransitionAssembler(config, joint_map)
+    """Transitions of one finished stream of records in receive order (e.g. one bag); the arguments are
+    ``TransitionAssembler``'s."""
+    asm = TransitionAssembler(config, joint_map, global_features)
     transitions = asm.push_many(records) + asm.flush()
     return Assembled(TransitionBatch.from_transitions(transitions), asm.skips, asm.stats)
 
