@@ -11,6 +11,7 @@ import dataclasses
 import math
 import os
 import random
+import time
 
 import numpy as np
 import pytest
@@ -332,9 +333,11 @@ def test_urdf_units_under_fuzzed_descriptions_and_states():
         return stamp
 
     stamp = fuzz(500, 0)  # warm-up: caches and allocator pools grown
-    before = _rss_kb()
+    before, t0 = _rss_kb(), time.monotonic()
     fuzz(FUZZ_COUNT, stamp)
-    after = _rss_kb()
+    after, elapsed = _rss_kb(), time.monotonic() - t0
+    print(f"effort_units:=urdf fuzz: {FUZZ_COUNT} descriptions (+500 warm-up), {counts}, {elapsed:.1f} s, "
+          f"RSS {before / 1024:.1f} -> {after / 1024:.1f} MB")  # fmt: skip
     assert counts["adopted"] > 100 and counts["rejected"] > FUZZ_COUNT // 2 and counts["refused"] > 0
     assert after - before < 20_000, (before, after)
 

@@ -1,5 +1,11 @@
 """The morphology-agnostic GNN policy as a ROS 2 node: JointState (+ Odometry) in, efforts out.
 
+This module holds the node's topics, parameters and timers; everything
+between a message and the efforts (pairing, episodes and the yaw
+unwrapping, the joint map, the global features, the answer) is
+``morph_core.protocol.controller.Controller``'s, the one the loopback and the
+trainer's transition rebuild use too.
+
 The joint graph comes from ``robot_description`` (std_msgs/String, a URDF,
 as ``robot_state_publisher`` or the sim publishes it): its actuated hinges
 (revolute and continuous joints; with ``<ros2_control>`` blocks, those with a
@@ -25,11 +31,11 @@ state's joints form a chain in message order, joint 0 next to the torso, so
 any chain length works with no description, no restart and no parameter
 change (it says so once, at the first state it answers).
 
-The latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
-for how they are turned back into the training features (yaw unwrapped,
-body-frame twist rotated to the world frame; the unwrapping restarts with
-each new robot and with each episode announced on ``episode_start``, see
-``morph_core.protocol.episode_tracker``). If the odometry for a state's
+The latest ``odom`` gives the global features, as many as the policy reads
+(4, a swimmer's: yaw unwrapped, yaw rate, the body-frame twist rotated to
+the world frame; 12, a legged body's in 3-D; ``morph_core.msgs.joint_state``).
+The unwrapping restarts with each new robot and with each episode announced
+on ``episode_start`` (the rule: ``morph_core.protocol.controller``). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
 publishes both at once; a state must not be paired with the previous
 odometry, or a lockstep loop would not be deterministic; the rule is
@@ -37,7 +43,11 @@ odometry, or a lockstep loop would not be deterministic; the rule is
 
 Outputs
 - ``effort_commands`` (std_msgs/Float64MultiArray): one effort per actuated
-  joint, clipped to [-1, 1]; ``layout.dim[0]`` is labelled
+  joint, clipped to [-1, 1] (``effort_units:=normalized``, the default), or
+  that times the joint's URDF ``<limit effort>`` (``effort_units:=urdf``: a
+  description whose actuated joints lack a usable limit is refused as
+  ``effort_limit``, and no state is answered before one with limits has been
+  adopted, ``no_effort_limits``); ``layout.dim[0]`` is labelled
   ``joints@<sec>.<nanosec>`` with the stamp of the state answered, and
   ``layout.dim[1]`` (size 1, stride 1) ``names=<JSON list>`` names the joints
   in the data's order (``morph_core.msgs.effort_names``). The order is
@@ -63,7 +73,8 @@ one a ``JointGroupEffortController`` (``effort_controllers``) expects when its
 depth-first order (parent before child, a link's child joints in document
 order; the node logs the count when it reads the description, and the names
 dimension lists them); remap ``effort_commands`` to the controller's
-``~/commands``.
+``~/commands``, and with ``effort_units:=urdf`` it takes them in its joints'
+units (``docs/robustness.md``).
 
 No state answered for ``input_timeout`` -> zero efforts at 25 Hz for the last
 robot seen (named as its efforts are), labelled ``silence``
