@@ -26,7 +26,7 @@ from dataclasses import replace
 import gymnasium
 import torch
 
-import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
+import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.algo.batch import Minibatch
 from morph_core.algo.learner import minibatch_gradient
 from morph_core.algo.param_buffer import FlatParameters

@@ -9,12 +9,19 @@ two, and on bodies with trees; the same one-process run stopped at 12,288 steps 
 ``--resume-with ROOT2``, the resume runs ROOT2's code on ROOT's state: an old run continued by new code);
 ``morph-train --from-bags`` on a recorded bag (made once beside OUT); and the live in-process trainer.
 ``compare`` says, per run, whether every column but the timings is equal.
+
+Bit for bit is a same-machine guarantee: NumPy's BLAS and torch pick their kernels by processor and thread
+count, so floats round differently on another CPU and a training trajectory drifts from the first update on.
+``make`` writes ``machine.json`` (the CPU, its kernels' capability, the library versions) beside the runs, and
+``compare`` refuses two outputs made on different machines in one line instead of reporting a difference that
+says nothing about the code: make both sides here, one after the other.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -63,8 +70,29 @@ def _run(root: Path, args: list[str]) -> None:
     subprocess.run([sys.executable, *args], env=_env(root), check=True, stdout=subprocess.DEVNULL)
 
 
+MACHINE = "machine.json"
+
+FINGERPRINT = """
+import json, os, platform, mujoco, numpy, torch
+cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), "")
+flags = next((line.split(":", 1)[1].split() for line in open("/proc/cpuinfo") if line.startswith("flags")), [])
+simd = sorted(f for f in flags if f.startswith(("avx", "sse", "fma")))
+print(json.dumps({"machine": platform.machine(), "cpu": cpu, "simd": simd, "cores": os.cpu_count(),
+                  "torch": torch.__version__, "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+                  "numpy": numpy.__version__, "mujoco": mujoco.__version__,
+                  "env": {k: os.environ[k] for k in ("OPENBLAS_CORETYPE", "ATEN_CPU_CAPABILITY") if k in os.environ}}))
+"""
+"""what decides how floats round here (read in ROOT's environment, as the runs are)"""
+
+
+def _machine(root: Path) -> dict:
+    done = subprocess.run([sys.executable, "-c", FINGERPRINT], env=_env(root), check=True, capture_output=True)
+    return json.loads(done.stdout)
+
+
 def make(root: Path, out: Path, resume_with: Path) -> None:
     out.mkdir(parents=True, exist_ok=False)
+    (out / MACHINE).write_text(json.dumps(_machine(root), indent=1) + "\n")
     train = ["-m", "trainer.cli.train"]
     _run(root, [*train, "--out", str(out / "sim-p1"), *SIM, "--total-timesteps", "18432"])
     _run(root, [*train, "--out", str(out / "sim-p2"), *SIM, "--total-timesteps", "18432", "--processes", "2"])
@@ -82,6 +110,18 @@ def _rows(path: Path) -> tuple[list[str], list[dict]]:
     with path.open() as f:
         reader = csv.DictReader(f)
         return list(reader.fieldnames or []), list(reader)
+
+
+def other_machine(a: Path, b: Path) -> str | None:
+    """Why outputs ``a`` and ``b`` cannot be compared bit for bit (made on different machines), or None."""
+    ma, mb = ((p / MACHINE).read_text() if (p / MACHINE).exists() else None for p in (a, b))
+    if ma is None and mb is None:
+        return None  # both made before machine.json existed: on the same machine, as they always were
+    if ma is None or mb is None:
+        return f"only one of {a} and {b} says which machine made it ({MACHINE})"
+    ja, jb = json.loads(ma), json.loads(mb)
+    differ = [k for k in sorted(set(ja) | set(jb)) if ja.get(k) != jb.get(k)]
+    return f"made on different machines ({', '.join(differ)} differ)" if differ else None
 
 
 def compare(a: Path, b: Path) -> bool:
@@ -113,6 +153,10 @@ def main() -> int:
     if args.command == "make":
         make(args.root.resolve(), args.out.resolve(), (args.resume_with or args.root).resolve())
         return 0
+    why = other_machine(args.a, args.b)
+    if why:
+        print(f"bit_for_bit: cannot compare: {why}; bit for bit holds on one machine: make both here", file=sys.stderr)
+        return 2
     return 0 if compare(args.a, args.b) else 1
 
 

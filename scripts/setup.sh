@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Create the project venv at .venv and install the four workspace packages
-# editable, every version pinned by constraints.txt. Re-running is a no-op
+# Create the project venv at .venv and install the five workspace packages
+# editable, with the core's learning part (morph_core[learn]: torch, PyG,
+# TensorBoard; a robot installs the nodes without it), every version pinned by
+# constraints.txt. Re-running is a no-op
 # unless constraints.txt, requirements-dev.txt or a setup.py changed.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -11,7 +13,7 @@ if ! "$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
     exit 1
 fi
 stamp=.venv/.installed
-want=$(cat constraints.txt requirements-dev.txt ros2_ws/src/*/setup.py | sha256sum | cut -d' ' -f1)
+want=$(cat constraints.txt requirements-dev.txt ros2_ws/src/*/setup.py scripts/install_nodes.sh | sha256sum | cut -d' ' -f1)
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
     exit 0
 fi
@@ -23,6 +25,14 @@ echo "setup: installing into .venv (once; about a minute)" >&2
 # morph_policy_node/models, read from the source tree, is no listed package. Other warnings still show.
 quiet="ignore:Editable installation,ignore:Package 'morph_policy_node.models' is absent"
 PYTHONWARNINGS="$quiet" .venv/bin/python -m pip install --quiet -c constraints.txt -r requirements-dev.txt \
-    -e ros2_ws/src/morph_core -e ros2_ws/src/morph_ros_util -e ros2_ws/src/swimmer_sim_node \
+    -e "ros2_ws/src/morph_core[learn]" -e ros2_ws/src/morph_ros_util -e ros2_ws/src/swimmer_sim_node \
     -e ros2_ws/src/morph_policy_node -e "ros2_ws/src/trainer[onnx,ray]"
+# A robot's wheels: ROS (the PyPI wheels above) and the nodes' dependencies, with the build tools, for
+# tests/test_robot_install.py, which installs the nodes into a fresh venv inside the tests' network
+# namespace, where no registry is reachable.
+rm -rf .venv/robot-wheels
+ros=$(grep -E '^ros-' requirements-dev.txt)
+# shellcheck disable=SC2086  # one requirement per word
+.venv/bin/python -m pip wheel --quiet -c constraints.txt -w .venv/robot-wheels $ros setuptools wheel
+PYTHONWARNINGS="$quiet" bash scripts/install_nodes.sh .venv/bin/python --wheels .venv/robot-wheels
 echo "$want" > "$stamp"

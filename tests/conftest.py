@@ -179,11 +179,12 @@ def diagnostics(probe):
 
 @pytest.fixture
 def launch(namespace, tmp_path):
-    """launch(executable, **params) -> NodeProcess in the test's namespace; all are stopped afterwards."""
+    """launch(executable, **params) -> NodeProcess in the test's namespace; all are stopped afterwards.
+    ``executable``: a console script of this venv, or the absolute path of another venv's."""
     started: list[NodeProcess] = []
 
     def _launch(executable: str, **params) -> NodeProcess:
-        proc = NodeProcess(executable, namespace, params, tmp_path / f"{executable}_{len(started)}.log")
+        proc = NodeProcess(executable, namespace, params, tmp_path / f"{Path(executable).name}_{len(started)}.log")
         started.append(proc)
         return proc
 

@@ -33,6 +33,8 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_version
 from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, parse_answer_tag, to_ns
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import load_checkpoint
 
 FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "600"))
 """malformed messages per node"""
@@ -377,6 +379,101 @@ def test_policy_node_under_fuzzed_input(probe, launch, namespace, untrained_chec
         f"({dict(big)} sent large); "
         f"RSS {rss_before} -> {rss_after} kB ({growth:+d}); "
         f"{warned} warning lines; malformed by kind: {dict(sorted(kinds.items()))}"
+    )
+    assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
+
+
+# -- policy node, efforts in the URDF's units --------------------------------------------------------------------
+LIMIT_TEXTS = [None, "0", "-2", "nan", "inf", "1e400", "heavy", "", "0x10"]
+"""``<limit effort>`` values no joint may have under effort_units:=urdf (None: the attribute left out)"""
+
+
+def _limited(limits) -> str:
+    """The chain of NAMES with each joint's ``<limit effort>`` (None: a limit without it)."""
+    text = DESCRIPTION
+    for name, limit in zip(NAMES, limits, strict=True):
+        effort = "" if limit is None else f' effort="{limit}"'
+        closing = f'<child link="{name}_link"/></joint>'
+        text = text.replace(closing, f'<child link="{name}_link"/><limit lower="-1" upper="1"{effort} '
+                                     'velocity="1"/></joint>')  # fmt: skip
+    return text
+
+
+def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespace, untrained_checkpoint, diagnostics):
+    """effort_units:=urdf against ``FUZZ_COUNT`` descriptions whose limits are damaged (a good one now and then),
+    a good state answered after each: every answer is the policy's efforts times the limits of a good description
+    sent (never of a damaged one), every damaged description that arrived is refused as ``effort_limit``, RSS
+    flat, no traceback."""
+    rng = random.Random(15)
+    answers: dict[int, np.ndarray] = {}
+
+    def on_efforts(msg):
+        tag = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
+        if tag is not None:
+            answers[tag] = np.array(msg.data)
+
+    probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
+    diag = diagnostics(f"{namespace}/morph_policy")
+    pubs = {"joint_states": probe.node.create_publisher(JointState, "joint_states", 10),
+            "odom": probe.node.create_publisher(Odometry, "odom", 10),
+            "robot_description": probe.node.create_publisher(String, "robot_description", LATCHED)}  # fmt: skip
+    first = (1.5, 0.25, 30.0)
+    pubs["robot_description"].publish(String(data=_limited(first)))  # latched, before the node starts
+    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), effort_units="urdf", input_timeout=60.0)
+    probe.spin_until(
+        lambda: all(p.get_subscription_count() > 0 for p in pubs.values()) and diag.latest is not None,
+        STARTUP, "the policy node's subscriptions and diagnostics",
+    )  # fmt: skip
+    probe.spin_until(lambda: diag.latest["robot_description"].received == 1, 20.0, "the latched description")
+    policy = NumpyPolicy(load_checkpoint(untrained_checkpoint))
+    pos, vel = np.array([0.1, -0.2, 0.3]), np.array([0.0, 0.1, 0.0])
+    mean = np.clip(policy.mean(pos, vel, np.zeros(4)).astype(np.float64), -1.0, 1.0)  # odometry at rest: zeros
+    good: list[tuple[float, ...]] = [first]
+    sent, bad, scaled = Counter({"robot_description": 1}), Counter(), Counter()
+    next_sec = [10]
+
+    def fuzz(count: int) -> None:
+        for _ in range(count):
+            if rng.random() < 0.15:
+                limits = tuple(round(rng.uniform(0.05, 200.0), 3) for _ in NAMES)
+                good.append(limits)
+            else:
+                limits = [rng.choice([*LIMIT_TEXTS, "2.5"]) for _ in NAMES]
+                while all(x == "2.5" for x in limits):
+                    limits = [rng.choice([*LIMIT_TEXTS, "2.5"]) for _ in NAMES]
+                bad["robot_description"] += 1
+            pubs["robot_description"].publish(String(data=_limited(limits)))
+            sent["robot_description"] += 1
+            next_sec[0] += 1
+            stamp = to_ns(next_sec[0], 0)
+            pubs["odom"].publish(_odom(next_sec[0], 0))
+            pubs["joint_states"].publish(_state(next_sec[0], 0, pos=pos, vel=vel))
+            sent["odom"] += 1
+            sent["joint_states"] += 1
+            probe.spin_until(lambda stamp=stamp: stamp in answers, ANSWER_TIMEOUT, f"the answer to {stamp}")
+            got = answers[stamp]
+            used = [k for k, limits in enumerate(good) if np.allclose(got, mean * limits, rtol=1e-12, atol=0)]
+            assert used, f"efforts {got} are the policy's times no good description's limits"
+            scaled[used[-1] == len(good) - 1] += 1
+
+    rss_before, rss_after, elapsed = _fuzz_measured(probe, proc, fuzz)
+    assert proc.alive(), proc.log()[-3000:]
+    counts = _wait_counts(probe, diag, dict(sent), {"robot_description": sent["robot_description"]})
+    described = counts["robot_description"]
+    lost = sent["robot_description"] - described.received  # keep last 1: replaced before the node took it
+    assert set(described.rejected) <= {"effort_limit"} and described.rejected_total <= bad["robot_description"]
+    assert described.rejected_total >= bad["robot_description"] - lost, (described, lost)
+    assert counts["joint_states"].rejected_total == 0 and counts["joint_states"].received == sent["joint_states"]
+    log = proc.log()
+    assert "Traceback" not in log
+    assert _warning_lines(log) <= 2 * (elapsed / 1.0 + 2) + 2, "warnings not throttled"
+    growth = rss_after - rss_before
+    print(
+        f"\npolicy node, effort_units:=urdf: {sent['robot_description']} descriptions "
+        f"({bad['robot_description']} with damaged limits, {described.rejected_total} refused as effort_limit, "
+        f"{lost} replaced in transport), {sent['joint_states']} states answered in {elapsed:.1f} s "
+        f"({scaled[True]} with the latest good limits, {scaled[False]} with an earlier one); "
+        f"RSS {rss_before} -> {rss_after} kB ({growth:+d})"
     )
     assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
 

@@ -1,5 +1,6 @@
 """Checkpoints without torch: the loader, the NumPy actor built from arrays, the node's policy choice, and
-the nodes' imports (no torch, no torch_geometric, no mujoco in the policy node)."""
+the nodes' imports (no torch, no torch_geometric, no TensorBoard, Matplotlib or SciPy; no mujoco and no
+gymnasium in the policy node)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, load_checkpoint, parameter_shapes, untrained_weights
-from morph_policy_node.policy_choice import PolicyOutputError, answer, choose_policy
+from morph_core.protocol.controller import PolicyOutputError, act
+from morph_policy_node.policy_choice import choose_policy
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
 CONFIGS = [PolicyConfig(), PolicyConfig(bidirectional=False, conv1_channels=5, head_hidden=7, global_hidden=9)]
@@ -98,11 +100,12 @@ def test_answers_mean_sample_and_a_non_finite_output_refused(saved, overflowing_
     _, good = saved
     numpy_policy = NumpyPolicy(load_checkpoint(good))
     pos, vel, glob = np.array([0.4, -0.3, 0.2, 0.1]), np.full(4, 0.5), np.array([0.1, 0.0, 0.2, 0.0])
-    det = answer(numpy_policy, pos, vel, glob, None)
+    det = act(numpy_policy, pos, vel, glob, None)
     np.testing.assert_array_equal(det.efforts, np.clip(numpy_policy.mean(pos, vel, glob), -1, 1))
-    assert det.action is None and det.mean is None
+    np.testing.assert_array_equal(det.action, numpy_policy.mean(pos, vel, glob).astype(np.float64))
+    assert det.mean is None
     rng, again = np.random.default_rng(5), np.random.default_rng(5)
-    sample = answer(numpy_policy, pos, vel, glob, rng)
+    sample = act(numpy_policy, pos, vel, glob, rng)
     z = again.standard_normal(4)
     np.testing.assert_allclose(sample.action, sample.mean + np.exp(-0.3) * z, atol=1e-12)
     np.testing.assert_array_equal(sample.efforts, np.clip(sample.action, -1, 1))
@@ -111,7 +114,7 @@ def test_answers_mean_sample_and_a_non_finite_output_refused(saved, overflowing_
     overflowing = NumpyPolicy(load_checkpoint(overflowing_checkpoint))
     for rng in (None, np.random.default_rng(0)):
         with pytest.raises(PolicyOutputError):
-            answer(overflowing, pos, vel, glob, rng)
+            act(overflowing, pos, vel, glob, rng)
 
 
 def _modules_after(code: str) -> set[str]:
@@ -124,7 +127,7 @@ def _modules_after(code: str) -> set[str]:
 def test_the_sim_node_imports_no_torch():
     modules = _modules_after("import swimmer_sim_node.sim_node")
     assert "swimmer_sim_node.sim_node" in modules and "mujoco" in modules
-    assert not {"torch", "torch_geometric"} & modules
+    assert not {"torch", "torch_geometric", "tensorboard", "matplotlib", "scipy"} & modules
 
 
 @pytest.mark.skipif(not SHIPPED_MODEL.is_file(), reason="no shipped model")
@@ -133,14 +136,16 @@ def test_the_policy_node_loads_and_acts_without_torch():
         f"""
         import numpy as np
         import morph_policy_node.policy_node
-        from morph_policy_node.policy_choice import answer, choose_policy
+        from morph_core.protocol.controller import act
+        from morph_policy_node.policy_choice import choose_policy
         from morph_core.policy.numpy_actor import NumpyPolicy
         for checkpoint, allow in (({str(SHIPPED_MODEL)!r}, False), ("", True)):
             policy = NumpyPolicy(choose_policy(checkpoint, allow, 0))
             pos, vel, glob = np.array([0.1, 0.2]), np.zeros(2), np.zeros(4)
-            assert np.isfinite(answer(policy, pos, vel, glob, None).efforts).all()
-            assert np.isfinite(answer(policy, pos, vel, glob, np.random.default_rng(0)).efforts).all()
+            assert np.isfinite(act(policy, pos, vel, glob, None).efforts).all()
+            assert np.isfinite(act(policy, pos, vel, glob, np.random.default_rng(0)).efforts).all()
         """
     )
     assert "morph_policy_node.policy_node" in modules and "safetensors" in modules
-    assert not {"torch", "torch_geometric", "mujoco"} & modules
+    # nor the env's gymnasium (a robot that runs only this node has none installed: tests/test_robot_install.py)
+    assert not {"torch", "torch_geometric", "tensorboard", "matplotlib", "scipy", "mujoco", "gymnasium"} & modules

@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=[],
+    install_requires=["morph_core"],  # protocol.input_counts (diagnostics)
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",

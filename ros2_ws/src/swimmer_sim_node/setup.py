@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    install_requires=["morph_core"],
+    install_requires=["morph_core[sim]"],
     zip_safe=True,
     maintainer="morph-control developers",
     maintainer_email="dev@example.org",

@@ -13,7 +13,16 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["morph_core", "matplotlib", "numpy", "rosbags", "pillow", "imageio-ffmpeg", "threadpoolctl"],
+    # morph_core[learn]: the core's learning part (algo, the torch policy, theory), which the nodes never install.
+    install_requires=[
+        "morph_core[learn]",
+        "matplotlib",
+        "numpy",
+        "rosbags",
+        "pillow",
+        "imageio-ffmpeg",
+        "threadpoolctl",
+    ],
     # morph-export: torch's ONNX exporter (onnxscript) and ONNX Runtime to check the graph it writes.
     # morph-sweep and --rollout-workers: Ray Tune trials and Ray actors (Ray is never a node's dependency).
     extras_require={"onnx": ["onnx", "onnxruntime", "onnxscript"], "ray": ["ray[tune]"]},

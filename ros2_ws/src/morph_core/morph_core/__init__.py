@@ -1,24 +1,11 @@
-"""morph_core: the ROS-free core of morphology-agnostic swimmer control.
+"""morph_core: the ROS-free core of morphology-agnostic control.
 
-Importing it registers the Gymnasium ids ``MorphSwimmer-v0`` and ``MorphCentipede-v0``.
+The Gymnasium ids of its envs are named here and registered by ``morph_core.env.registration`` when an env
+module is imported, not by ``import morph_core``: the nodes import the core, and a robot's policy node has no
+gymnasium (``setup.py``: the runtime part, and the ``sim`` and ``learn`` extras).
 """
-
-import gymnasium
 
 ENV_ID = "MorphSwimmer-v0"
 CENTIPEDE_ENV_ID = "MorphCentipede-v0"
-
-if ENV_ID not in gymnasium.registry:
-    gymnasium.register(
-        id=ENV_ID,
-        entry_point="morph_core.env.swimmer_env:MorphSwimmerEnv",
-        max_episode_steps=1000,
-    )
-if CENTIPEDE_ENV_ID not in gymnasium.registry:
-    gymnasium.register(
-        id=CENTIPEDE_ENV_ID,
-        entry_point="morph_core.env.centipede:MorphCentipedeEnv",
-        max_episode_steps=1000,  # Ant-v5's
-    )
 
 __all__ = ["CENTIPEDE_ENV_ID", "ENV_ID"]

@@ -10,7 +10,7 @@ import pytest
 import torch
 from gymnasium.envs.mujoco.ant_v5 import AntEnv
 
-import morph_core  # noqa: F401  (registers the ids)
+import morph_core.env.registration  # noqa: F401  (registers the ids)
 from morph_core.env.centipede import GLOBAL_FEATURES, MorphCentipedeEnv
 from morph_core.env.centipede_model import (
     ANT_ACTUATOR_ORDER,

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-import morph_core  # noqa: F401
+import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig, count_parameters, gaussian_log_prob
 from morph_core.policy.chains import ChainBatch
 

@@ -5,7 +5,7 @@ import mujoco
 import numpy as np
 import pytest
 
-import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
+import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.env.model import MAX_JOINTS, swimmer_mjcf, swimmer_model
 
 

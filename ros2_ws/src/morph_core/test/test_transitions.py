@@ -21,7 +21,7 @@ from morph_core.env.reward import applied_action
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import chain_batch, quaternion_from_yaw, yaw_from_quaternion
+from morph_core.msgs.joint_state import chain_batch, quaternion_from_yaw
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -732,15 +732,12 @@ def test_a_new_description_restarts_the_yaw_unwrapping_as_the_policy_node_does(p
     """The policy node takes a new description for a new robot (its graph) and restarts its unwrapping at the first
     state it reads on it, even when the tree is the one the states already formed: so does the assembler."""
     loop = record(SamplingController(policy, seed=2), episodes=((4, 30),))
-    stamps = state_stamps(loop)
-    yaw15 = next(yaw_from_quaternion(*r.orientation_xyzw) for r in loop.records
-                 if isinstance(r, OdometryRecord) and r.stamp_ns == stamps[15])  # fmt: skip
-    turn = math.pi + 0.02 - yaw15  # the swimmer turned round: past +pi at state 15, where the description comes
+    index = {stamp: i for i, stamp in enumerate(state_stamps(loop))}
 
-    def turned(r):
+    def turned(r):  # the swimmer turning steadily: past +pi at state 15, where the description comes
         if isinstance(r, OdometryRecord):
             return dataclasses.replace(
-                r, orientation_xyzw=quaternion_from_yaw(yaw_from_quaternion(*r.orientation_xyzw) + turn)
+                r, orientation_xyzw=quaternion_from_yaw(math.pi + 0.02 + 0.05 * (index[r.stamp_ns] - 15))
             )
         return r
 

@@ -1,5 +1,11 @@
 """The morphology-agnostic GNN policy as a ROS 2 node: JointState (+ Odometry) in, efforts out.
 
+This module holds the node's topics, parameters and timers; everything
+between a message and the efforts (pairing, episodes and the yaw
+unwrapping, the joint map, the global features, the answer) is
+``morph_core.protocol.controller.Controller``'s, the one the loopback and the
+trainer's transition rebuild use too.
+
 The joint graph comes from ``robot_description`` (std_msgs/String, a URDF,
 as ``robot_state_publisher`` or the sim publishes it): its actuated hinges
 (revolute and continuous joints; with ``<ros2_control>`` blocks, those with a
@@ -25,11 +31,11 @@ state's joints form a chain in message order, joint 0 next to the torso, so
 any chain length works with no description, no restart and no parameter
 change (it says so once, at the first state it answers).
 
-The latest ``odom`` gives the global features; see ``morph_core.msgs.joint_state``
-for how they are turned back into the training features (yaw unwrapped,
-body-frame twist rotated to the world frame; the unwrapping restarts with
-each new robot and with each episode announced on ``episode_start``, see
-``morph_core.protocol.episode_tracker``). If the odometry for a state's
+The latest ``odom`` gives the global features, as many as the policy reads
+(4, a swimmer's: yaw unwrapped, yaw rate, the body-frame twist rotated to
+the world frame; 12, a legged body's in 3-D; ``morph_core.msgs.joint_state``).
+The unwrapping restarts with each new robot and with each episode announced
+on ``episode_start`` (the rule: ``morph_core.protocol.controller``). If the odometry for a state's
 stamp has not arrived yet the state waits for it briefly (a simulator
 publishes both at once; a state must not be paired with the previous
 odometry, or a lockstep loop would not be deterministic; the rule is
@@ -37,7 +43,11 @@ odometry, or a lockstep loop would not be deterministic; the rule is
 
 Outputs
 - ``effort_commands`` (std_msgs/Float64MultiArray): one effort per actuated
-  joint, clipped to [-1, 1]; ``layout.dim[0]`` is labelled
+  joint, clipped to [-1, 1] (``effort_units:=normalized``, the default), or
+  that times the joint's URDF ``<limit effort>`` (``effort_units:=urdf``: a
+  description whose actuated joints lack a usable limit is refused as
+  ``effort_limit``, and no state is answered before one with limits has been
+  adopted, ``no_effort_limits``); ``layout.dim[0]`` is labelled
   ``joints@<sec>.<nanosec>`` with the stamp of the state answered, and
   ``layout.dim[1]`` (size 1, stride 1) ``names=<JSON list>`` names the joints
   in the data's order (``morph_core.msgs.effort_names``). The order is
@@ -63,7 +73,8 @@ one a ``JointGroupEffortController`` (``effort_controllers``) expects when its
 depth-first order (parent before child, a link's child joints in document
 order; the node logs the count when it reads the description, and the names
 dimension lists them); remap ``effort_commands`` to the controller's
-``~/commands``.
+``~/commands``, and with ``effort_units:=urdf`` it takes them in its joints'
+units (``docs/robustness.md``).
 
 No state answered for ``input_timeout`` -> zero efforts at 25 Hz for the last
 robot seen (named as its efforts are), labelled ``silence``
@@ -152,40 +163,33 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.msgs.effort_names import names_label, tree_label
-from morph_core.msgs.joint_state import (
-    LEGGED_GLOBAL_FEATURES,
-    JointStateError,
-    YawUnwrapper,
-    global_features,
-    legged_global_features,
-    validate_joint_state,
-)
-from morph_core.msgs.policy_info import pack_policy_info
+from morph_core.msgs.joint_state import JointStateError
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
 from morph_core.msgs.policy_weights import policy_version_frame_id
-from morph_core.msgs.stamps import SILENCE_TAG, StampError, answer_tag, check_stamp, to_ns
+from morph_core.msgs.records import JointStateRecord, OdometryRecord
+from morph_core.msgs.stamps import SILENCE_TAG, StampError, answer_tag, check_stamp, from_ns
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.msgs.stream_chunk import TOPICS as CHUNK_TOPICS
 from morph_core.msgs.stream_chunk import ChunkWriter
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
-from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
-from morph_core.protocol.episode_tracker import EpisodeTracker
-from morph_core.protocol.input_counts import InputCounts
-from morph_core.protocol.joint_map import JointMapError, JointOrder
-from morph_core.protocol.pairing import StatePairing
-from morph_core.protocol.policy_updates import CheckpointTrust, PolicyUpdates, checkpoint_trust
-from morph_core.protocol.robot_description import PREVIOUS_DESCRIPTION, RobotDescriptions
-from morph_core.protocol.trust import load_trusted_keys
-from morph_policy_node.policy_choice import (
-    UNTRAINED_LABEL,
+from morph_core.protocol.controller import (
+    Controller,
     EffortOrderError,
     PolicyOutputError,
-    answer,
-    choose_policy,
+    Ready,
     effort_order,
+    effort_units,
+    global_width_error,
 )
+from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
+from morph_core.protocol.input_counts import InputCounts
+from morph_core.protocol.joint_map import JointMapError
+from morph_core.protocol.policy_updates import CheckpointTrust, PolicyUpdates, checkpoint_trust
+from morph_core.protocol.robot_description import PREVIOUS_DESCRIPTION
+from morph_core.protocol.trust import load_trusted_keys
+from morph_policy_node.policy_choice import UNTRAINED_LABEL, choose_policy
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
 
@@ -214,12 +218,20 @@ CHUNK_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durabi
 
 def pushed_policy(weights: WeightsMessage) -> tuple[PolicyWeights, NumpyPolicy]:
     """A trainer's weights, checked like a checkpoint (``CheckpointError``, a ``ValueError``, if they do not fit
-    their config), and the NumPy policy that runs them."""
+    their config or read global features no controller builds), and the NumPy policy that runs them."""
+    source = f"policy_weights version {weights.version}"
     checked = weights_from_arrays(
-        weights.config, weights.tensors, f"policy_weights version {weights.version}", trained=weights.version > 0,
-        metadata=weights.metadata,
-    )  # fmt: skip
-    return checked, NumpyPolicy(checked)
+        weights.config, weights.tensors, source, trained=weights.version > 0, metadata=weights.metadata
+    )
+    return _drivable(checked), NumpyPolicy(checked)
+
+
+def _drivable(weights: PolicyWeights) -> PolicyWeights:
+    """``weights`` if the controller can build their global features from the topics, else ``CheckpointError``."""
+    error = global_width_error(weights.config.global_features)
+    if error is not None:
+        raise CheckpointError(weights.source, f"the policy {error}")
+    return weights
 
 
 def default_checkpoint() -> str:
@@ -305,20 +317,32 @@ class MorphPolicyNode(Node):
                 read_only=True,
             ),
         )
+        self.declare_parameter(
+            "effort_units",
+            "normalized",
+            ParameterDescriptor(
+                description="efforts in the policy's [-1, 1] ('normalized') or each times its joint's URDF "
+                "<limit effort> ('urdf', for a JointGroupEffortController; needs robot_description)",
+                read_only=True,
+            ),
+        )
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         p = self.get_parameter
         self._allow_untrained = p("allow_untrained").value
         self._seed = p("seed").value
-        self._effort_order = effort_order(p("effort_order").value)  # EffortOrderError: main()
+        order, units = effort_order(p("effort_order").value), effort_units(p("effort_units").value)  # main()
         self.counts = InputCounts([STATES, ODOM, EPISODES, WEIGHTS, KEYS, DESCRIPTION])  # on /diagnostics each second
         self._candidate: tuple[PolicyWeights, CheckpointTrust] | None = None  # checked, set after validation
         self._updates = PolicyUpdates(pushed_policy, None, self._trusted_keys(), p("accept_unsigned_weights").value)
+        # Everything between a message and the efforts (pairing, episodes, the joint map, the features, the
+        # answer): this node only moves messages in and out of it.
+        self.controller = Controller(
+            deterministic=p("deterministic").value, seed=self._seed, effort_order=order, effort_units=units
+        )
         self._use(*self._checked(p("checkpoint").value))  # CheckpointError: main()
-        self._deterministic = p("deterministic").value
         self._input_timeout = p("input_timeout").value
-        self._rng = np.random.default_rng(self._seed)
 
         self._effort_pub = self.create_publisher(Float64MultiArray, "effort_commands", 10)
         self._info_pub = self.create_publisher(JointTrajectory, "policy_info", 10)
@@ -327,7 +351,6 @@ class MorphPolicyNode(Node):
         self.create_subscription(Int64MultiArray, "episode_start", self._on_episode_start, EPISODE_QOS)
         self.create_subscription(Odometry, "odom", self._on_odom, qos_profile_sensor_data)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, qos_profile_sensor_data)
-        self._descriptions = RobotDescriptions()  # the fallback (a chain in message order) until one arrives
         self._description_msg: String | None = None  # the current one, for a stream reader that matches later
         self.create_subscription(String, DESCRIPTION, self._on_description, DESCRIPTION_QOS)
         if p("accept_weights").value and self._updates.enabled:
@@ -344,13 +367,6 @@ class MorphPolicyNode(Node):
 
         self.rejected = 0
         self._diagnostics = InputDiagnostics(self, self.counts)
-        self._odom = None  # (quaternion, body linear xy, angular z, position, body linear, body angular): the latest
-        self._unwrap = YawUnwrapper()
-        self._episodes = EpisodeTracker()  # when the unwrapping restarts
-        self._pairing: StatePairing[tuple] = StatePairing()  # states wait here for their odometry
-        self._names: tuple[str, ...] = ()  # joints of the last robot seen, in the efforts' order (the zeros')
-        self._layout = ""  # that robot's KinematicTree.layout_hash (the zeros are for its joint layout)
-        self._robot: tuple[int, tuple[str, ...]] | None = None  # (description generation, tree joints) answered
         self._said_fallback = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
         self._silent = False
@@ -391,7 +407,7 @@ class MorphPolicyNode(Node):
     def _checked(self, checkpoint: str) -> tuple[PolicyWeights, CheckpointTrust]:
         """The policy ``checkpoint`` names and what its signature says; ``CheckpointError`` for a file that cannot
         be used, or whose trusted signature does not match it."""
-        weights = choose_policy(checkpoint, self._allow_untrained, self._seed)
+        weights = _drivable(choose_policy(checkpoint, self._allow_untrained, self._seed))
         return weights, checkpoint_trust(weights, self._updates.keys)
 
     def _use(self, weights: PolicyWeights, trust: CheckpointTrust) -> None:
@@ -399,7 +415,7 @@ class MorphPolicyNode(Node):
         before (and than the file's version, if a trusted key signed it)."""
         running = (weights, NumpyPolicy(weights))
         self._updates.replace(running, trust.order)
-        self._weights, self._policy = running
+        self._weights, self.controller.policy = running
         if weights.trained:
             self.get_logger().info(f"policy loaded from {weights.source} ({trust.description})")
         else:
@@ -429,7 +445,7 @@ class MorphPolicyNode(Node):
                 self._use(*self._candidate)
                 self._candidate = None
             elif param.name == "deterministic":
-                self._deterministic = param.value
+                self.controller.deterministic = param.value
             elif param.name == "input_timeout":
                 self._input_timeout = param.value
 
@@ -471,47 +487,44 @@ class MorphPolicyNode(Node):
         except EpisodeStartError as err:
             self._reject(EPISODES, err, "layout")
             return
-        if self._episodes.announced(start.stamp_ns):
-            self._unwrap.reset()  # its first state was answered already: restart from the next one
+        self.controller.episode_start(start.stamp_ns)
 
     def _on_odom(self, msg: Odometry) -> None:
         self.counts.received(ODOM)
         self._note(ODOM, msg)
-        q = msg.pose.pose.orientation
+        q, p = msg.pose.pose.orientation, msg.pose.pose.position
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
-        quat, body = (q.x, q.y, q.z, q.w), (lin.x, lin.y)
-        p = msg.pose.pose.position
-        full = ((p.x, p.y, p.z), (lin.x, lin.y, lin.z), (ang.x, ang.y, ang.z))
         try:
-            global_features(quat, body, ang.z)  # validation only; unwrapping happens when a state uses it
-            legged_global_features(quat, *full)  # the 3-D fields too, which a 12-feature policy reads
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
+            odom = OdometryRecord(
+                0, stamp_ns, p.x, p.y, (q.x, q.y, q.z, q.w), (lin.x, lin.y), ang.z, p.z, lin.z, (ang.x, ang.y)
+            )
+            ready = self.controller.odometry(odom)  # checked in every width: unwrapped when a state uses it
         except (JointStateError, StampError) as err:
             self._reject(ODOM, err, "stamp" if isinstance(err, StampError) else "odometry")
             return
-        self._odom = (quat, body, ang.z, *full)
-        ready = self._pairing.odometry(stamp_ns)
-        if ready is not None:
-            self._act(*ready)
+        for state in ready:
+            self._act(state)
 
     def _on_description(self, msg: String) -> None:
         self.counts.received(DESCRIPTION)
         if DESCRIPTION in CHUNK_TOPICS:  # streamed once the chunk layout carries it (msgs.stream_chunk)
             self._note(DESCRIPTION, msg)
-        offer = self._descriptions.offer(msg.data)
+        descriptions = self.controller.descriptions
+        offer = self.controller.description(msg.data)
         if offer.outcome == "unchanged":
             self.counts.ignored(DESCRIPTION, offer.code)
         elif offer.outcome == "rejected":
             self.rejected += 1
             self.counts.rejected(DESCRIPTION, offer.code, offer.reason)
-            kept = "the chain fallback kept" if self._descriptions.is_fallback else "the current graph kept"
+            kept = "the chain fallback kept" if descriptions.is_fallback else "the current graph kept"
             self.get_logger().warn(
-                f"rejected robot_description ({self._descriptions.rejected} so far), {kept}: {offer.reason}",
+                f"rejected robot_description ({descriptions.rejected} so far), {kept}: {offer.reason}",
                 throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE,
             )
         else:
             self._description_msg = msg
-            robot = self._descriptions.map.robot
+            robot = descriptions.map.robot
             tree = robot.tree
             shape = "a chain" if tree.is_chain else f"a tree (topology {tree.topology_hash})"
             self.get_logger().info(
@@ -524,13 +537,12 @@ class MorphPolicyNode(Node):
         self.counts.received(STATES)
         self._note(STATES, msg)
         try:
-            pos, vel = validate_joint_state(msg.name, msg.position, msg.velocity)
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
+            state = JointStateRecord(0, stamp_ns, tuple(msg.name), msg.position, msg.velocity, msg.effort)
+            ready = self.controller.state(state, time.monotonic())  # laid onto the tree, or waits for its odometry
         except (JointStateError, StampError) as err:
             self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
-        try:
-            order = self._descriptions.order(tuple(msg.name))
         except JointMapError as err:
             if err.code != PREVIOUS_DESCRIPTION:
                 self._reject(STATES, err, err.code)
@@ -538,72 +550,48 @@ class MorphPolicyNode(Node):
             self.counts.ignored(STATES, err.code)  # the robot before a swap: not malformed, not answered
             self.get_logger().info(f"ignored joint_states: {err}", throttle_duration_sec=_LOG_THROTTLE)
             return
-        robot = (self._descriptions.generation, order)
-        state = (msg, robot, order.to_tree(pos), order.to_tree(vel))  # the policy reads the tree's order
-        for ready in self._pairing.state(stamp_ns, state, time.monotonic()):
-            self._act(*ready)
+        for state in ready:
+            self._act(state)
 
     def _on_watchdog(self) -> None:
         now = time.monotonic()
-        late = self._pairing.expired(now)
+        late = self.controller.expired(now)
         if late is not None:
             self.get_logger().warn(
                 "no odometry with the joint state's stamp: using the latest one", throttle_duration_sec=_LOG_THROTTLE
             )
-            self._act(*late)
-        if now - self._last_answer > self._input_timeout and self._names:
+            self._act(late)
+        names = self.controller.names  # the robot answered last, in the efforts' order
+        if now - self._last_answer > self._input_timeout and names:
             if not self._silent:
                 self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
-            self._publish_efforts(np.zeros(len(self._names)), SILENCE_TAG, self._names, self._layout)  # answers none
+            self._publish_efforts(np.zeros(len(names)), SILENCE_TAG, names, self.controller.layout)  # answers none
 
     # -- acting -----------------------------------------------------------------
-    def _act(self, msg: JointState, robot: tuple[int, JointOrder], pos: np.ndarray, vel: np.ndarray) -> None:
-        """Answer one state; ``robot`` is (the description generation it was read under, its joint order), and
-        ``pos`` / ``vel`` are in the tree's order."""
-        stamp = msg.header.stamp
+    def _act(self, ready: Ready) -> None:
+        """Answer one state (``Controller.answer``) and publish the answer."""
         adopted = self._updates.adopted
-        self._weights, self._policy = self._updates.current()  # new weights between two answers only
+        self._weights, self.controller.policy = self._updates.current()  # new weights between two answers only
         if self._updates.adopted != adopted:
             self.get_logger().info(f"running weights version {self._updates.version} ({self._weights.source})")
-        generation, order = robot
-        tree = order.tree
-        new_episode = self._episodes.state(to_ns(stamp.sec, stamp.nanosec))
-        if (generation, tree.names) != self._robot or new_episode:
-            self._robot = (generation, tree.names)
-            self._unwrap.reset()  # a new robot (description or chain), or a new episode: its yaw starts afresh
-        if generation == 0 and not self._said_fallback:
+        if ready.generation == 0 and not self._said_fallback:
             self._said_fallback = True
             self.get_logger().info(
                 f"no {DESCRIPTION} yet: joints taken as a chain in message order (joint 0 next to the torso)"
             )
-        width = self._weights.config.global_features  # 4: a swimmer's planar features; 12: a legged body's in 3-D
-        if self._odom is None:
-            glob = np.zeros(width)  # no odometry yet: the torso at rest at the origin
-        elif width == LEGGED_GLOBAL_FEATURES:
-            quat, _, _, position, linear, angular = self._odom
-            glob = legged_global_features(quat, position, linear, angular)  # the centipede env's, from odometry
-        else:
-            quat, body, wz = self._odom[:3]
-            glob = global_features(quat, body, wz, self._unwrap)
-        by_tree = self._effort_order == "description"
-        names = tree.names if by_tree else order.message_names  # the efforts' order
-        self._names, self._layout = names, tree.layout_hash  # the watchdog's zeros: the robot seen last
         try:
-            out = answer(self._policy, pos, vel, glob, None if self._deterministic else self._rng, tree.parents)
+            out = self.controller.answer(ready)
         except PolicyOutputError as err:
             self._reject(STATES, err, "policy_output")  # nothing goes out: the watchdog's zero efforts follow
             return
         self._silent = False
         self._last_answer = time.monotonic()
-        efforts, action, mean = out.efforts, out.action, out.mean  # the tree's order
-        if not by_tree:  # back in the order the state named them
-            efforts = order.to_message(efforts)
-            action, mean = (None, None) if mean is None else (order.to_message(action), order.to_message(mean))
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
-        self._publish_efforts(efforts, answer_tag(stamp.sec, stamp.nanosec), names, tree.layout_hash)
-        if mean is not None:
-            self._publish_info(msg, names, action, mean)
+        sec, nanosec = from_ns(out.stamp_ns)
+        self._publish_efforts(out.efforts, answer_tag(sec, nanosec), out.names, out.layout)
+        if out.info is not None:
+            self._publish_info(sec, nanosec, out.names, out.info)
         self._serialize_noted()  # after the answer: the loop waits on it, not on this
 
     def _publish_efforts(self, efforts: np.ndarray, tag: str, names: tuple[str, ...], layout: str) -> None:
@@ -621,13 +609,12 @@ class MorphPolicyNode(Node):
         self._effort_pub.publish(msg)
         self._note("effort_commands", msg)
 
-    def _publish_info(self, msg: JointState, names: tuple[str, ...], action: np.ndarray, mean: np.ndarray) -> None:
-        fields = pack_policy_info(action, mean, self._policy.log_std)
+    def _publish_info(self, sec: int, nanosec: int, names: tuple[str, ...], fields: dict[str, np.ndarray]) -> None:
         point = JointTrajectoryPoint()
         for field, values in fields.items():
             setattr(point, field, array.array("d", values.tobytes()))
         info = JointTrajectory()
-        info.header.stamp = msg.header.stamp
+        info.header.stamp.sec, info.header.stamp.nanosec = sec, nanosec
         info.header.frame_id = policy_version_frame_id(self._updates.version)
         info.joint_names = list(names)
         info.points = [point]

@@ -17,6 +17,7 @@ def _set_up() -> bool:
     """Whether scripts/setup.sh has nothing to do (the wrappers run it first: not a reinstall in a test)."""
     stamp = ROOT / ".venv" / ".installed"
     files = [ROOT / "constraints.txt", ROOT / "requirements-dev.txt", *sorted(ROOT.glob("ros2_ws/src/*/setup.py"))]
+    files.append(ROOT / "scripts" / "install_nodes.sh")  # setup.sh's stamp covers these files, in this order
     want = hashlib.sha256(b"".join(f.read_bytes() for f in files)).hexdigest()
     return stamp.is_file() and stamp.read_text().strip() == want
 

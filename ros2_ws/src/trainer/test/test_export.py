@@ -14,6 +14,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
+import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.msgs.joint_state import chain_batch
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch

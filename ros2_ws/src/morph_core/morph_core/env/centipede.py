@@ -34,6 +34,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+import morph_core.env.registration  # noqa: F401  (using an env registers the ids)
 from morph_core.env.centipede_model import (
     ANT_ACTUATOR_ORDER,
     ant_model,

@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+import morph_core.env.registration  # noqa: F401  (using an env registers the ids)
 from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmers_only
 from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.mjcf_robot import DIVERGENCE_WARNING

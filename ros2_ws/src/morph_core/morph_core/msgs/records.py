@@ -30,7 +30,9 @@ class JointStateRecord:
 
 @dataclass(frozen=True)
 class OdometryRecord:
-    """``odom`` (nav_msgs/Odometry): pose in the world frame, twist in the body frame."""
+    """``odom`` (nav_msgs/Odometry): pose in the world frame, twist in the body frame. The planar fields come
+    first (a swimmer's: all a 4-feature policy reads); the rest complete the 3-D pose and twist a legged
+    policy reads (``msgs.joint_state.legged_global_features``), zero where a source does not give them."""
 
     log_ns: int
     stamp_ns: int
@@ -39,6 +41,21 @@ class OdometryRecord:
     orientation_xyzw: tuple[float, float, float, float]
     body_linear_xy: tuple[float, float]
     angular_z: float
+    z: float = 0.0
+    body_linear_z: float = 0.0
+    angular_xy: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def position(self) -> tuple[float, float, float]:
+        return self.x, self.y, self.z
+
+    @property
+    def body_linear(self) -> tuple[float, float, float]:
+        return self.body_linear_xy[0], self.body_linear_xy[1], self.body_linear_z
+
+    @property
+    def body_angular(self) -> tuple[float, float, float]:
+        return self.angular_xy[0], self.angular_xy[1], self.angular_z
 
 
 @dataclass(frozen=True)

@@ -113,6 +113,8 @@ class NumpyPolicy:
         self.actor = [_linear(state, f"actor_head.{i}") for i in (0, 2, 4)]
         self.critic = [_linear(state, f"critic_head.{i}") for i in (0, 2, 4)]
         self.log_std = float(state["log_std"])
+        self.global_features = self.global_mlp[0][0].shape[0]
+        """how many global features the policy reads (``PolicyConfig.global_features``: 4 planar, 12 legged)"""
         self.joint_features = int(state["features.conv1.fwd.nn.weight"].shape[1]) - 2
         """description features per joint the policy reads (``PolicyConfig.joint_features``)"""
         self._layouts: dict[tuple[int, str, bytes], _Layout] = {}

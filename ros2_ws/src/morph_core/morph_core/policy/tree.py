@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 import numbers
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -205,6 +206,9 @@ class UrdfRobot:
     unactuated: frozenset[str]
     """names of the URDF's joints that are not in the tree: fixed joints, and hinges no ``<ros2_control>``
     command interface drives. A joint state may carry them; the policy leaves them alone."""
+    effort_limits: Mapping[str, float] = field(default_factory=dict, hash=False)
+    """each joint's ``<limit effort>`` as written (NaN if it does not read as a number), for the joints that
+    have one; whether a limit is usable (finite, > 0) is for its reader to say (``protocol.controller``)"""
 
 
 def read_urdf(text: str | bytes) -> UrdfRobot:
@@ -267,7 +271,23 @@ def read_urdf(text: str | bytes) -> UrdfRobot:
         cyclic = next(link for link in links if link not in reached)
         raise TreeError(f"the joints form a cycle through link {_quote(cyclic)}")
     tree = KinematicTree(names, np.array(parents, dtype=np.int64), _deepest_common_ancestor(base_links, parent_of.get))
-    return UrdfRobot(tree, frozenset(name for name, actuated, *_ in joints if not actuated))
+    return UrdfRobot(
+        tree, frozenset(name for name, actuated, *_ in joints if not actuated), _effort_limits(robot.findall("joint"))
+    )
+
+
+def _effort_limits(elements: list[ET.Element]) -> dict[str, float]:
+    """name -> ``<limit effort>`` of the joints that give one (NaN: not a number); not checked, not refused."""
+    limits: dict[str, float] = {}
+    for element in elements:
+        limit = element.find("limit")
+        text = None if limit is None else limit.get("effort")
+        if text is not None:
+            try:
+                limits[element.get("name")] = float(text)
+            except ValueError:
+                limits[element.get("name")] = math.nan
+    return limits
 
 
 def _commanded_joints(robot: ET.Element, joints: set[str]) -> set[str] | None:

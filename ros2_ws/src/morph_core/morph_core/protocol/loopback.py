@@ -3,9 +3,10 @@
 The in-process equivalent of recording a lockstep run: per control period the
 sim publishes ``odom`` then ``joint_states`` (stamped with sim time, the
 state's ``effort`` the command applied over the period that ended there), the
-controller answers the state from those two messages exactly as the policy
-node does (odometry of the same stamp, yaw unwrapped, ``chain_batch``) with an
-effort command tagged with the state's stamp and, when it samples, a
+controller answers the state from those two messages with the policy node's
+own ``protocol.controller.Controller`` (fed every message in the order the node
+would receive it: the description, the announcement, the odometry, the state)
+with an effort command tagged with the state's stamp and, when it samples, a
 ``policy_info``; then the sim applies the command and steps. Every message
 becomes the record a bag reader would decode it into (``msgs.records``), with
 increasing receive times.
@@ -21,7 +22,14 @@ Trees and joint names. The swimmer may be a tree (``SwimmerSim.rebuild(tree)``).
 first state of each new body, as the sim node publishes it), and the
 controller reads every state through it by joint name
 (``protocol.joint_map``), as the policy node does; without one it reads the
-joints as a chain in the message's order. ``shuffle_seed`` lists each
+joints as a chain in the message's order.
+
+The controllers: ``SamplingController`` (a policy node with
+``deterministic:=false``: the node's NumPy sampler, seeded), ``MeanController``
+(``deterministic:=true``) and ``GaussianController`` (random actions around a
+constant mean, through the same sampler); each is a ``Controller``. Recordings
+made before the sampler was the node's (a torch generator then) hold other
+samples for the same seed. ``shuffle_seed`` lists each
 state's joints in a random order of its own (the sim's shuffling option);
 ``name_efforts`` labels each effort command with its joints' names
 (``msgs.effort_names``). Answers go out in the order of the state they
@@ -33,17 +41,17 @@ the records are what they always were.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from morph_core.env.model import body_parents
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import YawUnwrapper, chain_batch, global_features, quaternion_from_yaw, world_to_body
-from morph_core.msgs.policy_info import pack_policy_info, unpack_policy_info
+from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES, quaternion_from_yaw, world_to_body
+from morph_core.msgs.policy_info import unpack_policy_info
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -53,56 +61,53 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
-from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.chains import ChainBatch
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
-from morph_core.protocol.joint_map import JointMap, JointOrder
-
-Controller = Callable[[np.ndarray, np.ndarray, np.ndarray, "np.ndarray | None"], tuple[np.ndarray, dict | None]]
-"""(joint_pos, joint_vel, global, parents) -> (action before any clip, policy_info fields or None); joints in the
-tree's order, ``parents`` its parent array, None for a chain"""
+from morph_core.protocol.controller import Answer, Controller
 
 
-class SamplingController:
-    """The policy node with ``deterministic:=false``: samples from the policy with its own torch generator."""
-
-    def __init__(self, policy: GraphActorCritic, seed: int = 0):
-        self.policy = policy
-        self.generator = torch.Generator().manual_seed(seed)
-
-    def __call__(self, pos, vel, glob, parents=None):
-        if parents is None:
-            batch = chain_batch(pos, vel, glob)
-        else:
-            n = len(pos)
-            batch = ChainBatch.from_padded(pos[None], vel[None], np.asarray(glob)[None], [n], parents=parents[None])
-        action, _, _, mean = self.policy.act(batch, generator=self.generator)
-        a, mu = action[0].double().numpy(), mean[0].double().numpy()
-        return a, pack_policy_info(a, mu, float(self.policy.log_std.detach()))
+def _numpy(policy) -> NumpyPolicy:
+    """The NumPy policy of a torch ``GraphActorCritic`` (its weights now), a ``PolicyWeights``, or itself."""
+    return policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
 
 
-class MeanController:
-    """The policy node with ``deterministic:=true``: the mean action (NumPy forward), no policy_info."""
+class SamplingController(Controller):
+    """The policy node with ``deterministic:=false``: the node's NumPy sampler, its generator seeded by ``seed``
+    (``options``: ``Controller``'s)."""
 
-    def __init__(self, policy: GraphActorCritic):
-        self.numpy_policy = NumpyPolicy(policy)
-
-    def __call__(self, pos, vel, glob, parents=None):
-        return self.numpy_policy.mean(pos, vel, glob, parents).astype(np.float64), None
+    def __init__(self, policy, seed: int = 0, **options):
+        super().__init__(_numpy(policy), deterministic=False, seed=seed, **options)
 
 
-class GaussianController:
+class MeanController(Controller):
+    """The policy node with ``deterministic:=true``: the mean action, no policy_info."""
+
+    def __init__(self, policy, **options):
+        super().__init__(_numpy(policy), deterministic=True, **options)
+
+
+class _ConstantGaussian:
+    """A stand-in policy: every joint's mean is ``mean``; sampled as ``NumpyPolicy.sample`` samples."""
+
+    global_features = NUM_GLOBAL_FEATURES
+
+    def __init__(self, mean: float, log_std: float):
+        self._mean, self.log_std = mean, log_std
+
+    def mean(self, joint_pos, joint_vel, global_feats, parents=None) -> np.ndarray:
+        return np.full(len(joint_pos), self._mean)
+
+    def sample(self, joint_pos, joint_vel, global_feats, rng, parents=None) -> tuple[np.ndarray, np.ndarray]:
+        mu = self.mean(joint_pos, joint_vel, global_feats)
+        return mu + math.exp(self.log_std) * rng.standard_normal(mu.shape[0]), mu
+
+
+class GaussianController(Controller):
     """Random actions a ~ N(mean, exp(log_std)^2) from a NumPy generator, with their policy_info."""
 
-    def __init__(self, mean: float = 0.0, log_std: float = 0.0, seed: int = 0, with_policy_info: bool = True):
-        self.mean, self.log_std, self.with_policy_info = mean, log_std, with_policy_info
-        self.rng = np.random.default_rng(seed)
-
-    def __call__(self, pos, vel, glob, parents=None):
-        mu = np.full(len(pos), self.mean)
-        a = mu + np.exp(self.log_std) * self.rng.standard_normal(len(pos))
-        return a, (pack_policy_info(a, mu, self.log_std) if self.with_policy_info else None)
+    def __init__(self, mean: float = 0.0, log_std: float = 0.0, seed: int = 0):
+        super().__init__(_ConstantGaussian(mean, log_std), deterministic=False, seed=seed)
 
 
 @dataclass(frozen=True)
@@ -147,11 +152,8 @@ class LoopbackRecording:
         self._log_ns = 0
         self._ticks = 0  # control periods elapsed, resets included: stamps never repeat
         self._episode = 0
-        self._unwrap = YawUnwrapper()
-        self._robot: tuple | None = None  # (names, parents) the unwrapping last restarted for
-        self._joint_map = JointMap()  # the controller's (the policy node's): the latest description's
         self._described: tuple[int, ...] | None = None  # the parents of the body last described
-        self._order: JointOrder | None = None  # the answered state's joints on the controller's tree
+        self._latest: Answer | None = None  # the controller's answer to the state published last
         self._announce_next = True
         self._state_published = False
 
@@ -175,19 +177,17 @@ class LoopbackRecording:
             if not self._state_published:
                 self.records += self._state_records()
             stamp = self.stamp_ns
-            action, info = self._answer()
-            effort = np.clip(action, -1.0, 1.0)
-            order = self._order
+            answer = self._latest
             if late is not None and late(i):
                 self._step(stamp, None)
                 self.records += self._state_records()
-                self.records += self._answer_records(stamp, effort, info, order)
-                self.sim.command(self._in_env_order(effort, order), 0.0)
+                self.records += self._answer_records(stamp, answer)
+                self.sim.command(self._in_env_order(answer.efforts, answer.names), 0.0)
                 self._state_published = True
             else:
-                self.records += self._answer_records(stamp, effort, info, order)
-                self.sim.command(self._in_env_order(effort, order), 0.0)
-                self._step(stamp, self._in_env_order(action, order))
+                self.records += self._answer_records(stamp, answer)
+                self.sim.command(self._in_env_order(answer.efforts, answer.names), 0.0)
+                self._step(stamp, self._in_env_order(answer.action, answer.names))
                 self._state_published = False
 
     def _step(self, stamp: int, action: np.ndarray | None) -> None:
@@ -201,8 +201,7 @@ class LoopbackRecording:
         if not self._state_published:
             self.records += self._state_records()
             self._state_published = True
-            action, info = self._answer()
-            self.records += self._answer_records(self.stamp_ns, np.clip(action, -1.0, 1.0), info, self._order)
+            self.records += self._answer_records(self.stamp_ns, self._latest)
 
     def new_episode(
         self,
@@ -215,66 +214,48 @@ class LoopbackRecording:
         the last one (``same_stamp``: with the last one's stamp, as a sim that rebuilds without stepping its
         clock), and announced unless ``announce`` is False."""
         self.finish()
-        if num_joints is None:
-            num_joints = self.sim.num_joints if self.sim.tree.is_chain else self.sim.tree
-        self.sim.rebuild(num_joints)
+        if num_joints is None and self._robot() is not None:
+            self.sim.reset()  # a robot, or centipedes of a spec: the next body is the sim's to draw
+        else:
+            if num_joints is None:
+                num_joints = self.sim.num_joints if self.sim.tree.is_chain else self.sim.tree
+            self.sim.rebuild(num_joints)
         self._ticks += not same_stamp
         self._episode += 1
         self._announce_next = announce
         self._state_published = False
 
     # -- messages ---------------------------------------------------------------
+    def _robot(self):
+        """The sim's robot model (centipedes included), None for a swimmer."""
+        return getattr(self.sim, "robot", None)
+
     def _body(self) -> int | KinematicTree:
         """The sim's body: its tree (any sim that says), else its chain length."""
         tree = getattr(self.sim, "tree", None)
         return self.sim.num_joints if tree is None else tree
 
-    def _answer(self) -> tuple[np.ndarray, dict | None]:
-        """The controller's answer to the current state (in the order of the tree it reads the state on), from
-        its messages as the policy node builds it."""
-        state = next(r for r in reversed(self.records) if isinstance(r, JointStateRecord))
-        odom = next(r for r in reversed(self.records) if isinstance(r, OdometryRecord))
-        order = self._order = self._joint_map.order(state.names)
-        tree = order.tree
-        robot = (tree.names, tree.parents.tobytes())
-        if robot != self._robot:  # another robot (not another order of the same joints): its yaw starts afresh
-            self._robot = robot
-            self._unwrap.reset()
-        glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
-        parents = None if tree.is_chain else tree.parents
-        return self.controller(order.to_tree(state.position), order.to_tree(state.velocity), glob, parents)
-
-    def _in_env_order(self, values: np.ndarray, order: JointOrder) -> np.ndarray:
-        """Per-joint values in the order of the controller's tree, in the env's joint order (by name)."""
+    def _in_env_order(self, values: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+        """Per-joint values, one per name of ``names``, in the env's joint order (by name)."""
         env_names = tuple(self.sim.joint_names(self.prefix))
-        if order.tree.names == env_names:
+        if names == env_names:
             return values
-        at = {name: j for j, name in enumerate(order.tree.names)}
+        at = {name: j for j, name in enumerate(names)}
         return values[[at[name] for name in env_names]]
 
     def _state_records(self) -> list[Record]:
-        stamp, torso = self.stamp_ns, self.sim.torso()
+        stamp = self.stamp_ns
         out: list[Record] = []
         if self.describe and body_parents(self._body()) != self._described:
-            text = swimmer_urdf(self._body(), self.prefix)  # as the sim node publishes it
+            # as the sim node publishes it
+            text = swimmer_urdf(self._body(), self.prefix) if self._robot() is None else self.sim.urdf(self.prefix)
             out.append(DescriptionRecord(self._log(), text))
-            self._joint_map = JointMap.from_urdf(text)  # the policy node reads the states on it from now on
             self._described = body_parents(self._body())
         if self._announce_next:
             out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints))
-            self._unwrap.reset()  # the policy node restarts unwrapping with each announced episode
             self._announce_next = False
-        out.append(
-            OdometryRecord(
-                self._log(),
-                stamp,
-                torso.x,
-                torso.y,
-                quaternion_from_yaw(torso.yaw),
-                world_to_body(torso.yaw, torso.vx, torso.vy),
-                torso.yaw_rate,
-            )
-        )
+        odometry, glob = self._odometry(stamp)
+        out.append(odometry)
         names = tuple(self.sim.joint_names(self.prefix))
         pos, vel, applied = self.sim.joint_positions, self.sim.joint_velocities, self.sim.applied.copy()
         if self._shuffle is None:
@@ -282,24 +263,51 @@ class LoopbackRecording:
         else:
             k = self._shuffle.permutation(len(names))
             out.append(JointStateRecord(self._log(), stamp, tuple(names[i] for i in k), pos[k], vel[k], applied[k]))
-        observation = {
-            "joint_pos": pos,
-            "joint_vel": vel,
-            "global": np.array([torso.yaw, torso.yaw_rate, torso.vx, torso.vy]),
-        }
+        self._latest = self._answered(out)
+        observation = {"joint_pos": pos, "joint_vel": vel, "global": glob}
         self.truth.append(StepTruth(stamp, self._episode, observation, None))
         return out
 
-    def _answer_records(self, stamp: int, effort: np.ndarray, info: dict | None, order: JointOrder) -> list[Record]:
-        """The effort command and policy_info answering the state ``order`` read (values in its tree's order),
-        in the state's order (``message_names``)."""
-        names = order.message_names
-        effort = order.to_message(effort).astype(np.float64)
-        named = (names, order.tree.layout_hash) if self.name_efforts else (None, None)  # as the policy node names them
-        out: list[Record] = [EffortRecord(self._log(), stamp, effort, *named)]
-        if info is not None:
-            fields = {k: order.to_message(v) for k, v in info.items()}
-            out.append(unpack_policy_info(self._log(), stamp, names, **fields))
+    def _odometry(self, stamp: int) -> tuple[OdometryRecord, np.ndarray | None]:
+        """The torso's odometry as the sim node publishes it, and the env's global features there (a robot's:
+        those of the centipede env, None for another robot)."""
+        robot = self._robot()
+        if robot is None:
+            t = self.sim.torso()
+            body = world_to_body(t.yaw, t.vx, t.vy)
+            odometry = OdometryRecord(self._log(), stamp, t.x, t.y, quaternion_from_yaw(t.yaw), body, t.yaw_rate)
+            return odometry, np.array([t.yaw, t.yaw_rate, t.vx, t.vy])
+        root = self.sim.odometry()
+        (x, y, z), lin, ang = root.position, root.linear, root.angular
+        odometry = OdometryRecord(self._log(), stamp, x, y, root.orientation, lin[:2], ang[2], z, lin[2], ang[:2])
+        glob = None
+        if hasattr(robot, "write_observation"):  # the centipede env's own features, for comparison
+            glob, n = np.empty(LEGGED_GLOBAL_FEATURES), self.sim.num_joints
+            robot.write_observation(np.empty(n), np.empty(n), glob)
+        return odometry, glob
+
+    def _answered(self, published: list[Record]) -> Answer:
+        """The controller's answer to the state ``published`` ends with, fed those messages in their order as the
+        policy node receives them."""
+        ready = []
+        for record in published:
+            if isinstance(record, DescriptionRecord):
+                self.controller.description(record.text)
+            elif isinstance(record, EpisodeStartRecord):
+                self.controller.episode_start(record.stamp_ns)
+            elif isinstance(record, OdometryRecord):
+                ready += self.controller.odometry(record)
+            else:
+                ready += self.controller.state(record, 0.0)  # its odometry is in: it is ready at once
+        (state,) = ready
+        return self.controller.answer(state)
+
+    def _answer_records(self, stamp: int, answer: Answer) -> list[Record]:
+        """The effort command and policy_info of ``answer`` (in the state's order, as the policy node sends them)."""
+        named = (answer.names, answer.layout) if self.name_efforts else (None, None)  # as the policy node names them
+        out: list[Record] = [EffortRecord(self._log(), stamp, answer.efforts.astype(np.float64), *named)]
+        if answer.info is not None:
+            out.append(unpack_policy_info(self._log(), stamp, answer.names, **answer.info))
         return out
 
 

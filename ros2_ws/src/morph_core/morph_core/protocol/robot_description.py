@@ -29,9 +29,10 @@ alternating between two robots costs a comparison, not a parse.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from morph_core.policy.tree import TreeError
+from morph_core.policy.tree import TreeError, UrdfRobot
 from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder
 
 DESCRIPTION = "description"
@@ -51,7 +52,7 @@ class DescriptionOffer:
     reason: str = ""
     """why it was rejected, in one line (``TreeError``'s text)"""
     code: str = ""
-    """``DESCRIPTION`` (rejected), ``UNCHANGED`` (unchanged), '' (adopted)"""
+    """``DESCRIPTION`` or the check's code (rejected), ``UNCHANGED`` (unchanged), '' (adopted)"""
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,7 +64,10 @@ class _Described:
 class RobotDescriptions:
     """The description a node acts on, the one before it, and what became of each offered."""
 
-    def __init__(self) -> None:
+    def __init__(self, check: Callable[[UrdfRobot], str | None] | None = None, refusal_code: str = "") -> None:
+        """``check``: a further condition on a robot (its reason, or None), whose refusal counts as
+        ``refusal_code`` (a controller's effort units: ``protocol.controller``)."""
+        self._check, self._refusal_code = check, refusal_code
         self._fallback = JointMap()
         self._current: _Described | None = None
         self._previous: _Described | None = None
@@ -100,6 +104,11 @@ class RobotDescriptions:
                 self.rejected += 1
                 self.last_error = str(err)
                 return DescriptionOffer("rejected", reason=str(err), code=DESCRIPTION)
+            reason = None if self._check is None else self._check(described.map.robot)
+            if reason is not None:
+                self.rejected += 1
+                self.last_error = reason
+                return DescriptionOffer("rejected", reason=reason, code=self._refusal_code)
         self._previous, self._current = self._current, described
         self.generation += 1
         self.adopted += 1

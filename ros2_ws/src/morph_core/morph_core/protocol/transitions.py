@@ -9,10 +9,10 @@ A transition is the step from state s (a ``joint_states`` message) to the
 next state s' one control period later:
 
 - observation: joint positions and velocities of s, and (yaw, yaw rate, vx,
-  vy) rebuilt from the odometry carrying s's stamp exactly as the policy node
-  does (``msgs.joint_state.global_features``, yaw unwrapped along the stream,
-  unwrapping restarted at each announced episode, each new robot and the
-  first state after a new description);
+  vy) rebuilt from the odometry carrying s's stamp by the policy node's own
+  ``protocol.controller.Controller`` (``observe``: yaw unwrapped along the
+  stream with its one reset rule, told each state's robot and each episode
+  announcement in the order they were received);
 - action: the sampled action of the ``policy_info`` stamped s (the behaviour
   log-prob comes with it), else the effort command answering s (then
   ``has_policy_info`` is False and the log-prob NaN: PPO cannot use the
@@ -88,7 +88,7 @@ import numpy as np
 
 from morph_core.env.model import MAX_JOINTS
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, applied_action, swimmer_reward
-from morph_core.msgs.joint_state import JointStateError, YawUnwrapper, global_features, validate_joint_state
+from morph_core.msgs.joint_state import JointStateError, validate_joint_state
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -99,7 +99,9 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.tree import KinematicTree, UrdfRobot
+from morph_core.protocol.controller import Controller, check_odometry, global_width_error
 from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder
 from morph_core.protocol.transition_batch import TransitionBatch
 
@@ -339,21 +341,32 @@ class _Slot:
     """why they do not: the skip reason"""
     described: bool = False
     """the state was bound to a robot description (not to the fallback's chain of its names)"""
-    newly_described: bool = False
-    """the first state after a description was adopted: the policy node restarts its yaw unwrapping there"""
+    generation: int = 0
+    """the descriptions adopted before the state arrived: a new one is a new robot to the policy node (its graph,
+    even one of the same tree), so the unwrapping restarts at the first state read on it"""
 
 
 class TransitionAssembler:
     """Records in, transitions out, for one stream (one robot); see the module docstring."""
 
-    def __init__(self, config: TransitionConfig | None = None, joint_map: JointMap | None = None):
+    def __init__(
+        self,
+        config: TransitionConfig | None = None,
+        joint_map: JointMap | None = None,
+        global_features: int = NUM_GLOBAL_FEATURES,
+    ):
         """``joint_map``: the robot's joints until a description in the stream replaces it (one known
         otherwise, e.g. ``JointMap.from_urdf`` of a URDF file); default ``JointMap()``, each state's joints a
-        chain in the message's order."""
+        chain in the message's order. ``global_features``: the width of the policy whose observations are
+        rebuilt (``protocol.controller.GLOBAL_FEATURES``: 4 a swimmer's, 12 a legged body's; the reward is
+        still a swimmer's)."""
+        if global_width_error(global_features) is not None:
+            raise ValueError(f"a policy that {global_width_error(global_features)}")
+        self.global_features = global_features
         self.config = config or TransitionConfig()
         self.joint_map = JointMap() if joint_map is None else joint_map
-        self._newly_described = False
-        """the robot the states are bound to as they arrive: the latest description's (kept across ``flush``)"""
+        self._generation = 0
+        """descriptions adopted (kept across ``flush``): which robot, to the policy node, a state is of"""
         self._description: str | bytes | None = None  # the text ``joint_map`` was read from
         self._answer_maps: dict[KinematicTree, JointMap] = {}
         self.skips = SkipCounts()
@@ -374,8 +387,8 @@ class TransitionAssembler:
         self._states_seen = 0
         self._latest_state: int | None = None  # stamp, for untagged efforts
         self._judged: OrderedDict[int, None] = OrderedDict()
-        self._unwrap = YawUnwrapper()
-        self._restart_unwrap = False  # at the next state observed (a description was adopted before it)
+        # the policy node's observation of each state (its unwrapping has memory)
+        self._controller = Controller(global_features=self.global_features)
         self._held: dict | None = None  # the latest transition's fields but ``truncated``: known at the next judgement
         self._ready: list[Transition] = []
 
@@ -464,7 +477,7 @@ class TransitionAssembler:
         self.stats.descriptions += 1
         self._description = record.text
         self.joint_map = joint_map
-        self._newly_described = True  # the next state to arrive is the first the policy node reads on it
+        self._generation += 1  # the states that arrive from now on are read on it, a new robot to the policy node
 
     def _on_state(self, record: JointStateRecord) -> None:
         stamp, latest = record.stamp_ns, self._latest_state
@@ -496,8 +509,6 @@ class TransitionAssembler:
         self.stats.count_boundary(cause)
         self._cut()
         self._judged.pop(old.stamp, None)
-        if cause != "stamp_gap":
-            self._unwrap.reset()
         self._add_state(record, new)
 
     def _set_state(self, slot: _Slot, record: JointStateRecord) -> None:
@@ -517,7 +528,7 @@ class TransitionAssembler:
         self._slots[record.stamp_ns] = slot
         self._stateless.pop(record.stamp_ns, None)
         self._set_state(slot, record)
-        slot.newly_described, self._newly_described = self._newly_described, False
+        slot.generation = self._generation
         self._sequence.append(record.stamp_ns)
         self._states_seen += 1
         self.stats.states += 1
@@ -591,12 +602,8 @@ class TransitionAssembler:
         or None (a boundary, or a skip counted under its reason)."""
         obs = self._observe(a)  # first, whatever follows: the unwrapper sees every state in order
         boundary = self._boundary(a, b)
-        if boundary is not None:
+        if boundary is not None:  # the controller restarts its unwrapping there, or not (a gap), by its own rule
             self.stats.count_boundary(boundary)
-            if boundary != "stamp_gap":
-                # The policy node restarts its unwrapping for a new robot or a new episode; a gap (a lost
-                # message) it does not see, and neither do we.
-                self._unwrap.reset()
             return None
         obs_next = self._observe(b)
         reason = a.obs_error or b.obs_error
@@ -645,9 +652,14 @@ class TransitionAssembler:
         if slot.observed:
             return slot.obs
         slot.observed = True
-        # A new description is a new robot to the policy node (its graph, even one of the same tree): it restarts
-        # its unwrapping at the first state it reads on it, which is the first it answers.
-        self._restart_unwrap |= slot.newly_described
+        if slot.announced:  # received before the state, as the node would have (announced after: below)
+            self._controller.episode_start(slot.stamp)
+        self._observe_state(slot)
+        if slot.announced_later:
+            self._controller.episode_start(slot.stamp)
+        return slot.obs
+
+    def _observe_state(self, slot: _Slot) -> None:
         s, odom = slot.state, slot.odom
         if slot.conflict or slot.later_odom is not None:  # two odometries, one state
             slot.obs_error = "duplicate_stamp"
@@ -658,7 +670,7 @@ class TransitionAssembler:
                 pos, vel = validate_joint_state(s.names, s.position, s.velocity, self.config.max_joints)
             except JointStateError:
                 slot.obs_error = "malformed"
-                return None
+                return
             if s.effort.size not in (0, len(s.names)):
                 slot.obs_error = "malformed"
             elif slot.order is None:
@@ -668,17 +680,14 @@ class TransitionAssembler:
             elif not _finite(odom.x, odom.y, odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z):
                 slot.obs_error = "non_finite"
             else:
-                if self._restart_unwrap:
-                    self._unwrap.reset()
-                    self._restart_unwrap = False
                 try:
-                    glob = global_features(odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z, self._unwrap)
-                except JointStateError:  # a zero quaternion
+                    check_odometry(odom)  # as the node does when it arrives: a bad one is never used
+                except JointStateError:  # a zero quaternion, one not of unit length
                     slot.obs_error = "malformed"
-                    return None
+                    return
                 order = slot.order
+                glob = self._controller.observe(slot.stamp, (slot.generation, order.tree.names), odom)
                 slot.obs = _Observation(order.to_tree(pos), order.to_tree(vel), glob, float(odom.x))
-        return slot.obs
 
     def _laid_out(self, tree: KinematicTree, names: tuple[str, ...]) -> JointOrder | None:
         """How an answer's values, one per name of ``names``, lay onto ``tree`` (``JointOrder.to_tree``); None
@@ -776,10 +785,14 @@ class Assembled:
 
 
 def assemble(
-    records: Iterable[Record], config: TransitionConfig | None = None, joint_map: JointMap | None = None
+    records: Iterable[Record],
+    config: TransitionConfig | None = None,
+    joint_map: JointMap | None = None,
+    global_features: int = NUM_GLOBAL_FEATURES,
 ) -> Assembled:
-    """Transitions of one finished stream of records in receive order (e.g. one bag)."""
-    asm = TransitionAssembler(config, joint_map)
+    """Transitions of one finished stream of records in receive order (e.g. one bag); the arguments are
+    ``TransitionAssembler``'s."""
+    asm = TransitionAssembler(config, joint_map, global_features)
     transitions = asm.push_many(records) + asm.flush()
     return Assembled(TransitionBatch.from_transitions(transitions), asm.skips, asm.stats)
 

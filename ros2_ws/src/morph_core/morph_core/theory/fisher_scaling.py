@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch.func import functional_call, jacrev, jvp, vmap
 
-import morph_core  # noqa: F401  (registers MorphSwimmer-v0)
+import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
 
