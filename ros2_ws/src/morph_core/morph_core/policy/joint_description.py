@@ -309,7 +309,9 @@ def _urdf_descriptions(text: str | bytes) -> np.ndarray:
                 axes[k] = turn @ _floats(element.find("axis"), "xyz", (1.0, 0.0, 0.0), what)  # URDF's default axis
                 limit = element.find("limit")
                 lo, hi = _number(limit, "lower", what), _number(limit, "upper", what)
-                effort = _number(limit, "effort", what)
+                effort = robot_info.effort_limits.get(jname, math.nan)  # read_urdf's reading; NaN: not a number
+                if jname in robot_info.effort_limits and not math.isfinite(effort):
+                    raise TreeError(f"{what}: its effort limit is not a finite number")
                 if effort < 0:
                     raise TreeError(f"{what} has a negative effort limit {effort:g}")
                 if element.get("type") == "revolute":
