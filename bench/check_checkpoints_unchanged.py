@@ -42,9 +42,15 @@ def _questions(global_width: int, seed: int = 0) -> dict:
     return {"pos": pos, "vel": vel, "glob": glob, "n": n, "parents": parents}
 
 
+def _core_modules() -> dict:
+    return {k: v for k, v in sys.modules.items() if k == "morph_core" or k.startswith("morph_core.")}
+
+
 def answers(core: Path, onnx: bool) -> dict[str, np.ndarray]:
-    """Every answer of every shipped checkpoint, computed by the ``morph_core`` package under ``core``."""
-    for name in [m for m in sys.modules if m == "morph_core" or m.startswith("morph_core.")]:
+    """Every answer of every shipped checkpoint, computed by the ``morph_core`` package under ``core``. The
+    process's own ``morph_core`` modules are put back afterwards (a test process goes on with its classes)."""
+    saved = _core_modules()
+    for name in saved:
         del sys.modules[name]
     sys.path.insert(0, str(core))
     try:
@@ -86,6 +92,9 @@ def answers(core: Path, onnx: bool) -> dict[str, np.ndarray]:
         return out
     finally:
         sys.path.remove(str(core))
+        for name in _core_modules():
+            del sys.modules[name]
+        sys.modules.update(saved)
 
 
 def reference_core(ref: str, into: Path) -> Path:

@@ -93,11 +93,12 @@ def evaluate_episodes(
     for swimmers, r in zip(groups, rows, strict=True):
         parents[r, : swimmers.num_joints] = swimmers.parents
     desc = None  # the joints' descriptions, for a policy that reads them
-    if actor.joint_features:
+    if getattr(actor, "joint_features", 0):  # (an actor without the attribute reads none)
         desc = np.zeros((count, width, actor.joint_features), np.float32)
         for swimmers, r in zip(groups, rows, strict=True):
             model = swimmers.envs[0].model if isinstance(swimmers, CentipedeBatch) else swimmer_model(swimmers.parents)
             desc[r, : swimmers.num_joints] = model_descriptions(model)
+    described = {} if desc is None else {"joint_desc": desc}
     for swimmers, r in zip(groups, rows, strict=True):
         swimmers.write_observation(pos[r], vel[r], glob[r])
     returns, steps = np.zeros(count), np.zeros(count, dtype=np.int64)
@@ -109,11 +110,18 @@ def evaluate_episodes(
         if idx.size == 0:
             break
         if idx.size == count:  # every swimmer still going (the usual case)
-            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents, desc)).astype(np.float64)
+            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents, **described)).astype(
+                np.float64
+            )
         else:  # the ended swimmers' rows keep their last actions and are not stepped
             applied[idx] = applied_action(
                 actor.mean_actions(
-                    pos[idx], vel[idx], glob[idx], num_joints[idx], parents[idx], None if desc is None else desc[idx]
+                    pos[idx],
+                    vel[idx],
+                    glob[idx],
+                    num_joints[idx],
+                    parents[idx],
+                    **({} if desc is None else {"joint_desc": desc[idx]}),
                 )
             )
         for swimmers, r in zip(groups, rows, strict=True):
