@@ -26,6 +26,7 @@ command tune the assembly (``--control-period``, ``--settle-states``, ...);
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections import Counter
@@ -34,7 +35,7 @@ from pathlib import Path
 
 from morph_core.algo.train_from_data import describe_bodies
 from morph_core.env.bodies import body_label
-from morph_core.msgs.records import DescriptionRecord
+from morph_core.msgs.records import DescriptionRecord, OdometryRecord
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import (
@@ -108,6 +109,7 @@ def summarize_bag(
     """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
     ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
     default ``bag_robot``'s."""
+    config = bag_config(path, config, namespace)
     reader = BagReader(path, namespace=namespace)
     asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
     transitions, described = [], {}
@@ -141,6 +143,22 @@ def summarize_bag(
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
     )
+
+
+def bag_task(path: str | Path, namespace: str | None = None) -> str:
+    """The task of a bag's transitions (``protocol.transitions.TASKS``): ``ant`` when its first odometry is of a
+    body in 3-D (``OdometryRecord.planar`` False: a legged body), else ``swimmer``."""
+    for record in BagReader(path, namespace=namespace).records():
+        if isinstance(record, OdometryRecord):
+            return "swimmer" if record.planar else "ant"
+    return "swimmer"
+
+
+def bag_config(path: str | Path, config: TransitionConfig, namespace: str | None = None) -> TransitionConfig:
+    """``config`` for the bag: with the task left at its default, the bag's own (``bag_task``)."""
+    if config.task != TransitionConfig.task:
+        return config
+    return dataclasses.replace(config, task=bag_task(path, namespace))
 
 
 def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:

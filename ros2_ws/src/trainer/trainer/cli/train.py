@@ -57,7 +57,7 @@ from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_f
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
-from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
     BoolAction,
@@ -67,7 +67,7 @@ from morph_core.util.config_cli import (
     overrides_from_args,
     replace_nested,
 )
-from trainer.bags.cli import bag_robot
+from trainer.bags.cli import bag_config, bag_robot
 from trainer.bags.io import BagError, BagReader
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
 from trainer.cli.train_session import (
@@ -168,7 +168,8 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     batches, warnings, skips = [], [], SkipCounts()
     for bag in bags:
         reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
+        config = bag_config(bag, TransitionConfig(), namespace)  # a swimmer's task, or a legged body's
+        asm = TransitionAssembler(config, bag_robot(bag, namespace))  # its first states are of its first robot
         batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
         warnings += reader.stats.warnings
         skips.merge(asm.skips)
