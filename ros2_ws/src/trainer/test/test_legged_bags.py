@@ -4,6 +4,7 @@ odometry fuzzed on the bag path."""
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -104,6 +105,11 @@ def test_morph_bag_info_and_export_of_a_centipedes_bag(centipede_bag, tmp_path):
     from morph_core.protocol.transition_batch import TransitionBatch
 
     assert TransitionBatch.from_npz(tmp_path / "t.npz").global_width == 12
+    assert "task: ant" in out.stdout
+    info = subprocess.run([sys.executable, "-m", "trainer.bags.cli", "info", "--json", str(path)],
+                          capture_output=True, text=True)  # fmt: skip
+    total = json.loads(info.stdout)["total"]
+    assert total["task"] == "ant" and total["steps_terminated"] >= 1
 
 
 # -- fuzz: the 3-D odometry on the bag path ------------------------------------------------------------

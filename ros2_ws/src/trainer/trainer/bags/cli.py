@@ -80,10 +80,14 @@ class BagSummary:
     ppo_steps: int = 0
     """transitions with their behaviour log-prob (policy_info)"""
     batch: TransitionBatch = field(default_factory=TransitionBatch.empty)
+    task: str = "swimmer"
+    """the transitions' task (``bag_task``): ``swimmer``, or ``ant`` (a legged body); several: joined by commas"""
 
     def as_dict(self) -> dict:
         return {
             "path": self.path,
+            "task": self.task,
+            "steps_terminated": int(self.batch.terminated.sum()),
             "topics": [{"topic": t, "type": ty, "messages": n} for t, ty, n in self.topics],
             "rejected": {f"{topic}: {reason}": n for (topic, reason), n in sorted(self.rejected.items())},
             "warnings": list(self.warnings),
@@ -142,6 +146,7 @@ def summarize_bag(
         steps_per_body=Counter(batch.steps_per_body()),
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
+        task=config.task,
     )
 
 
@@ -189,6 +194,7 @@ def total(summaries: list[BagSummary]) -> BagSummary:
         out.described += [label for label in s.described if label not in out.described]
         out.steps_per_body.update(s.steps_per_body)
         out.ppo_steps += s.ppo_steps
+        out.task = ",".join(dict.fromkeys(s.task for s in summaries))
     out.topics = [(name, ty, n) for name, (ty, n) in sorted(topics.items())]
     out.batch = TransitionBatch.concatenate([s.batch for s in summaries])
     return out
@@ -214,6 +220,8 @@ def format_summary(s: BagSummary) -> str:
     lines.append(f"  episodes: {st.episodes} (runs of consecutive steps)")
     chains = ", ".join(f"{n} joints: {c}" for n, c in sorted(s.steps_per_chain.items()))
     lines.append(f"  steps: {st.transitions}" + (f" ({chains})" if chains else ""))
+    if s.task != "swimmer":  # a legged body's: 12 global features, Ant-v5's reward, falls terminate
+        lines.append(f"  task: {s.task} ({int(s.batch.terminated.sum())} episodes ended by a fall)")
     if s.steps_per_body:
         lines.append("  bodies: " + ", ".join(f"{label} {n}" for label, n in s.steps_per_body.items()))
     lines.append(
