@@ -261,3 +261,22 @@ def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_pa
     # each in an order of its own, so hardly a step among them.
     alone = assemble(late).batch
     assert len(alone) < 25 and (alone.parents[-1, :5] == tree.parents).all()
+
+
+def test_a_bag_of_a_body_in_3d_is_refused_in_one_line_by_info_export_and_training(tmp_path, sampled_records, capsys):
+    """A legged body's odometry leaves the plane (a centipede's bag used to give "steps: 0" and "no usable
+    steps ... (skipped: none)"): refused before any step is used, naming why (``trainer.bags.legged``)."""
+    from trainer.cli.train import main as train_main
+
+    tilt = (0.05, -0.02, 0.3, float(np.sqrt(1 - 0.05**2 - 0.02**2 - 0.3**2)))
+    records = [dataclasses.replace(r, orientation_xyzw=tilt) if isinstance(r, OdometryRecord) else r
+               for r in sampled_records]  # fmt: skip
+    bag = write_bag(tmp_path / "legs", records)
+    for argv in (["info", str(bag)], ["export", str(bag), "--out", str(tmp_path / "t.npz")]):
+        assert main(argv) == 1
+        out, err = capsys.readouterr()
+        assert out == "" and len(err.splitlines()) == 1 and "a body in 3-D" in err and "swimmers only" in err
+    assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "a body in 3-D" in err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "t.npz").exists()

@@ -51,6 +51,7 @@ from morph_core.util.config_cli import (
     replace_nested,
 )
 from trainer.bags.io import BagError, BagReader, first_description
+from trainer.bags.legged import refuse_legged_odometry
 from trainer.bags.messages import DESCRIPTION_TOPIC
 
 NO_DESCRIPTION = "no robot_description: joints taken as chains in message order"
@@ -111,7 +112,7 @@ def summarize_bag(
     reader = BagReader(path, namespace=namespace)
     asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
     transitions, described = [], {}
-    for record in reader.records():
+    for record in refuse_legged_odometry(reader.records(), path):
         transitions += asm.push(record)
         if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
             described.setdefault(body_label(asm.joint_map.robot.tree))
