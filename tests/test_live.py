@@ -137,13 +137,20 @@ def progress(out: Path) -> list[dict]:
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
-def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen):
+@pytest.mark.parametrize("listen, own_key", [("topics", False), ("stream_chunks", False), ("topics", True)],
+                         ids=["topics", "stream_chunks", "users_key"])  # fmt: skip
+def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen, own_key):
     """``python -m trainer.live.bringup`` (what ``scripts/live.sh`` runs): K = 2 pairs paced at real time (its
     default) and the trainer, which updates on both (reading their topics or their policy nodes' chunks) and
-    ends the bring-up."""
+    ends the bring-up. With the user's key given to the trainer (``-- --signing-key KEY``) the nodes trust
+    that key (they trusted the run's own alone and refused the weights once a second)."""
+    from morph_core.protocol.trust import write_key_pair
+
     out = tmp_path / "run"
     trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")] + reads(listen)
+    if own_key:
+        user = write_key_pair(tmp_path / "my_key")
+        trainer_options += ["--signing-key", str(tmp_path / "my_key")]
     cmd = [sys.executable, "-m", "trainer.live.bringup", "--pairs", "2", "--out", str(out), "--max-updates", "2",
            "--episode-steps", "60", "--startup-timeout", str(STARTUP), "--timeout", "200",
            "--", *trainer_options]  # fmt: skip
@@ -160,6 +167,7 @@ def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path
     assert all(f"pair /swimmer{i} is running" in log for i in range(2))
     # The run's own key: the trainer signed with it, each node trusted it and took the signed versions.
     fingerprint = log.split("signing the weights with ")[1].split()[0]
+    assert (fingerprint == user.fingerprint) if own_key else "my_key" not in log
     assert log.count(f"trusting weights signed by {fingerprint}") == 2
     assert log.count(f"signed by {fingerprint} received") >= 2 and "UNSIGNED" not in log
 

@@ -139,3 +139,28 @@ def test_live_refuses_centipedes_in_one_line_before_anything_runs(tmp_path):
     lines = _refused([*LIVE, "--out", str(tmp_path / "run"), "--", "--bodies", "centipede:2-3"], tmp_path)
     assert lines[0].startswith("morph-train: error: --bodies 'centipede:2-3' holds centipedes: learning from bags")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_signing_key_for_the_trainer_is_the_bring_up_s_key():
+    from trainer.live.bringup import split_signing_key
+
+    assert split_signing_key(["--seed", "3", "--signing-key", "k", "--num-steps", "64"]) == (
+        ["--seed", "3", "--num-steps", "64"], Path("k"))  # fmt: skip
+    assert split_signing_key(["--signing-key=a/k"]) == ([], Path("a/k"))
+    assert split_signing_key(["--seed", "3"]) == (["--seed", "3"], None)
+
+
+def test_live_refuses_a_signing_key_it_cannot_use_in_one_line_before_anything_runs(tmp_path):
+    from morph_core.protocol.trust import write_key_pair
+
+    done = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), "--", "--signing-key", str(tmp_path / "none")],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert "--signing-key" in done.stderr and "morph-keys new KEY" in done.stderr
+    write_key_pair(tmp_path / "a")
+    write_key_pair(tmp_path / "b")
+    (tmp_path / "b.pub").replace(tmp_path / "a.pub")  # a public key of another pair
+    done = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), "--signing-key", str(tmp_path / "a")],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1 and "is not the public half of" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "run").exists()
