@@ -138,7 +138,7 @@ def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp
 
 
 def test_morph_eval_run_on_a_centipede_run_evaluates_its_bodies_and_the_zero_shot_sizes(centipede_run, tmp_path):
-    """Neither --bodies nor --lengths: the run's own centipedes and 5, 6, 8, 10 leg pairs, no swimmer chains; a
+    """Neither --bodies nor --joints: the run's own centipedes and 5, 6, 8, 10 leg pairs, no swimmer chains; a
     swimmer run, or an option given, keeps the chains (2..10, 15, 20) as before."""
     from morph_core.env.bodies import Centipede
     from trainer.cli.eval import EvalConfig, eval_bodies, run_eval_config
