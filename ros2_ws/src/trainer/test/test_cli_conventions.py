@@ -5,6 +5,7 @@ abbreviated (``--total-timestep`` is refused, not taken for ``--total-timesteps`
 from __future__ import annotations
 
 import importlib
+import re
 
 import pytest
 
@@ -171,3 +172,24 @@ def test_the_old_names_still_work_and_say_they_are_deprecated(tmp_path, capsys):
 )  # fmt: skip
 def test_every_tool_that_writes_a_folder_or_file_names_it_out(module, argv, capsys):
     assert "--out" in _help(module, capsys, argv)
+
+
+@pytest.mark.parametrize("module, prog, good, truncated", TOOLS, ids=[t[0] for t in TOOLS])
+def test_help_keeps_its_examples_lines_and_says_no_deprecated_name(module, prog, good, truncated, capsys):
+    """A backslash at a docstring's line end joined two example lines into one (morph-render's help);
+    morph-sweep's example used clip-mode, the old name of rule."""
+    argv = ["morph-record"] if module == "bags.record" else ["info"] if module == "bags.cli" else []
+    text = _help(f"trainer.{module}", capsys, argv)
+    assert not re.search(r"\S {5,}--[a-z]", text), re.search(r".*\S {5,}--[a-z].*", text).group(0)
+    assert "clip-mode=" not in text and "--lengths" not in text
+
+
+def test_every_option_of_morph_train_says_what_it_is():
+    """Options of fields a base class of TrainConfig declares (--bodies, --min-joints ...) had no help text."""
+    import argparse
+
+    from trainer.cli.train import build_parser
+
+    bare = [a.option_strings[0] for a in build_parser()._actions
+            if a.help != argparse.SUPPRESS and not re.sub(r"\(default: .*\)$", "", a.help or "").strip()]  # fmt: skip
+    assert bare == []

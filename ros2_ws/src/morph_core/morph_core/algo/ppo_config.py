@@ -93,8 +93,9 @@ class PPOConfig:
     max_joints: int = 10
     """longest chain drawn at a reset; with ``bodies``, the most joints its bodies have (set from it)"""
     bodies: str = ""
-    """the bodies drawn at each reset, in ``env.bodies``' grammar: chains and trees, e.g. '2-10,random:3-10'
-    (chains of 2..10 joints or random trees of 3..10); empty: chains of min_joints..max_joints"""
+    """the bodies drawn at each reset, in ``env.bodies``' grammar (docs/bodies.md): chains, trees and centipedes,
+    e.g. '2-10,random:3-10' (chains of 2..10 joints or random trees of 3..10) or 'centipede:2-4' (2..4 leg
+    pairs, with the centipede settings ``LEGGED_DEFAULTS``); empty: chains of min_joints..max_joints"""
     checkpoint_interval: int = 6000
     """env steps between checkpoints (taken at the end of the update that crosses the mark)"""
     torch_threads: int = 1

@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_deprecated_alias("--no-eval", "--eval", value=False, shown="--eval false")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
     parser.add_deprecated_alias("--threads", "--env-threads")
-    parser.add_argument("--joints", dest="lengths", type=int, nargs="*", default=None,
+    parser.add_argument("--joints", dest="lengths", type=int, nargs="*", default=None, metavar="N",
                         help="chain lengths (default: 2..10 15 20; none: trees only)")  # fmt: skip
     parser.add_deprecated_alias("--lengths", "--joints")
     args = parser.parse_args(argv)

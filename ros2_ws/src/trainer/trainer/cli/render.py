@@ -16,7 +16,7 @@ no ``--joints``, only the bodies are filmed.
         --joints 2 6 10 20 --gif swim.gif --mp4 swim.mp4
     morph-render --untrained --joints 3 --seconds 4 --gif untrained.gif
     morph-render --checkpoint policy.safetensors --bodies star:3x2,y:1x2,comb:4 --gif trees.gif
-    morph-render --checkpoint centipedes/checkpoints/policy_00004096.safetensors --bodies centipede:3,centipede:5 \
+    morph-render --checkpoint centipedes/checkpoints/policy_00004096.safetensors --bodies centipede:3,centipede:5 \\
         --height 240 --seconds 4 --gif centipedes.gif
 
 Centipedes (``--bodies centipede:N``) are filmed from the side and above, following the front segment;
@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gif", type=Path, default=None, help="write an animated GIF here")
     parser.add_argument("--mp4", type=Path, default=None, help="write an H.264 MP4 here")
     add_dataclass_options(parser, VideoConfig, skip=("lengths",))
-    parser.add_argument("--joints", dest="lengths", type=int, nargs="+", default=None,
+    parser.add_argument("--joints", dest="lengths", type=int, nargs="+", default=None, metavar="N",
                         help="chain lengths, joints per swimmer (default: 2 6 10 20)")  # fmt: skip
     parser.add_deprecated_alias("--lengths", "--joints")
     args = parser.parse_args(argv)

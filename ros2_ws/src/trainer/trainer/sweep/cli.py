@@ -1,10 +1,10 @@
 """``morph-sweep``: a grid or list of training runs on Ray Tune, each an ordinary run directory, then their table.
 
     morph-sweep --spec sweeps/rules.yaml --out runs/rules                       # a spec file
-    morph-sweep --grid clip-mode=fixed,compensated --grid seed=1,2,3 --set total-timesteps=200000 --out runs/s
+    morph-sweep --grid rule=fixed,compensated --grid seed=1,2,3 --set total-timesteps=200000 --out runs/s
     morph-sweep --spec sweeps/rules.yaml --out runs/rules --address HEAD:6379   # on a Ray cluster
 
-Each trial trains into ``OUT/<trial name>`` (``clip_mode=fixed,seed=1``: the overrides that vary) as
+Each trial trains into ``OUT/<trial name>`` (``rule=fixed,seed=1``: the overrides that vary) as
 ``morph-train --out`` would, then evaluates its late checkpoints there (``eval.csv``; the spec's ``eval``:
 morph-eval's options, ``from_step`` half the run's steps unless given). A trial that fails or whose process
 dies is started again (``--max-failures``) and resumes from its run directory's last state, with the result
