@@ -144,6 +144,7 @@ def run(args, extra: list[str]) -> int:
     trainer = subprocess.Popen(trainer_command(namespaces, args, extra, key))
     procs: list[subprocess.Popen] = []
     specs: list[tuple[str, str, dict]] = []
+    interrupted = False
     try:
         for i, ns in enumerate(namespaces):
             sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
@@ -156,18 +157,11 @@ def run(args, extra: list[str]) -> int:
             procs.append(_start(*specs[-1]))
         print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
         deadline = time.monotonic() + args.timeout
-        while trainer.poll() is None:
-            if time.monotonic() > deadline:
-                print(f"live_bringup: timed out after {args.timeout} s: stopping the trainer", flush=True)
-                break
-            # A node that ended (killed, or stuck in the middleware and ended by its runner) comes back, as
-            # a launch file's respawn would do; the trainer takes its pair back when it answers again.
-            for k, proc in enumerate(procs):
-                if proc.poll() is not None:
-                    module, ns, _ = specs[k]
-                    print(f"live_bringup: {module} in {ns} ended ({proc.returncode}): restarting it", flush=True)
-                    procs[k] = _start(*specs[k])
-            time.sleep(0.5)
+        try:
+            _watch(trainer, procs, specs, deadline, args.timeout)
+        except KeyboardInterrupt:  # Ctrl-C: every process of the group got it; the rest stop below
+            print("live_bringup: interrupted: stopping the trainer and the pairs", flush=True)
+            interrupted = True
     finally:
         _stop([trainer])
         _stop(procs)
@@ -175,7 +169,25 @@ def run(args, extra: list[str]) -> int:
         rclpy.try_shutdown()
         if keys is not None:
             shutil.rmtree(keys, ignore_errors=True)
-    return 0 if trainer.returncode in (0, None) else 1
+    return 130 if interrupted else 0 if trainer.returncode in (0, None) else 1
+
+
+def _watch(trainer, procs: list, specs: list, deadline: float, timeout: float) -> None:
+    """Until the trainer ends: restart a node that failed; end at the deadline, or when a node ended as told to."""
+    while trainer.poll() is None:
+        if time.monotonic() > deadline:
+            print(f"live_bringup: timed out after {timeout} s: stopping the trainer", flush=True)
+            break
+        ended = [k for k, proc in enumerate(procs) if proc.poll() is not None]
+        if any(procs[k].returncode == 0 for k in ended):
+            break  # a node ends 0 only when told to stop (Ctrl-C reaches the whole group): the run ends
+        # A node that failed (killed, or stuck in the middleware and ended by its runner) comes back, as
+        # a launch file's respawn would do; the trainer takes its pair back when it answers again.
+        for k in ended:
+            module, ns, _ = specs[k]
+            print(f"live_bringup: {module} in {ns} ended ({procs[k].returncode}): restarting it", flush=True)
+            procs[k] = _start(*specs[k])
+        time.sleep(0.5)
 
 
 def main(argv=None) -> int:
