@@ -280,3 +280,22 @@ def test_a_bag_of_a_body_in_3d_is_refused_in_one_line_by_info_export_and_trainin
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "a body in 3-D" in err
     assert not (tmp_path / "run").exists() and not (tmp_path / "t.npz").exists()
+
+
+def test_info_names_a_body_by_what_it_is():
+    """The ant is no swimmer of the star-4x2 shape; a centipede is named by its size (the sim's robot names)."""
+    import mujoco
+
+    from morph_core.env.centipede_model import ant_mjcf, centipede_mjcf
+    from morph_core.env.urdf import robot_urdf
+    from morph_core.policy.tree import read_urdf
+    from trainer.bags.cli import described_body
+
+    def named(urdf: str) -> str:
+        return described_body(urdf, read_urdf(urdf).tree)
+
+    ant = robot_urdf(mujoco.MjModel.from_xml_string(ant_mjcf()))
+    assert named(ant) == "robot 'ant' (star-4x2 tree)"
+    assert named(robot_urdf(mujoco.MjModel.from_xml_string(centipede_mjcf(5)))) == "centipede-5"
+    assert named(swimmer_urdf(swimmer_tree(star_parents(4, 2)))) == "star-4x2"
+    assert named(swimmer_urdf(swimmer_tree(y_parents(1, 2)))) == "y-1x2"

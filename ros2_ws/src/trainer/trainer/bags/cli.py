@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
@@ -115,7 +116,7 @@ def summarize_bag(
     for record in refuse_legged_odometry(reader.records(), path):
         transitions += asm.push(record)
         if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
-            described.setdefault(body_label(asm.joint_map.robot.tree))
+            described.setdefault(described_body(record.text, asm.joint_map.robot.tree))
     transitions += asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
@@ -142,6 +143,20 @@ def summarize_bag(
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
     )
+
+
+def described_body(urdf: str, tree) -> str:
+    """What a robot_description describes, by what it is: a swimmer by its shape (``chain-6``, ``star-3x2``), a
+    centipede by its size (``centipede-5``, from the sim's robot name), any other robot by its URDF name and its
+    tree's shape (Gymnasium's ant: ``robot 'ant' (star-4x2 tree)``, not a swimmer ``star-4x2``)."""
+    match = re.search(r"<robot\b[^>]*\bname\s*=\s*([\"'])(.*?)\1", urdf[:4096])
+    name = match.group(2) if match else ""
+    shape = body_label(tree)
+    if not name or name.startswith("swimmer"):
+        return shape
+    if (size := re.fullmatch(r"centipede(\d+)", name)) is not None:
+        return f"centipede-{size.group(1)}"
+    return f"robot {name!r} ({shape} tree)"
 
 
 def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
