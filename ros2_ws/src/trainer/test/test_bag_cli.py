@@ -299,3 +299,27 @@ def test_info_names_a_body_by_what_it_is():
     assert named(robot_urdf(mujoco.MjModel.from_xml_string(centipede_mjcf(5)))) == "centipede-5"
     assert named(swimmer_urdf(swimmer_tree(star_parents(4, 2)))) == "star-4x2"
     assert named(swimmer_urdf(swimmer_tree(y_parents(1, 2)))) == "y-1x2"
+
+
+def test_info_says_why_a_bag_gave_no_step_when_none_was_skipped(tmp_path, sampled_records, capsys):
+    """'steps: 0' and 'skipped steps: none' said nothing: the line names why there was no step to skip."""
+    firsts, seen = [], set()
+    for r in sampled_records:  # each episode's first state alone: no next state, so no step and nothing skipped
+        if isinstance(r, JointStateRecord):
+            if len(r.names) in seen:
+                continue
+            seen.add(len(r.names))
+        firsts.append(r)
+    bag = write_bag(tmp_path / "firsts", firsts)
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    line = next(x for x in text.splitlines() if "skipped steps:" in x)
+    assert "steps: 0" in text and "none followed by a next state of its episode" in line, text
+    from trainer.cli.train import main as train_main
+
+    assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false"]) == 1
+    err = capsys.readouterr().err  # morph-train --from-bags said "(skipped: none)" and no more
+    assert "(skipped: none; " in err and "none followed by a next state" in err and len(err.splitlines()) == 1
+    only_odometry = write_bag(tmp_path / "odom", [r for r in sampled_records if isinstance(r, OdometryRecord)])
+    assert main(["info", str(only_odometry)]) == 0
+    assert "no joint_states of the robot's topics were read" in capsys.readouterr().out

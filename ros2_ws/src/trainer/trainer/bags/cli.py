@@ -222,10 +222,22 @@ def format_summary(s: BagSummary) -> str:
         lines.append(f"  applied effort not reported by the state (command trusted): {st.applied_unverified}")
     skipped = {r: getattr(s.skips, r) for r in SkipCounts.STEP_REASONS}
     unused = {r: getattr(s.skips, r) for r in SkipCounts.MESSAGE_REASONS}
-    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}")
+    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}" + (f" ({why})" if (why := no_steps(s)) else ""))
     lines.append(f"  unused messages: {_counts(unused) or 'none'}")
     lines += [f"  warning: {w}" for w in s.warnings]
     return "\n".join(lines)
+
+
+def no_steps(s: BagSummary) -> str:
+    """Why a bag gave no step when no step was skipped (every step left out is counted under its reason, but a
+    bag can hold no step to leave out); '' when it gave steps or the skipped steps say why."""
+    st = s.stats
+    if st.transitions or any(getattr(s.skips, r) for r in SkipCounts.STEP_REASONS):
+        return ""
+    if not st.states:
+        return "no joint_states of the robot's topics were read: morph-bag info lists the bag's topics"
+    return (f"{st.states} states in {st.episodes} episodes, none followed by a next state of its episode: a step "
+            "is a state, its answer and the next state")  # fmt: skip
 
 
 def _counts(counts: dict) -> str:

@@ -64,7 +64,7 @@ from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_f
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
-from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
     BoolAction,
@@ -74,7 +74,7 @@ from morph_core.util.config_cli import (
     overrides_from_args,
     replace_nested,
 )
-from trainer.bags.cli import bag_robot
+from trainer.bags.cli import bag_robot, no_steps, summarize_bag
 from trainer.bags.io import BagError, BagReader
 from trainer.bags.legged import refuse_legged_bodies, refuse_legged_odometry
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
@@ -212,7 +212,12 @@ def _train_from_bags(args) -> None:
         print(f"morph-train: warning: {w}", file=sys.stderr)
     if not len(data):
         skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
-        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {skipped or 'none'})")
+        why = skipped or "none; " + (
+            no_steps(summarize_bag(args.from_bags[0], TransitionConfig(), args.namespace))
+            if len(args.from_bags) == 1
+            else "morph-bag info BAG says why, bag by bag"
+        )
+        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {why})")
     missing = int((~data.has_policy_info).sum())
     if missing == len(data):
         try:
