@@ -277,7 +277,8 @@ def _doc_commands(block: int) -> list[str]:
 def _doc_ant(assignment: str) -> str:
     """Run the doc's ``ANT=...`` line as a shell would (``python`` is this environment's), return ``$ANT``."""
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    out = subprocess.run(["bash", "-c", f'{assignment}\necho "$ANT"'], env=env, capture_output=True, text=True)
+    out = subprocess.run(["bash", "-c", f'{assignment}\necho "$ANT"'], env=env, capture_output=True, text=True,
+                         cwd=YOUR_ROBOT_DOC.parents[1])  # from the checkout, as the page says  # fmt: skip
     assert out.returncode == 0, out.stderr
     return out.stdout.strip()
 
@@ -295,6 +296,8 @@ def test_your_robot_doc_commands_run(probe, launch):
     procs = []
     for line in node_lines:  # "executable [--ros-args -p name:=value ...]"
         executable, *rest = shlex.split(line.replace("$ANT", ant))
+        assert executable.startswith(".venv/bin/"), line  # runs in a fresh shell: the venv named
+        executable = Path(executable).name
         assert rest[:1] in ([], ["--ros-args"]) and rest[1::2] == ["-p"] * (len(rest) // 2), line
         params = dict(arg.split(":=", 1) for arg in rest[2::2])
         procs.append(launch(executable, **params))
@@ -319,7 +322,7 @@ def test_your_robot_doc_bringup_runs(tmp_path):
     assignment = _doc_commands(0)[0]
     (line,) = _doc_commands(1)
     args = shlex.split(line.replace('"$ANT"', _doc_ant(assignment)))
-    assert args[:3] == ["python", "-m", "morph_policy_node.bringup"]
+    assert args[:3] == [".venv/bin/python", "-m", "morph_policy_node.bringup"]
     code, log = _bringup(tmp_path, *args[3:])
     assert code == 0 and f"robot {ANT_XML}, 8 joints" in log, log[-3000:]
 
