@@ -86,6 +86,7 @@ def test_the_demo_walks_a_centipede_with_the_shipped_policy_or_a_given_one(tmp_p
     assert "bodies centipede:6, 24 joints" in line
     forward = float(re.search(r"\(([-+][0-9.]+) m forward", line).group(1))
     assert forward > 5.0, line  # it walks (standing still moves the root well under a metre)
+    assert re.search(r"fell \d+ times?", line), line  # a walker's falls are counted
     # --checkpoint: any 12-feature policy drives it (an untrained one here).
     torch.manual_seed(0)
     ckpt = tmp_path / "centipede.safetensors"
