@@ -261,3 +261,65 @@ def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_pa
     # each in an order of its own, so hardly a step among them.
     alone = assemble(late).batch
     assert len(alone) < 25 and (alone.parents[-1, :5] == tree.parents).all()
+
+
+def test_a_bag_of_a_body_in_3d_is_refused_in_one_line_by_info_export_and_training(tmp_path, sampled_records, capsys):
+    """A legged body's odometry leaves the plane (a centipede's bag used to give "steps: 0" and "no usable
+    steps ... (skipped: none)"): refused before any step is used, naming why (``trainer.bags.legged``)."""
+    from trainer.cli.train import main as train_main
+
+    tilt = (0.05, -0.02, 0.3, float(np.sqrt(1 - 0.05**2 - 0.02**2 - 0.3**2)))
+    records = [dataclasses.replace(r, orientation_xyzw=tilt) if isinstance(r, OdometryRecord) else r
+               for r in sampled_records]  # fmt: skip
+    bag = write_bag(tmp_path / "legs", records)
+    for argv in (["info", str(bag)], ["export", str(bag), "--out", str(tmp_path / "t.npz")]):
+        assert main(argv) == 1
+        out, err = capsys.readouterr()
+        assert out == "" and len(err.splitlines()) == 1 and "a body in 3-D" in err and "swimmers only" in err
+    assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "a body in 3-D" in err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "t.npz").exists()
+
+
+def test_info_names_a_body_by_what_it_is():
+    """The ant is no swimmer of the star-4x2 shape; a centipede is named by its size (the sim's robot names)."""
+    import mujoco
+
+    from morph_core.env.centipede_model import ant_mjcf, centipede_mjcf
+    from morph_core.env.urdf import robot_urdf
+    from morph_core.policy.tree import read_urdf
+    from trainer.bags.cli import described_body
+
+    def named(urdf: str) -> str:
+        return described_body(urdf, read_urdf(urdf).tree)
+
+    ant = robot_urdf(mujoco.MjModel.from_xml_string(ant_mjcf()))
+    assert named(ant) == "robot 'ant' (star-4x2 tree)"
+    assert named(robot_urdf(mujoco.MjModel.from_xml_string(centipede_mjcf(5)))) == "centipede-5"
+    assert named(swimmer_urdf(swimmer_tree(star_parents(4, 2)))) == "star-4x2"
+    assert named(swimmer_urdf(swimmer_tree(y_parents(1, 2)))) == "y-1x2"
+
+
+def test_info_says_why_a_bag_gave_no_step_when_none_was_skipped(tmp_path, sampled_records, capsys):
+    """'steps: 0' and 'skipped steps: none' said nothing: the line names why there was no step to skip."""
+    firsts, seen = [], set()
+    for r in sampled_records:  # each episode's first state alone: no next state, so no step and nothing skipped
+        if isinstance(r, JointStateRecord):
+            if len(r.names) in seen:
+                continue
+            seen.add(len(r.names))
+        firsts.append(r)
+    bag = write_bag(tmp_path / "firsts", firsts)
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    line = next(x for x in text.splitlines() if "skipped steps:" in x)
+    assert "steps: 0" in text and "none followed by a next state of its episode" in line, text
+    from trainer.cli.train import main as train_main
+
+    assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false"]) == 1
+    err = capsys.readouterr().err  # morph-train --from-bags said "(skipped: none)" and no more
+    assert "(skipped: none; " in err and "none followed by a next state" in err and len(err.splitlines()) == 1
+    only_odometry = write_bag(tmp_path / "odom", [r for r in sampled_records if isinstance(r, OdometryRecord)])
+    assert main(["info", str(only_odometry)]) == 0
+    assert "no joint_states of the robot's topics were read" in capsys.readouterr().out
