@@ -549,7 +549,7 @@ class MorphPolicyNode(Node):
             if err.code != PREVIOUS_DESCRIPTION:
                 # The next body's states before its description (a sim's hand-over between bodies): info, and so
                 # is the silence it causes; states that never fit (nothing answered, or silent since) warn.
-                driving = bool(self._names) and not self._silent  # a body answered until now: a hand-over
+                driving = bool(self.controller.names) and not self._silent  # a body answered until now: a hand-over
                 self._handover = err.code in ("missing_joint", "unknown_joint") and driving
                 self._reject(STATES, err, err.code, expected=self._handover)
                 return
