@@ -37,6 +37,10 @@ BATCH = 6 * 1024
 PHYSICS_CALLS = ("mj_step", "mj_rnePostConstraint", "_batch.step", "batch.step(", "mujoco.rollout")
 """a sample whose deepest project frame stands on a line calling one of these is in MuJoCo's physics"""
 
+EXCHANGE_CALLS = (".release()",)
+"""a sample on a line posting a semaphore is in the exchange: under load the post hands the core to the
+process it wakes"""
+
 # (category, regex on a frame "function (path:line)"), tried on each frame from the leaf up; the first hit wins.
 CATEGORIES: list[tuple[str, str]] = [
     (
@@ -99,6 +103,8 @@ def classify(frames: list[str], roots: list[Path]) -> str:
             text = _source_line(m["file"], int(m["line"]), roots)
             if any(call in text for call in PHYSICS_CALLS):
                 return "physics"
+            if any(call in text for call in EXCHANGE_CALLS):
+                return "gradient exchange"
             break
     for frame in reversed(frames):
         for name, pattern in _COMPILED:
