@@ -31,7 +31,9 @@ to its first logged iteration).
 compensated clipping, 6 envs, 1024 steps, minibatch 256, 10 epochs) for the same number of iterations, in a
 copy of DIR. Its rate is wall clock between the first and last of its per-iteration logs, and each of our
 settings is printed as a multiple of it. Machines of this kind differ 2x in speed from hour to hour, so only
-such a side-by-side ratio is a claim.
+such a side-by-side ratio is a claim. The reference runs first; ``--bracket`` runs it again after the
+settings and prints how far the machine's speed moved between the two (on a loaded machine it can move
+several-fold, and a ratio against the first alone would mislead).
 """
 
 from __future__ import annotations
@@ -182,6 +184,9 @@ def main() -> None:
                         help="a checkout of the paper's code, measured side by side")  # fmt: skip
     parser.add_argument("--reference-python", default=None, metavar="PY",
                         help="the Python that runs it (with its requirements installed)")  # fmt: skip
+    parser.add_argument("--bracket", action="store_true",
+                        help="run the reference again after the settings and print how far its rate moved "
+                             "(a loaded machine's speed moves within a run)")  # fmt: skip
     parser.add_argument("--settings", type=int, nargs="+", default=None, metavar="K",
                         help="run only these settings (1-based, in the table's order)")  # fmt: skip
     parser.add_argument("--bodies", default=None, metavar="SPEC", nargs="+",
@@ -219,6 +224,13 @@ def main() -> None:
         ratio = f"{r['sps'] / reference:.1f}x" if reference else "not run"
         print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | "
               f"{r['sps'] / raw[bodies or '2-10']:.2f} | {ratio} | {r['warmup_s']:.1f} |", flush=True)  # fmt: skip
+    if reference is not None and args.bracket:
+        after = reference_rate(args.reference, args.reference_python, iterations)
+        mean = (reference + after) / 2
+        print(f"\nreference again after the settings: {after:,.0f} env-steps/s ({after / reference:.2f}x the first); "
+              f"against the mean of the two ({mean:,.0f}) each ratio above is {reference / mean:.2f}x what it says"
+              + ("; the machine's speed moved more than 20% within the run: the ratios are not a claim"
+                 if not 0.8 <= after / reference <= 1.25 else ""))  # fmt: skip
     for spec, rate_ in raw.items():
         print(f"\nraw MuJoCo for the bodies {spec}, one core: {rate_:,.0f} env-steps/s "
               f"(a rollout of 6,144 steps needs >= {6144 / rate_:.2f} s of physics)")  # fmt: skip
