@@ -231,7 +231,8 @@ def make_sim(
         except ValueError as err:
             raise ValueError(f"topology {topology[:60]!r}: {err}") from None
         lo, hi = bodies.joint_range
-        return SwimmerSim(bodies=bodies, **kwargs), f"swimmers of {str(bodies)!r} ({lo}..{hi} joints)"
+        kind = "centipedes" if bodies.has_centipedes else "swimmers"  # a spec mixes no families (the sim refuses)
+        return SwimmerSim(bodies=bodies, **kwargs), f"{kind} of {str(bodies)!r} ({lo}..{hi} joints)"
     if model_file:
         robot = load_robot(model_file)  # RobotModelError, a ValueError, says why not
         described = f"robot {robot.name!r} from {model_file} ({robot.num_joints} joints, root {robot.tree.root_link!r})"

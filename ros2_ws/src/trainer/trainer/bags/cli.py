@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
@@ -120,7 +121,7 @@ def summarize_bag(
     for record in reader.records():
         transitions += asm.push(record)
         if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
-            described.setdefault(body_label(asm.joint_map.robot.tree))
+            described.setdefault(described_body(record.text, asm.joint_map.robot.tree))
     transitions += asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
@@ -164,6 +165,20 @@ def bag_config(path: str | Path, config: TransitionConfig, namespace: str | None
     if config.task != TransitionConfig.task:
         return config
     return dataclasses.replace(config, task=bag_task(path, namespace))
+
+
+def described_body(urdf: str, tree) -> str:
+    """What a robot_description describes, by what it is: a swimmer by its shape (``chain-6``, ``star-3x2``), a
+    centipede by its size (``centipede-5``, from the sim's robot name), any other robot by its URDF name and its
+    tree's shape (Gymnasium's ant: ``robot 'ant' (star-4x2 tree)``, not a swimmer ``star-4x2``)."""
+    match = re.search(r"<robot\b[^>]*\bname\s*=\s*([\"'])(.*?)\1", urdf[:4096])
+    name = match.group(2) if match else ""
+    shape = body_label(tree)
+    if not name or name.startswith("swimmer"):
+        return shape
+    if (size := re.fullmatch(r"centipede(\d+)", name)) is not None:
+        return f"centipede-{size.group(1)}"
+    return f"robot {name!r} ({shape} tree)"
 
 
 def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
@@ -232,10 +247,22 @@ def format_summary(s: BagSummary) -> str:
         lines.append(f"  applied effort not reported by the state (command trusted): {st.applied_unverified}")
     skipped = {r: getattr(s.skips, r) for r in SkipCounts.STEP_REASONS}
     unused = {r: getattr(s.skips, r) for r in SkipCounts.MESSAGE_REASONS}
-    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}")
+    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}" + (f" ({why})" if (why := no_steps(s)) else ""))
     lines.append(f"  unused messages: {_counts(unused) or 'none'}")
     lines += [f"  warning: {w}" for w in s.warnings]
     return "\n".join(lines)
+
+
+def no_steps(s: BagSummary) -> str:
+    """Why a bag gave no step when no step was skipped (every step left out is counted under its reason, but a
+    bag can hold no step to leave out); '' when it gave steps or the skipped steps say why."""
+    st = s.stats
+    if st.transitions or any(getattr(s.skips, r) for r in SkipCounts.STEP_REASONS):
+        return ""
+    if not st.states:
+        return "no joint_states of the robot's topics were read: morph-bag info lists the bag's topics"
+    return (f"{st.states} states in {st.episodes} episodes, none followed by a next state of its episode: a step "
+            "is a state, its answer and the next state")  # fmt: skip
 
 
 def _counts(counts: dict) -> str:

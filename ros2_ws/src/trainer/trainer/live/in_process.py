@@ -1,6 +1,6 @@
 """Live training without DDS: what the topics add to learning, isolated.
 
-    python -m trainer.live.in_process --out runs/live-in-process/lag2-drop0.1 --lag 2 --drop-states 0.1 \
+    python -m trainer.live.in_process --out runs/live-in-process/lag2-drop0.1 --lag 2 --drop-states 0.1 \\
         --seed 1 --total-timesteps 150000
 
 The live trainer's learning half (``trainer.live.learner.LiveLearner``, the
