@@ -34,8 +34,10 @@ def _rows(run) -> list[dict]:
 @pytest.mark.timeout(600)
 def test_a_centipede_is_recorded_read_and_trained_from_its_bag(tmp_path, namespace):
     bag = tmp_path / "bag"
+    # Episodes long enough to outlast DDS matching the policy to the recorder (the lockstep sim steps on zero
+    # effort until the policy node answers), as tests/test_record.py's.
     record = [sys.executable, "-m", "trainer.bags.record_bringup", "--out", str(bag), "--episodes", "2",
-              "--steps-per-episode", "60", "--bodies", "centipede:2", "--namespace", namespace,
+              "--steps-per-episode", "200", "--bodies", "centipede:2", "--namespace", namespace,
               "--timeout", "200"]  # fmt: skip
     done = subprocess.run(record, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr

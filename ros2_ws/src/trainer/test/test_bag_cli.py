@@ -270,7 +270,8 @@ def test_a_bag_of_a_body_in_3d_is_read_as_a_legged_bodys(tmp_path, sampled_recor
     records = [dataclasses.replace(r, orientation_xyzw=tilt) if isinstance(r, OdometryRecord) else r
                for r in sampled_records]  # fmt: skip
     bag = write_bag(tmp_path / "legs", records)
-    assert main(["export", str(bag), "--out", str(tmp_path / "t.npz")]) == 0
+    # (a swimmer tilted: its states 0.04 s apart, a centipede's would be 0.05)
+    assert main(["export", str(bag), "--out", str(tmp_path / "t.npz"), "--control-period", "0.04"]) == 0
     assert "task: ant" in capsys.readouterr().out
     assert TransitionBatch.from_npz(tmp_path / "t.npz").global_width == 12
 
