@@ -134,12 +134,16 @@ def test_scripts_refuse_arguments_they_do_not_take_in_one_line(tmp_path, script,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_live_refuses_centipedes_in_one_line_before_anything_runs(tmp_path):
-    """The pairs' sims run swimmers and the live transitions carry 4 global features: a centipede spec for the
-    trainer used to fail 190 s later (this policy reads 12 global features, the batch has 4)."""
-    lines = _refused([*LIVE, "--out", str(tmp_path / "run"), "--", "--bodies", "centipede:2-3"], tmp_path)
-    assert lines[0].startswith("morph-train: error: --bodies 'centipede:2-3' holds centipedes: learning from bags")
-    assert list(tmp_path.iterdir()) == []
+def test_live_bodies_go_to_the_sims_and_the_trainer():
+    """``--bodies`` (centipedes included): each sim draws from the spec, the trainer's policy reads its width."""
+    import argparse
+
+    from trainer.live.bringup import pair_params, trainer_arguments
+
+    sim, _ = pair_params(0, 2, 10, None, bodies="centipede:2-3")
+    assert sim["topology"] == "centipede:2-3" and "min_joints" not in sim
+    args = argparse.Namespace(out=Path("run"), bodies="centipede:2-3", episode_steps=100, max_updates=1, resume=False)
+    assert trainer_arguments(["/swimmer0"], args, [])[-6:-4] == ["--bodies", "centipede:2-3"]
 
 
 def test_a_signing_key_for_the_trainer_is_the_bring_up_s_key():

@@ -74,9 +74,8 @@ from morph_core.util.config_cli import (
     overrides_from_args,
     replace_nested,
 )
-from trainer.bags.cli import bag_robot, no_steps, summarize_bag
+from trainer.bags.cli import bag_config, bag_robot, no_steps, summarize_bag
 from trainer.bags.io import BagError, BagReader
-from trainer.bags.legged import refuse_legged_bodies, refuse_legged_odometry
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
 from trainer.cli.train_session import (
     ResumedConfig,
@@ -176,9 +175,9 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     batches, warnings, skips = [], [], SkipCounts()
     for bag in bags:
         reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
-        records = refuse_legged_odometry(reader.records(), bag)
-        batches.append(TransitionBatch.from_transitions(asm.push_many(records) + asm.flush()))
+        config = bag_config(bag, TransitionConfig(), namespace)  # a swimmer's task, or a legged body's
+        asm = TransitionAssembler(config, bag_robot(bag, namespace))  # its first states are of its first robot
+        batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
         warnings += reader.stats.warnings
         skips.merge(asm.skips)
     return TransitionBatch.concatenate(batches), warnings, skips
@@ -276,7 +275,6 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
             cfg, resumed = replace_nested(live_train_config(), overrides), None
-        refuse_legged_bodies(cfg.bodies, "--bodies")  # the pairs' sims run swimmers: refused before any starts
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key)  # fmt: skip

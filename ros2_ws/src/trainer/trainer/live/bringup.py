@@ -49,14 +49,15 @@ def pair_params(
     checkpoint: str | None,
     real_time_factor: float = 1.0,
     trusted_key: str | Path | None = None,
+    bodies: str | None = None,
 ) -> tuple[dict, dict]:
-    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``."""
+    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``. With
+    ``bodies`` (a body spec: centipedes included) the sim draws from it instead of chains of the joint range."""
     sim = {
         "lockstep": "true",
         "real_time_factor": real_time_factor,
         "effort_timeout": 2.0,
-        "min_joints": min_joints,
-        "max_joints": max_joints,
+        **({"min_joints": min_joints, "max_joints": max_joints} if not bodies else {"topology": bodies}),
         "seed": index,
     }
     policy = {"deterministic": "false", "seed": index}
@@ -110,6 +111,8 @@ def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key
     cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
     if signing_key is not None:
         cmd += ["--signing-key", str(signing_key)]
+    if args.bodies:  # the run's bodies: its policy's width (12 with legs), its task and joint range
+        cmd += ["--bodies", args.bodies]
     cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
     if args.resume:
         cmd.append("--resume")
@@ -148,7 +151,7 @@ def run(args, extra: list[str]) -> int:
     try:
         for i, ns in enumerate(namespaces):
             sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
-                                      public_key_path(key))  # fmt: skip
+                                      public_key_path(key), args.bodies)  # fmt: skip
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
             inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
@@ -214,7 +217,10 @@ def main(argv=None) -> int:
                     help="stop after this many updates (0: at the run's total_timesteps)")  # fmt: skip
     ap.add_deprecated_alias("--updates", "--max-updates")
     ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
-    ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
+    ap.add_argument(
+        "--episode-steps", type=int, default=1000,
+        help="control steps per episode (0.04 s each; a centipede's 0.05, ending early at a fall)",
+    )  # fmt: skip
     ap.add_argument(
         "--real-time-factor",
         type=float,
@@ -224,6 +230,8 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--min-joints", type=int, default=2, help="shortest chain a sim draws at a reset")
     ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
+    ap.add_argument("--bodies", default="", help="a body spec instead of chains (env.bodies: y:2x2, centipede:2-4, "
+                    "...), drawn by the sims at each reset and given to the trainer as its --bodies")  # fmt: skip
     ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
                     "weights replace it)")  # fmt: skip
     ap.add_argument("--signing-key", type=Path, default=None, metavar="KEY",

@@ -61,7 +61,8 @@ class InProcessOptions:
 
 
 def runs_of(transitions: list[Transition]) -> list[list[Transition]]:
-    """The assembler's output split into its runs (consecutive transitions, each run ending truncated)."""
+    """The assembler's output split into its runs (consecutive transitions, each run ending terminated or
+    truncated)."""
     runs: list[list[Transition]] = []
     for t in transitions:
         if not runs or runs[-1][-1].episode != t.episode:
