@@ -28,7 +28,7 @@ def bench(root: Path, settings: list[str], iterations: int) -> list[tuple[str, f
     rows = []
     for line in out.splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
-        if len(cells) == 6 and cells[1].replace(",", "").isdigit():
+        if len(cells) >= 6 and cells[1].replace(",", "").isdigit():  # 6 columns before the warm-up's, 7 since
             rows.append((cells[0], float(cells[1].replace(",", "")), float(cells[2]), float(cells[3])))
     if not rows:
         raise SystemExit(f"no table in the output of {' '.join(cmd)}:\n{out}")

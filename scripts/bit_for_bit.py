@@ -31,7 +31,7 @@ PACKAGES = ("morph_core", "trainer", "morph_policy_node", "swimmer_sim_node", "m
 TIMING = {"wall_time", "sps"}
 """wall-clock columns; any column ending in ``_s`` is a timing too"""
 QUIET = ["--tensorboard", "false", "--progress-bar", "false"]
-SIM = ["--clip-mode", "compensated", "--seed", "1", *QUIET]
+SIM = ["--rule", "compensated", "--seed", "1", *QUIET]
 BAG_OPTIONS = ["--num-envs", "1", "--num-steps", "64", "--minibatch-size", "16", "--update-epochs", "2",
                "--checkpoint-interval", "64", "--iterations", "6", "--seed", "3", *QUIET]  # fmt: skip
 LIVE = ["--seed", "1", "--total-timesteps", "1600", "--num-envs", "1", "--num-steps", "256", "--minibatch-size", "64",

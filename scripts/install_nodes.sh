@@ -14,6 +14,8 @@
 # PIP_OPTIONS    passed to pip install (e.g. --no-index --find-links DIR)
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$root/scripts/help.sh"
+script_help "$0" "PYTHON [--policy-only] [--from CHECKOUT] [--wheels DIR] [-- PIP_OPTIONS...]" "$@"
 python=${1:?usage: install_nodes.sh PYTHON [--policy-only] [--from CHECKOUT] [--wheels DIR] [-- PIP_OPTIONS...]}
 shift
 packages=(morph_core morph_ros_util morph_policy_node swimmer_sim_node)

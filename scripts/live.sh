@@ -8,12 +8,8 @@
 #   bash scripts/live.sh --pairs 4 --out runs/live --resume -- --num-steps 512
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$root/scripts/help.sh"
+module_help "$0" trainer.live.bringup "--out DIR [options] [-- MORPH-TRAIN OPTIONS]" "$@"
 bash "$root/scripts/setup.sh"
-export MORPH_PROG="$0"  # the bring-up's help and errors name this script
-for arg in "$@"; do  # help needs no network namespace
-    [ "$arg" = "--" ] && break
-    if [ "$arg" = "-h" ] || [ "$arg" = "--help" ]; then
-        exec "$root/.venv/bin/python" -m trainer.live.bringup "$@"
-    fi
-done
+export MORPH_PROG="bash scripts/live.sh"  # the bring-up's errors name this script
 exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.live.bringup "$@"

@@ -7,6 +7,12 @@
 # A run already finished is skipped; an interrupted one resumes.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$root/scripts/help.sh"
+script_help "$0" "[SEEDS] [STEPS] [OUT]" "$@"
+if [ $# -gt 3 ] || ! [[ "${1:-3}" =~ ^[1-9][0-9]*$ && "${2:-300000}" =~ ^[1-9][0-9]*$ ]]; then
+    echo "live_results.sh: SEEDS and STEPS must be positive integers, then OUT a folder; got: $* (--help says more)" >&2
+    exit 2
+fi
 cd "$root"
 seeds=${1:-3}
 steps=${2:-300000}

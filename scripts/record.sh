@@ -8,11 +8,8 @@
 #   bash scripts/record.sh --out bags/run1 --episodes 10 --joints 6 --storage mcap
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$root/scripts/help.sh"
+module_help "$0" trainer.bags.record_bringup "--out DIR [options]" "$@"
 bash "$root/scripts/setup.sh"
-export MORPH_PROG="$0"  # the bring-up's help and errors name this script
-for arg in "$@"; do  # help needs no network namespace
-    if [ "$arg" = "-h" ] || [ "$arg" = "--help" ]; then
-        exec "$root/.venv/bin/python" -m trainer.bags.record_bringup "$@"
-    fi
-done
+export MORPH_PROG="bash scripts/record.sh"  # the bring-up's errors name this script
 exec bash "$root/scripts/in_netns.sh" "$root/.venv/bin/python" -m trainer.bags.record_bringup "$@"

@@ -6,6 +6,12 @@
 # unless constraints.txt, requirements-dev.txt or a setup.py changed.
 set -euo pipefail
 root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+source "$root/scripts/help.sh"
+script_help "$0" "(no options; PYTHON=python3.11 picks the interpreter)" "$@"
+if [ $# -gt 0 ]; then
+    echo "setup.sh: takes no arguments, got: $* (--help says what it does)" >&2
+    exit 2
+fi
 cd "$root"
 python=${PYTHON:-python3}
 if ! "$python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then

@@ -79,18 +79,19 @@ def test_the_demo_walks_a_centipede_with_the_shipped_policy_or_a_given_one(tmp_p
     import sys
 
     # The shipped centipede policy (trained on 2..4 leg pairs) walks a 6-pair centipede it never saw.
-    bringup = [sys.executable, "-m", "morph_policy_node.bringup", "--sim-seconds", "20"]
+    bringup = [sys.executable, "-m", "morph_policy_node.bringup", "--seconds", "20"]
     out = subprocess.run([*bringup, "--bodies", "centipede:6"], capture_output=True, text=True, timeout=240)
     line = next((x for x in out.stdout.splitlines() if x.startswith("walk speed:")), None)
     assert out.returncode == 0 and line is not None, out.stdout[-3000:] + out.stderr[-3000:]
     assert "bodies centipede:6, 24 joints" in line
     forward = float(re.search(r"\(([-+][0-9.]+) m forward", line).group(1))
     assert forward > 5.0, line  # it walks (standing still moves the root well under a metre)
+    assert re.search(r"fell \d+ times?", line), line  # a walker's falls are counted
     # --checkpoint: any 12-feature policy drives it (an untrained one here).
     torch.manual_seed(0)
     ckpt = tmp_path / "centipede.safetensors"
     GraphActorCritic(PolicyConfig(global_features=12)).save(ckpt)
-    out = subprocess.run([*bringup[:-2], "--bodies", "centipede:2", "--checkpoint", str(ckpt), "--sim-seconds", "2"],
+    out = subprocess.run([*bringup[:-2], "--bodies", "centipede:2", "--checkpoint", str(ckpt), "--seconds", "2"],
                          capture_output=True, text=True, timeout=240)  # fmt: skip
     line = next((x for x in out.stdout.splitlines() if x.startswith("walk speed:")), None)
     assert out.returncode == 0 and line is not None, out.stdout[-3000:] + out.stderr[-3000:]

@@ -216,6 +216,7 @@ def test_effort_units_urdf_scale_by_the_limits_and_refuse_without_them(
                 break
             except AssertionError:
                 continue
+        assert peer.count("joint_states", "rejected", reason) > n, f"no state refused for {reason}"
         assert answer_tag(msg.header.stamp.sec, 0) not in peer.efforts
 
     refused("no_effort_limits")  # no description yet: no unit to scale into

@@ -100,12 +100,15 @@ def _state(sec: int, nanosec: int, names=NAMES, pos=None, vel=None) -> JointStat
     return msg
 
 
-def _odom(sec: int, nanosec: int, quat=(0.0, 0.0, 0.0, 1.0), lin=(0.0, 0.0)) -> Odometry:
+def _odom(sec: int, nanosec: int, quat=(0.0, 0.0, 0.0, 1.0), lin=(0.0, 0.0), z=0.0, lin_z=0.0, ang_xy=(0.0, 0.0)):
     msg = Odometry()
     msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
     q = msg.pose.pose.orientation
     q.x, q.y, q.z, q.w = quat
     msg.twist.twist.linear.x, msg.twist.twist.linear.y = lin
+    # the 3-D fields a legged body's odometry fills (a planar policy's controller checks them too)
+    msg.pose.pose.position.z, msg.twist.twist.linear.z = z, lin_z
+    msg.twist.twist.angular.x, msg.twist.twist.angular.y = ang_xy
     return msg
 
 
@@ -191,6 +194,10 @@ def _bad_odometry(sec: int, nanosec: int) -> list[tuple[str, Odometry]]:
         ("non_unit_quaternion", _odom(sec, nanosec, quat=(0.0, 0.0, 0.5, 0.5))),
         ("nan", _odom(sec, nanosec, lin=(math.nan, 0.0))),
         ("inf", _odom(sec, nanosec, quat=(0.0, 0.0, math.inf, 1.0))),
+        ("nan_z", _odom(sec, nanosec, z=math.nan)),
+        ("inf_linear_z", _odom(sec, nanosec, lin_z=-math.inf)),
+        ("inf_roll_rate", _odom(sec, nanosec, ang_xy=(math.inf, 0.0))),
+        ("tilted_non_unit", _odom(sec, nanosec, quat=(0.7, 0.7, 0.0, 0.7), z=0.5)),
         ("bad_stamp", _odom(sec, 1_500_000_000)),
     ]
 

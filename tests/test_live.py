@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -137,13 +139,20 @@ def progress(out: Path) -> list[dict]:
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("listen", ["topics", "stream_chunks"])
-def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen):
+@pytest.mark.parametrize("listen, own_key", [("topics", False), ("stream_chunks", False), ("topics", True)],
+                         ids=["topics", "stream_chunks", "users_key"])  # fmt: skip
+def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path, listen, own_key):
     """``python -m trainer.live.bringup`` (what ``scripts/live.sh`` runs): K = 2 pairs paced at real time (its
     default) and the trainer, which updates on both (reading their topics or their policy nodes' chunks) and
-    ends the bring-up."""
+    ends the bring-up. With the user's key given to the trainer (``-- --signing-key KEY``) the nodes trust
+    that key (they trusted the run's own alone and refused the weights once a second)."""
+    from morph_core.protocol.trust import write_key_pair
+
     out = tmp_path / "run"
     trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")] + reads(listen)
+    if own_key:
+        user = write_key_pair(tmp_path / "my_key")
+        trainer_options += ["--signing-key", str(tmp_path / "my_key")]
     cmd = [sys.executable, "-m", "trainer.live.bringup", "--pairs", "2", "--out", str(out), "--max-updates", "2",
            "--episode-steps", "60", "--startup-timeout", str(STARTUP), "--timeout", "200",
            "--", *trainer_options]  # fmt: skip
@@ -160,8 +169,36 @@ def test_the_bringup_starts_pairs_and_trainer_and_stops_when_it_is_done(tmp_path
     assert all(f"pair /swimmer{i} is running" in log for i in range(2))
     # The run's own key: the trainer signed with it, each node trusted it and took the signed versions.
     fingerprint = log.split("signing the weights with ")[1].split()[0]
+    assert (fingerprint == user.fingerprint) if own_key else "my_key" not in log
     assert log.count(f"trusting weights signed by {fingerprint}") == 2
     assert log.count(f"signed by {fingerprint} received") >= 2 and "UNSIGNED" not in log
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl_c", "sigterm"])
+def test_stopping_the_bringup_is_quiet(tmp_path, sig):
+    """Ctrl-C (or a SIGTERM to the group) reaches every process: the nodes end 0, and that is a stop, not a node
+    to restart (it logged "sim_node ... ended (0): restarting it"), and no KeyboardInterrupt traceback."""
+    out = tmp_path / "run"
+    trainer_options = [o for o in SMALL if o not in ("--episode-steps", "60")]
+    cmd = [sys.executable, "-m", "trainer.live.bringup", "--pairs", "1", "--out", str(out), "--max-updates", "50",
+           "--startup-timeout", str(STARTUP), "--timeout", "250", "--", *trainer_options]  # fmt: skip
+    log_path = tmp_path / "bringup.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            deadline = time.monotonic() + STARTUP
+            while "pair /swimmer0 is running" not in log_path.read_text(errors="replace"):
+                assert proc.poll() is None and time.monotonic() < deadline, log_path.read_text(errors="replace")
+                time.sleep(0.5)
+            os.killpg(proc.pid, sig)  # the terminal's Ctrl-C: the whole process group
+            proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    text = log_path.read_text(errors="replace")
+    assert "restarting it" not in text and "Traceback" not in text, text[-3000:]
 
 
 @pytest.mark.timeout(400)

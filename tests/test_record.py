@@ -5,9 +5,11 @@ Runs inside a private network namespace (``scripts/test.sh``).
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -288,3 +290,27 @@ def test_a_late_recorder_records_the_latched_robot_description(
     assert summary.stats.boundaries_new_chain == 0  # the chain it describes is the one the states formed
     assert bag_main(["info", str(bag), "--namespace", namespace]) == 0
     assert "robot_description: 1 (chain-5)" in capsys.readouterr().out
+
+
+@pytest.mark.timeout(120)
+def test_morph_record_out_writes_there_and_a_sigterm_stops_it_quietly(tmp_path, namespace):
+    """``morph-record --out DIR`` (the parameter output under every tool's name); SIGTERM closes the bag and
+    says so, with no "Failed to publish log message to rosout" after the context was shut down."""
+    log = tmp_path / "record.log"
+    with open(log, "wb") as out:
+        cmd = [str(Path(sys.executable).parent / "morph-record"), "--out", str(tmp_path / "bag"),
+               "--ros-args", "-r", f"__ns:={namespace}"]  # fmt: skip
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + STARTUP
+            while "recording" not in log.read_text() and time.monotonic() < deadline and proc.poll() is None:
+                time.sleep(0.1)
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=30) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    text = log.read_text()
+    assert f"into {tmp_path / 'bag'}" in text and "closed" in text, text
+    assert "rosout" not in text and "Traceback" not in text, text
+    assert (tmp_path / "bag" / "metadata.yaml").exists()

@@ -277,7 +277,8 @@ def _doc_commands(block: int) -> list[str]:
 def _doc_ant(assignment: str) -> str:
     """Run the doc's ``ANT=...`` line as a shell would (``python`` is this environment's), return ``$ANT``."""
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
-    out = subprocess.run(["bash", "-c", f'{assignment}\necho "$ANT"'], env=env, capture_output=True, text=True)
+    out = subprocess.run(["bash", "-c", f'{assignment}\necho "$ANT"'], env=env, capture_output=True, text=True,
+                         cwd=YOUR_ROBOT_DOC.parents[1])  # from the checkout, as the page says  # fmt: skip
     assert out.returncode == 0, out.stderr
     return out.stdout.strip()
 
@@ -295,6 +296,8 @@ def test_your_robot_doc_commands_run(probe, launch):
     procs = []
     for line in node_lines:  # "executable [--ros-args -p name:=value ...]"
         executable, *rest = shlex.split(line.replace("$ANT", ant))
+        assert executable.startswith(".venv/bin/"), line  # runs in a fresh shell: the venv named
+        executable = Path(executable).name
         assert rest[:1] in ([], ["--ros-args"]) and rest[1::2] == ["-p"] * (len(rest) // 2), line
         params = dict(arg.split(":=", 1) for arg in rest[2::2])
         procs.append(launch(executable, **params))
@@ -319,7 +322,7 @@ def test_your_robot_doc_bringup_runs(tmp_path):
     assignment = _doc_commands(0)[0]
     (line,) = _doc_commands(1)
     args = shlex.split(line.replace('"$ANT"', _doc_ant(assignment)))
-    assert args[:3] == ["python", "-m", "morph_policy_node.bringup"]
+    assert args[:3] == [".venv/bin/python", "-m", "morph_policy_node.bringup"]
     code, log = _bringup(tmp_path, *args[3:])
     assert code == 0 and f"robot {ANT_XML}, 8 joints" in log, log[-3000:]
 
@@ -352,8 +355,9 @@ def _slide_mjcf(tmp_path: Path) -> Path:
         ({"model_file": str(ANT_XML), "topology": "y:2x2"}, "topology and model_file are both set"),
         ({"topology": "y:2x2", "min_joints": 2, "max_joints": 5}, "min_joints and max_joints must stay 0"),
         ({"topology": "tentacle:8"}, "unknown body family"),
+        ({"num_joints": 100}, "num_joints"),  # out of its declared range: rclpy's refusal, no traceback
     ],
-    ids=["missing", "slide_actuator", "both", "topology_and_range", "bad_spec"],
+    ids=["missing", "slide_actuator", "both", "topology_and_range", "bad_spec", "joints_out_of_range"],
 )
 def test_a_body_that_cannot_run_stops_the_node_with_one_line(launch, tmp_path, params, words):
     if params.get("model_file") == "slide":
@@ -372,6 +376,7 @@ def test_a_body_that_cannot_run_stops_the_node_with_one_line(launch, tmp_path, p
         ((6, 2, 9, "", ""), "range"),
         ((6, 0, 0, "star:3x2", ""), "spec"),
         ((6, 0, 0, "", str(ANT_XML)), "robot"),
+        ((6, 0, 0, "centipede:5", ""), "centipede"),
     ],
 )
 def test_make_sim_builds_the_body_the_parameters_ask_for(args, kind):
@@ -382,6 +387,9 @@ def test_make_sim_builds_the_body_the_parameters_ask_for(args, kind):
         assert sim.joint_range == (2, 9) and "2..9" in described
     elif kind == "spec":
         assert sim.bodies == parse_bodies("star:3x2") and sim.tree.parents.tolist() == [-1, 0, -1, 2, -1, 4]
+        assert described.startswith("swimmers of 'star:3x2'")
+    elif kind == "centipede":  # named by what it is: no "swimmers of 'centipede:5'"
+        assert described.startswith("centipedes of 'centipede:5'") and sim.num_joints == 20
     else:
         assert sim.robot is not None and sim.tree == KinematicTree.from_mujoco(
             mujoco.MjModel.from_xml_path(str(ANT_XML))
@@ -395,7 +403,7 @@ def _bringup(tmp_path: Path, *args: str) -> tuple[int, str]:
     log = tmp_path / "bringup.log"
     with open(log, "wb") as out:
         proc = subprocess.run(
-            [sys.executable, "-m", "morph_policy_node.bringup", "--sim-seconds", "2", *args],
+            [sys.executable, "-m", "morph_policy_node.bringup", "--seconds", "2", *args],
             stdout=out,
             stderr=subprocess.STDOUT,
             timeout=300,
@@ -405,17 +413,41 @@ def _bringup(tmp_path: Path, *args: str) -> tuple[int, str]:
 
 @pytest.mark.timeout(320)
 @pytest.mark.parametrize(
-    "args, words",
+    "args, gait, words",
     [
-        (["--bodies", "y:1x1"], "bodies y:1x1, 3 joints"),
-        (["--model-file", str(ANT_XML)], f"robot {ANT_XML}, 8 joints"),
+        (["--bodies", "y:1x1"], "swim speed:", "bodies y:1x1, 3 joints"),
+        (["--model-file", str(ANT_XML)], "walk speed:", f"robot {ANT_XML}, 8 joints"),
     ],
     ids=["bodies", "model_file"],
 )
-def test_the_bringup_runs_a_tree_or_a_robot_and_prints_its_speed(tmp_path, untrained_checkpoint, args, words):
+def test_the_bringup_runs_a_tree_or_a_robot_and_prints_its_speed(tmp_path, untrained_checkpoint, args, gait, words):
+    """A swimmer swims; Gymnasium's ant, a robot on a floor, walks, and the line counts its falls."""
     code, log = _bringup(tmp_path, *args, "--checkpoint", str(untrained_checkpoint))
-    lines = [line for line in log.splitlines() if line.startswith("swim speed:")]
+    lines = [line for line in log.splitlines() if line.startswith(gait)]
     assert code == 0 and len(lines) == 1 and words in lines[0], log[-3000:]
+    assert ("fell " in lines[0]) == (gait == "walk speed:")
+
+
+@pytest.mark.parametrize("args", [["--joints", "100"], ["--joints", "0"], ["--seconds", "0"]])
+def test_the_bringup_refuses_what_the_sim_cannot_run_in_one_line_before_any_node(tmp_path, args):
+    code, log = _bringup(tmp_path, *args)
+    assert code == 2 and len(log.strip().splitlines()) == 1 and "cannot start:" in log, log
+    assert "Traceback" not in log and "swimmer_sim" not in log
+
+
+def test_the_bringup_posture_counts_each_fall_once():
+    from types import SimpleNamespace as Q
+
+    from morph_policy_node.bringup import Posture
+
+    posture = Posture()
+    for q in [Q(x=0.0, y=0.0, z=0.3, w=0.95)] * 3:  # a swimmer: planar, upright
+        posture.see(0.0, q)
+    assert not posture.in_3d and posture.falls == 0
+    upright, over = Q(x=0.0, y=0.1, z=0.0, w=0.99), Q(x=0.0, y=0.99, z=0.0, w=0.1)  # tipped past the horizon
+    for q in [upright, over, over, upright, over]:
+        posture.see(0.5, q)
+    assert posture.in_3d and posture.falls == 2
 
 
 @pytest.mark.timeout(320)

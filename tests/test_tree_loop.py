@@ -97,7 +97,7 @@ def test_bodies_with_equal_joint_names_are_each_driven_on_their_own_tree(probe, 
 @pytest.mark.timeout(300)
 def test_the_demo_drives_a_branched_swimmer_with_the_tree_policy_and_it_swims(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "morph_policy_node.bringup", "--bodies", "y:2x2", "--sim-seconds", "20"],
+        [sys.executable, "-m", "morph_policy_node.bringup", "--bodies", "y:2x2", "--seconds", "20"],
         capture_output=True, text=True, timeout=280,
     )  # fmt: skip
     line = next((x for x in out.stdout.splitlines() if x.startswith("swim speed:")), None)

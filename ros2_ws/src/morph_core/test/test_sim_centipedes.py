@@ -11,6 +11,7 @@ from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import robot_urdf
 from morph_core.msgs.joint_state import JointStateError, legged_global_features
 from morph_core.policy.tree import read_urdf
+from morph_core.protocol.episode_start import EpisodeCause
 
 
 def _globals_from_odometry(sim: SwimmerSim) -> np.ndarray:
@@ -24,20 +25,28 @@ def test_the_sim_replays_the_centipede_env_and_its_odometry_gives_the_envs_globa
     obs, info = env.reset(seed=4)
     assert sim.num_joints == 4 * info["leg_pairs"] and sim.tree == env.tree and sim.dt == env.dt == 0.05
     rng = np.random.default_rng(0)
-    tilted = 0
+    tilted = steps = falls = 0
+    terminated = False
     for _ in range(60):
         assert np.array_equal(sim.joint_positions, obs["joint_pos"])
         np.testing.assert_allclose(_globals_from_odometry(sim), obs["global"], rtol=0, atol=1e-12)
         tilted += abs(obs["global"][8] + 1) > 1e-3  # gravity not straight down: the test saw a tilted root
+        # The sim's episode ends where the env's does: at its terminated (a fall), or after episode_steps.
+        assert sim.episode_over == (terminated or steps == 30) and sim.fell == terminated
         if sim.episode_over:
             sim.advance(0.0)
+            assert sim.episode_cause is (EpisodeCause.FELL if terminated else EpisodeCause.STEPS)
             obs, _ = env.reset()
+            steps, terminated = 0, False
             continue
         a = rng.uniform(-1, 1, sim.num_joints)
         sim.command(a, 0.0)
         sim.advance(0.0)
-        obs, *_ = env.step(a)
-    assert sim.episode == 1 and tilted > 10
+        obs, reward, terminated, _, _ = env.step(a)
+        assert sim.robot.reward == reward
+        steps += 1
+        falls += terminated
+    assert sim.episode >= 2 and falls >= 1 and tilted > 10
     odom = sim.odometry()
     assert odom.frame == "torso_0" and len(odom.position) == 3 and odom.position[2] > 0
 

@@ -558,7 +558,9 @@ def test_concatenate_pads_and_keeps_episodes_apart(sampled, policy):
 
 def test_config_is_checked():
     with pytest.raises(ValueError, match="control_period"):
-        TransitionConfig(control_period=0.0)
+        TransitionConfig(control_period=-0.04)  # 0 is the task's
+    with pytest.raises(ValueError, match="task must be one of swimmer, ant"):
+        TransitionConfig(task="walker")
     with pytest.raises(ValueError, match=">= 0"):
         TransitionConfig(settle_states=-1)
     with pytest.raises(TypeError, match="not a record"):

@@ -227,6 +227,7 @@ def test_tree_minibatches_carry_their_parents_and_chain_parents_keep_the_chain_p
     assert not torch.allclose(
         policy.log_prob(got, actions), policy.log_prob(chains.minibatch(torch.tensor([2, 0, 1]))[0], actions)
     )
+    assert batch.minibatch(torch.tensor([3, 1]))[0].parents is None  # only chains drawn: the chain path
     bad = trees.clone()
     bad[2, 3] = 3  # its own parent
     with pytest.raises(ValueError, match=r"parents\[2, 3\] = 3"):
@@ -243,3 +244,30 @@ def test_minibatch_cuts_never_leave_one_sample_alone():
     assert minibatch_cuts(33, 16) == [0, 16, 33]  # the lone 33rd sample joins the last minibatch
     with pytest.raises(ValueError, match="at least 2 samples"):
         minibatch_cuts(1, 16)
+
+
+@pytest.mark.parametrize("world", [1, 2])
+def test_a_parts_terms_are_the_batchs_rows_bit_for_bit(world):
+    from morph_core.algo.minibatches import part_inputs, part_sizes, update_terms
+    from morph_core.algo.off_policy import with_proximal
+
+    policy = _policy()
+    batch = with_proximal(policy, _batch(policy, [3, 1, 5, 2, 4, 2], [1.0, 0.5, 2.0, 0.3, 1.5, 0.7], [0.1] * 6))
+    learner = Learner.create(policy, 1e-3, 1e-5, compile=False)
+    cfg = TrainConfig(rule="kl-penalty-per-joint").update_config()  # every optional term: weights, old Gaussian
+    terms = update_terms(learner, batch, cfg, torch.tensor(0.5))
+    mb = torch.tensor([4, 0, 5, 2])
+    normalized = torch.arange(4, dtype=torch.float32)
+    for rank in range(world):
+        got = part_inputs(terms, batch, mb, normalized, rank, world).minibatch
+        lo = sum(part_sizes(4, world)[:rank])
+        rows = mb if world == 1 else mb[lo : lo + part_sizes(4, world)[rank]]
+        width = int(batch.num_joints[rows].max())
+        want = {"old_log_prob": terms.old_log_prob[rows], "returns": batch.returns[rows],
+                "clip_range": terms.clip_range[rows], "weight": terms.weight[rows],
+                "old_mean": terms.old_mean[rows, :width], "actions": batch.actions[rows, :width]}  # fmt: skip
+        for name, value in want.items():
+            assert torch.equal(getattr(got, name), value), name
+            assert getattr(got, name).is_contiguous(), name  # the compiled graph's layout is torch's
+        advantages = batch.advantages[rows] if world == 1 else normalized[lo : lo + len(rows)]
+        assert torch.equal(got.advantages, advantages)

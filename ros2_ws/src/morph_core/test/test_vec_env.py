@@ -135,3 +135,21 @@ def test_mixed_specs_pad_a_swimmers_globals():
     swimmers = obs.num_joints == 2
     assert swimmers.any() and (~swimmers).any()
     assert (obs.global_feats[swimmers, 4:] == 0).all() and (obs.global_feats[~swimmers, 5] > 0.5).all()  # z
+
+
+def test_a_step_without_copies_hands_out_the_rows_the_envs_write():
+    envs = SwimmerVecEnv(3, (2, 5), seed=0, max_episode_steps=4)
+    again = SwimmerVecEnv(3, (2, 5), seed=0, max_episode_steps=4)
+    rng = np.random.default_rng(1)
+    try:
+        for _ in range(9):  # resets on the way
+            actions = rng.uniform(-1, 1, (3, 5)).astype(np.float32)
+            live, copied = envs.step(actions, copy_obs=False), again.step(actions)
+            assert live.obs is envs.live_observations()
+            for got, want in zip(live.obs.arrays(), copied.obs.arrays(), strict=True):
+                np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(live.reward, copied.reward)
+            assert live.episodes == copied.episodes
+    finally:
+        envs.close()
+        again.close()

@@ -1,13 +1,13 @@
-"""Bring up sim + policy as two processes, run a fixed stretch of sim time, print the swim speed.
+"""Bring up sim + policy as two processes, run a fixed stretch of sim time, print the swim (or walk) speed.
 
-    python -m morph_policy_node.bringup [--joints 6 | --bodies SPEC | --model-file PATH] [--sim-seconds 30]
+    python -m morph_policy_node.bringup [--joints 6 | --bodies SPEC | --model-file PATH] [--seconds 30]
                                         [--checkpoint PATH]
 
 What ``ros2 launch morph_policy_node swimmer_policy.launch.py`` does on a Jazzy
 install, for machines without ``launch``: the sim runs in lockstep as fast as
 possible (a deterministic closed loop), the policy uses the shipped model (or
 ``--checkpoint``), and this process watches ``odom`` until the sim clock has
-run ``--sim-seconds``, then stops both nodes with SIGINT.
+run ``--seconds`` (``--sim-seconds``, its old name, still works and says so), then stops both nodes with SIGINT.
 
 The body: a chain of ``--joints``, or a swimmer drawn from ``--bodies`` (a body
 spec of ``morph_core.env.bodies``, e.g. ``y:2x2``: the sim's ``topology``;
@@ -23,7 +23,6 @@ chains and random trees: ``models/README.md``), and centipedes
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import signal
@@ -55,6 +54,24 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             p.wait()
 
 
+class Posture:
+    """What the odometry says of the body's posture: whether it moves in 3-D (a robot on a floor, a centipede;
+    a swimmer's pose is planar: z = 0, a yaw alone) and how often it fell, i.e. its root turned from upright to
+    tipped over (its up axis below the horizon: the sim lets a fallen body lie, so each fall counts once)."""
+
+    def __init__(self):
+        self.in_3d, self.falls, self._down = False, 0, False
+
+    def see(self, z: float, q) -> None:
+        if z != 0.0 or q.x != 0.0 or q.y != 0.0:
+            self.in_3d = True
+        up_z = 1.0 - 2.0 * (q.x * q.x + q.y * q.y)  # the world z of the root's z axis
+        down = up_z < 0.0
+        if down and not self._down:
+            self.falls += 1
+        self._down = down
+
+
 def run(
     joints: int,
     sim_seconds: float,
@@ -76,10 +93,12 @@ def run(
     rclpy.init()
     node = rclpy.create_node("bringup")
     first, last, loop_start, joint_counts = [], [], [], set()
+    posture = Posture()
 
     def on_odom(msg: Odometry) -> None:
         t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         sample = (t, msg.pose.pose.position.x, msg.pose.pose.position.y)
+        posture.see(msg.pose.pose.position.z, msg.pose.pose.orientation)
         if not first:
             first.append(sample)
         if t > 0 and not loop_start:  # the loop runs: the policy has answered the reset state
@@ -121,6 +140,8 @@ def run(
         "speed": (x1 - x0) / (t1 - t0),
         "rate": rate,
         "joints": "/".join(map(str, sorted(joint_counts))),
+        "in_3d": posture.in_3d,
+        "falls": posture.falls,
     }
 
 
@@ -144,18 +165,34 @@ def _family(spec: str | None) -> str:
     return "centipedes" if mix.has_centipedes else "trees"
 
 
+PROG_ENV = "MORPH_PROG"
+"""the environment variable that names the program in help and errors (scripts/demo.sh sets it)"""
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    from morph_core.env.model import MAX_JOINTS
+    from morph_core.util.config_cli import CommandLineParser
+
+    ap = CommandLineParser(prog=os.environ.get(PROG_ENV, "python -m morph_policy_node.bringup"),
+                           description=__doc__.split("\n\n")[0])  # fmt: skip
     body = ap.add_mutually_exclusive_group()
-    body.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    body.add_argument("--joints", type=int, default=6, help=f"chain length of the simulated swimmer (1..{MAX_JOINTS})")
     body.add_argument("--bodies", default=None, help="body spec of the swimmer (the sim's topology), e.g. y:2x2")
     body.add_argument("--model-file", default=None, help="MJCF of your own robot (the sim's model_file)")
-    ap.add_argument("--sim-seconds", type=float, default=30.0, help="sim time to run")
+    ap.add_argument("--seconds", type=float, default=30.0, help="sim time to run, seconds")
+    ap.add_deprecated_alias("--sim-seconds", "--seconds")
     ap.add_argument(
         "--checkpoint", default=None, help="policy .safetensors (default: the shipped model; trees, centipedes: theirs)"
     )
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
     args = ap.parse_args(argv)
+    # What the sim would refuse with a traceback of its parameter's range is refused here, in one line.
+    if not 1 <= args.joints <= MAX_JOINTS:
+        print(f"{ap.prog}: cannot start: --joints {args.joints}: a chain has 1..{MAX_JOINTS} joints", flush=True)
+        return 2
+    if not args.seconds > 0:
+        print(f"{ap.prog}: cannot start: --seconds {args.seconds:g}: the run needs some sim time", flush=True)
+        return 2
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
     family = _family(args.bodies)
@@ -168,16 +205,17 @@ def main(argv=None) -> int:
             print(f"bringup: no shipped policy at {shipped}: give --checkpoint", flush=True)
             return 2
     try:
-        r = run(args.joints, args.sim_seconds, args.checkpoint, args.startup_timeout, args.bodies, args.model_file)
+        r = run(args.joints, args.seconds, args.checkpoint, args.startup_timeout, args.bodies, args.model_file)
     except RuntimeError as err:  # the node said why above (a bad --bodies or --model-file, say)
         print(f"bringup: {err}", flush=True)
         return 1
     body = f"bodies {args.bodies}, " if args.bodies else f"robot {args.model_file}, " if args.model_file else ""
-    gait = "walk" if family == "centipedes" else "swim"
+    walks = family == "centipedes" or r["in_3d"]  # a body on a floor walks; a swimmer's pose is planar
+    falls = "" if not walks else f"; fell {r['falls']} time{'' if r['falls'] == 1 else 's'} (turned over)"
     print(
-        f"{gait} speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, {r['dy']:+.3f} m sideways) "
-        f"over {r['sim_seconds']:.2f} s of sim time, {body}{r['joints'] or args.joints} joints; "
-        f"closed loop over DDS at {r['rate']:.1f}x real time",
+        f"{'walk' if walks else 'swim'} speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, "
+        f"{r['dy']:+.3f} m sideways) over {r['sim_seconds']:.2f} s of sim time, {body}{r['joints'] or args.joints} "
+        f"joints; closed loop over DDS at {r['rate']:.1f}x real time{falls}",
         flush=True,
     )
     return 0

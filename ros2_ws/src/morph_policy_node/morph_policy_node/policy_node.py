@@ -370,6 +370,7 @@ class MorphPolicyNode(Node):
         self._said_fallback = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
         self._silent = False
+        self._handover = False  # the last rejected state was of a body whose description had not arrived
 
     # -- policy and parameters ---------------------------------------------------
     def _trusted_keys(self):
@@ -450,10 +451,11 @@ class MorphPolicyNode(Node):
                 self._input_timeout = param.value
 
     # -- inputs -----------------------------------------------------------------
-    def _reject(self, what: str, err: Exception, reason: str = "invalid") -> None:
+    def _reject(self, what: str, err: Exception, reason: str = "invalid", expected: bool = False) -> None:
         self.rejected += 1
         self.counts.rejected(what, reason, str(err))
-        self.get_logger().warn(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
+        log = self.get_logger().info if expected else self.get_logger().warn  # expected: counted, not a fault
+        log(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
 
     def _on_weights(self, msg: UInt8MultiArray) -> None:
         self.counts.received(WEIGHTS)
@@ -545,7 +547,11 @@ class MorphPolicyNode(Node):
             return
         except JointMapError as err:
             if err.code != PREVIOUS_DESCRIPTION:
-                self._reject(STATES, err, err.code)
+                # The next body's states before its description (a sim's hand-over between bodies): info, and so
+                # is the silence it causes; states that never fit (nothing answered, or silent since) warn.
+                driving = bool(self.controller.names) and not self._silent  # a body answered until now: a hand-over
+                self._handover = err.code in ("missing_joint", "unknown_joint") and driving
+                self._reject(STATES, err, err.code, expected=self._handover)
                 return
             self.counts.ignored(STATES, err.code)  # the robot before a swap: not malformed, not answered
             self.get_logger().info(f"ignored joint_states: {err}", throttle_duration_sec=_LOG_THROTTLE)
@@ -564,7 +570,8 @@ class MorphPolicyNode(Node):
         names = self.controller.names  # the robot answered last, in the efforts' order
         if now - self._last_answer > self._input_timeout and names:
             if not self._silent:
-                self.get_logger().warn(f"no state answered for {self._input_timeout} s: publishing zero efforts")
+                log = self.get_logger().info if self._handover else self.get_logger().warn
+                log(f"no state answered for {self._input_timeout} s: publishing zero efforts")
                 self._silent = True
             self._publish_efforts(np.zeros(len(names)), SILENCE_TAG, names, self.controller.layout)  # answers none
 
@@ -586,6 +593,7 @@ class MorphPolicyNode(Node):
             self._reject(STATES, err, "policy_output")  # nothing goes out: the watchdog's zero efforts follow
             return
         self._silent = False
+        self._handover = False
         self._last_answer = time.monotonic()
         # Say which state this answers (a lockstep sim drops answers to states it re-sent).
         sec, nanosec = from_ns(out.stamp_ns)

@@ -32,6 +32,11 @@ import traceback
 from collections.abc import Callable
 
 import rclpy
+from rclpy.exceptions import (
+    InvalidParameterException,
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
@@ -48,11 +53,16 @@ stuck node is thus answered within this time; a switch of the GIL takes millisec
 far from it even on a loaded machine)"""
 
 
+PARAMETER_ERRORS = (InvalidParameterException, InvalidParameterTypeException, InvalidParameterValueException)
+"""rclpy's refusals of a parameter given at start (out of its declared range, of another type): startup
+errors of every node (``-p num_joints:=100`` is one "cannot start" line, not a traceback)"""
+
+
 def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tuple[type[Exception], ...] = ()) -> int:
     """Spin ``make_node()`` until SIGINT/SIGTERM; returns the exit code.
 
-    An exception of ``startup_errors`` while the node is made is one fatal log line ("cannot start:
-    <error>") and exit code 1, no traceback; an exception in a callback ends the node with its
+    An exception of ``startup_errors`` (and of ``PARAMETER_ERRORS``) while the node is made is one fatal log
+    line ("cannot start: <error>") and exit code 1, no traceback; an exception in a callback ends the node with its
     traceback and exit code 1.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -62,7 +72,7 @@ def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tup
     logger = get_logger(name)
     try:
         node = make_node()
-    except startup_errors as err:
+    except (*startup_errors, *PARAMETER_ERRORS) as err:
         logger.fatal(f"cannot start: {err}")
         # Nothing runs yet that needs a clean stop, and tearing down a half-made participant can
         # hang (seen once in a dozen concurrent starts): leave at once.

@@ -40,7 +40,8 @@ Wire conventions
   first), the stamp of its first ``joint_states`` in ns (sec * 10**9 +
   nanosec), its body's joint count, and why it began (0 node start, 1 the previous
   one ran ``episode_steps``, 2 reset service, 3 ``num_joints`` set, 4 the
-  physics diverged). Layout and decoding: ``morph_core.protocol.episode_start``.
+  physics diverged, 5 a legged body fell: its last step terminated). Layout
+  and decoding: ``morph_core.protocol.episode_start``.
 - ``effort_commands`` (std_msgs/Float64MultiArray): one value per joint,
   clipped to [-1, 1]. A command whose layout names its joints (a
   ``names=<JSON list>`` dimension, ``morph_core.msgs.effort_names``) is
@@ -230,7 +231,8 @@ def make_sim(
         except ValueError as err:
             raise ValueError(f"topology {topology[:60]!r}: {err}") from None
         lo, hi = bodies.joint_range
-        return SwimmerSim(bodies=bodies, **kwargs), f"swimmers of {str(bodies)!r} ({lo}..{hi} joints)"
+        kind = "centipedes" if bodies.has_centipedes else "swimmers"  # a spec mixes no families (the sim refuses)
+        return SwimmerSim(bodies=bodies, **kwargs), f"{kind} of {str(bodies)!r} ({lo}..{hi} joints)"
     if model_file:
         robot = load_robot(model_file)  # RobotModelError, a ValueError, says why not
         described = f"robot {robot.name!r} from {model_file} ({robot.num_joints} joints, root {robot.tree.root_link!r})"

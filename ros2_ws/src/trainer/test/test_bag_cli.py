@@ -261,3 +261,59 @@ def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_pa
     # each in an order of its own, so hardly a step among them.
     alone = assemble(late).batch
     assert len(alone) < 25 and (alone.parents[-1, :5] == tree.parents).all()
+
+
+def test_a_bag_of_a_body_in_3d_is_read_as_a_legged_bodys(tmp_path, sampled_records, capsys):
+    """A body whose odometry leaves the plane is a legged one (``bag_task``): its steps are Ant-v5's, with 12
+    global features (``trainer/test/test_legged_bags.py`` trains on a centipede's)."""
+    tilt = (0.05, -0.02, 0.3, float(np.sqrt(1 - 0.05**2 - 0.02**2 - 0.3**2)))
+    records = [dataclasses.replace(r, orientation_xyzw=tilt) if isinstance(r, OdometryRecord) else r
+               for r in sampled_records]  # fmt: skip
+    bag = write_bag(tmp_path / "legs", records)
+    # (a swimmer tilted: its states 0.04 s apart, a centipede's would be 0.05)
+    assert main(["export", str(bag), "--out", str(tmp_path / "t.npz"), "--control-period", "0.04"]) == 0
+    assert "task: ant" in capsys.readouterr().out
+    assert TransitionBatch.from_npz(tmp_path / "t.npz").global_width == 12
+
+
+def test_info_names_a_body_by_what_it_is():
+    """The ant is no swimmer of the star-4x2 shape; a centipede is named by its size (the sim's robot names)."""
+    import mujoco
+
+    from morph_core.env.centipede_model import ant_mjcf, centipede_mjcf
+    from morph_core.env.urdf import robot_urdf
+    from morph_core.policy.tree import read_urdf
+    from trainer.bags.cli import described_body
+
+    def named(urdf: str) -> str:
+        return described_body(urdf, read_urdf(urdf).tree)
+
+    ant = robot_urdf(mujoco.MjModel.from_xml_string(ant_mjcf()))
+    assert named(ant) == "robot 'ant' (star-4x2 tree)"
+    assert named(robot_urdf(mujoco.MjModel.from_xml_string(centipede_mjcf(5)))) == "centipede-5"
+    assert named(swimmer_urdf(swimmer_tree(star_parents(4, 2)))) == "star-4x2"
+    assert named(swimmer_urdf(swimmer_tree(y_parents(1, 2)))) == "y-1x2"
+
+
+def test_info_says_why_a_bag_gave_no_step_when_none_was_skipped(tmp_path, sampled_records, capsys):
+    """'steps: 0' and 'skipped steps: none' said nothing: the line names why there was no step to skip."""
+    firsts, seen = [], set()
+    for r in sampled_records:  # each episode's first state alone: no next state, so no step and nothing skipped
+        if isinstance(r, JointStateRecord):
+            if len(r.names) in seen:
+                continue
+            seen.add(len(r.names))
+        firsts.append(r)
+    bag = write_bag(tmp_path / "firsts", firsts)
+    assert main(["info", str(bag)]) == 0
+    text = capsys.readouterr().out
+    line = next(x for x in text.splitlines() if "skipped steps:" in x)
+    assert "steps: 0" in text and "none followed by a next state of its episode" in line, text
+    from trainer.cli.train import main as train_main
+
+    assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false"]) == 1
+    err = capsys.readouterr().err  # morph-train --from-bags said "(skipped: none)" and no more
+    assert "(skipped: none; " in err and "none followed by a next state" in err and len(err.splitlines()) == 1
+    only_odometry = write_bag(tmp_path / "odom", [r for r in sampled_records if isinstance(r, OdometryRecord)])
+    assert main(["info", str(only_odometry)]) == 0
+    assert "no joint_states of the robot's topics were read" in capsys.readouterr().out

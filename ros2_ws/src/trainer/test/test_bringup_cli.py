@@ -79,7 +79,7 @@ def test_the_wrappers_help_names_the_script_and_shows_defaults(tmp_path, script)
     wrapper = ROOT / "scripts" / script
     done = subprocess.run(["bash", str(wrapper), "--help"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.startswith(f"usage: {wrapper} [-h]")
+    assert done.stdout.startswith(f"usage: bash scripts/{script} [-h]")
     assert "bring-up" not in done.stdout.splitlines()[0] and "(default: 10)" in done.stdout
     text = " ".join(done.stdout.split())  # the epilog wrapped
     assert "A relative --out or --checkpoint is taken from the folder the command runs in." in text
@@ -102,3 +102,70 @@ def test_the_wrappers_take_a_relative_out_from_the_caller_s_folder(tmp_path):
                             capture_output=True, text=True, timeout=120)  # fmt: skip
     assert record.returncode == 1 and "rel exists already" in record.stderr
     assert not (ROOT / "rel").exists()
+
+
+SCRIPTS = sorted(p.name for p in (ROOT / "scripts").glob("*.sh") if p.name != "help.sh")
+
+
+def test_every_script_is_covered():
+    assert set(SCRIPTS) >= {"demo.sh", "setup.sh", "in_netns.sh", "test.sh", "live_results.sh", "fuzz_nodes.sh",
+                            "record.sh", "live.sh", "bag_rounds.sh"}  # fmt: skip
+
+
+@needs_setup
+@pytest.mark.parametrize("script", SCRIPTS)
+@pytest.mark.parametrize("flag", ["--help", "-h"])
+def test_every_script_answers_help_with_its_own_name_and_usage_and_does_nothing_else(tmp_path, script, flag):
+    """Not bringup.py's usage, not bash's exec help, not a count of --help, not ruff then pytest's help."""
+    done = subprocess.run(["bash", str(ROOT / "scripts" / script), flag], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"usage: bash scripts/{script}"), done.stdout[:300]
+    assert len(done.stdout.splitlines()) > 2 and done.stderr == ""  # a description too; no setup, no ruff
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("script, args", [("fuzz_nodes.sh", ["many"]), ("live_results.sh", ["3", "--help2"]),
+                                          ("setup.sh", ["--force"]), ("in_netns.sh", [])])  # fmt: skip
+def test_scripts_refuse_arguments_they_do_not_take_in_one_line(tmp_path, script, args):
+    done = subprocess.run(["bash", str(ROOT / "scripts" / script), *args], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2 and len(done.stderr.splitlines()) == 1 and script in done.stderr, done.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_live_bodies_go_to_the_sims_and_the_trainer():
+    """``--bodies`` (centipedes included): each sim draws from the spec, the trainer's policy reads its width."""
+    import argparse
+
+    from trainer.live.bringup import pair_params, trainer_arguments
+
+    sim, _ = pair_params(0, 2, 10, None, bodies="centipede:2-3")
+    assert sim["topology"] == "centipede:2-3" and "min_joints" not in sim
+    args = argparse.Namespace(out=Path("run"), bodies="centipede:2-3", episode_steps=100, max_updates=1, resume=False)
+    assert trainer_arguments(["/swimmer0"], args, [])[-6:-4] == ["--bodies", "centipede:2-3"]
+
+
+def test_a_signing_key_for_the_trainer_is_the_bring_up_s_key():
+    from trainer.live.bringup import split_signing_key
+
+    assert split_signing_key(["--seed", "3", "--signing-key", "k", "--num-steps", "64"]) == (
+        ["--seed", "3", "--num-steps", "64"], Path("k"))  # fmt: skip
+    assert split_signing_key(["--signing-key=a/k"]) == ([], Path("a/k"))
+    assert split_signing_key(["--seed", "3"]) == (["--seed", "3"], None)
+
+
+def test_live_refuses_a_signing_key_it_cannot_use_in_one_line_before_anything_runs(tmp_path):
+    from morph_core.protocol.trust import write_key_pair
+
+    done = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), "--", "--signing-key", str(tmp_path / "none")],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert "--signing-key" in done.stderr and "morph-keys new KEY" in done.stderr
+    write_key_pair(tmp_path / "a")
+    write_key_pair(tmp_path / "b")
+    (tmp_path / "b.pub").replace(tmp_path / "a.pub")  # a public key of another pair
+    done = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), "--signing-key", str(tmp_path / "a")],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1 and "is not the public half of" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "run").exists()

@@ -135,3 +135,45 @@ def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp
         assert torch.equal(wa[k], wb[k]), k
     with (straight / "progress.csv").open() as f, (part / "progress.csv").open() as g:
         assert [r["policy_loss"] for r in csv.DictReader(f)] == [r["policy_loss"] for r in csv.DictReader(g)]
+
+
+def test_morph_eval_run_on_a_centipede_run_evaluates_its_bodies_and_the_zero_shot_sizes(centipede_run, tmp_path):
+    """Neither --bodies nor --joints: the run's own centipedes and 5, 6, 8, 10 leg pairs, no swimmer chains; a
+    swimmer run, or an option given, keeps the chains (2..10, 15, 20) as before."""
+    from morph_core.env.bodies import Centipede
+    from trainer.cli.eval import EvalConfig, eval_bodies, run_eval_config
+
+    cfg = EvalConfig()
+    bodies = eval_bodies(run_eval_config(centipede_run, cfg, set()))
+    assert bodies == [Centipede(n) for n in (2, 3, 5, 6, 8, 10)]
+    assert run_eval_config(centipede_run, cfg, {"lengths"}) is cfg
+    assert run_eval_config(centipede_run, cfg, {"bodies"}) is cfg
+    swimmers = tmp_path / "swimmers"
+    swimmers.mkdir()
+    (swimmers / "config.json").write_text('{"bodies": "", "min_joints": 2, "max_joints": 10}')
+    assert eval_bodies(run_eval_config(swimmers, cfg, set())) == [*range(2, 11), 15, 20]
+
+
+def _train_cli(tmp_path, *options):
+    out = tmp_path / "run"
+    args = ["--out", str(out), "--total-timesteps", "64", "--num-envs", "1", "--num-steps", "64",
+            "--minibatch-size", "32", "--update-epochs", "1", "--compile", "false", "--tensorboard", "false",
+            "--progress-bar", "false", *options]  # fmt: skip
+    run = subprocess.run([sys.executable, "-m", "trainer.cli.train", *args], capture_output=True, text=True,
+                         timeout=300)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    import json
+
+    return json.loads((out / "config.json").read_text()), run.stdout
+
+
+def test_morph_train_on_centipedes_takes_the_centipede_settings_unless_given(tmp_path):
+    cfg, out = _train_cli(tmp_path / "a", "--bodies", "centipede:2")
+    assert (cfg["learning_rate"], cfg["gamma"], cfg["gae_lambda"]) == (3e-4, 0.99, 0.95)
+    assert "--learning-rate 0.0003 --gamma 0.99 --gae-lambda 0.95" in out
+    cfg, out = _train_cli(tmp_path / "b", "--bodies", "centipede:2", "--learning-rate", "0.001", "--gamma", "0.9")
+    assert (cfg["learning_rate"], cfg["gamma"], cfg["gae_lambda"]) == (0.001, 0.9, 0.95)
+    assert "--gae-lambda 0.95" in out and "--learning-rate 0.0003" not in out
+    cfg, out = _train_cli(tmp_path / "c", "--min-joints", "2", "--max-joints", "3")  # swimmers: the paper's
+    assert (cfg["learning_rate"], cfg["gamma"], cfg["gae_lambda"]) == (0.01, 0.98, 0.98)
+    assert "legs" not in out

@@ -5,6 +5,7 @@ abbreviated (``--total-timestep`` is refused, not taken for ``--total-timesteps`
 from __future__ import annotations
 
 import importlib
+import re
 
 import pytest
 
@@ -23,7 +24,7 @@ TOOLS = [
     ("live.bringup", "python -m trainer.live.bringup", ["--out", "run"], ["--pair", "2"]),
     ("live.in_process", "python -m trainer.live.in_process", ["--out", "run"], ["--total-timestep", "5"]),
     ("live.compare", "python -m trainer.live.compare", ["run"], ["--simulato", "sim"]),
-    ("bags.rounds", "bag_rounds", ["--out", "rounds"], ["--round", "3"]),
+    ("bags.rounds", "python -m trainer.bags.rounds", ["--out", "rounds"], ["--round", "3"]),
     ("reports.ship", "python -m trainer.reports.ship", ["--run", "run", "--dest", "p.safetensors"], ["--replac"]),
     ("reports.summary", "python -m trainer.reports.summary", ["--run", "run"], ["--ru", "run"]),
     ("sweep.cli", "morph-sweep", ["--out", "sweep", "--dry-run"], ["--gri", "seed=1"]),
@@ -122,3 +123,73 @@ def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
     err = capsys.readouterr().err.splitlines()
     assert err[0] == "python -m trainer.live.bringup: warning: --updates is deprecated: write --max-updates"
     assert err[1].startswith("morph-train: error:")
+
+
+def _help(module: str, capsys, argv=()) -> str:
+    main = importlib.import_module(module).main
+    with pytest.raises(SystemExit):
+        main([*argv, "--help"])
+    return capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "module",
+    ["trainer.cli.eval", "trainer.cli.render", "trainer.cli.gait", "trainer.bags.record_bringup",
+     "morph_policy_node.bringup"],
+)  # fmt: skip
+def test_one_name_per_idea_chain_lengths_are_joints_and_durations_seconds(module, capsys):
+    """The chain length was --joints in the demo and the recorder, --lengths in eval, render and gait; the
+    duration --sim-seconds in the demo, --seconds in render and gait. One name each now; the old ones hidden."""
+    text = _help(module, capsys)
+    assert "--joints" in text and "--lengths" not in text and "--sim-seconds" not in text
+    if module in ("trainer.cli.render", "trainer.cli.gait", "morph_policy_node.bringup"):
+        assert "--seconds" in text
+
+
+def test_the_old_names_still_work_and_say_they_are_deprecated(tmp_path, capsys):
+    from morph_policy_node import bringup
+    from trainer.cli import eval as eval_cli
+    from trainer.cli import render
+
+    (tmp_path / "config.json").write_text("{}")
+    eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--lengths", "3"])
+    assert capsys.readouterr().err == "morph-eval: warning: --lengths is deprecated: write --joints\n"
+    with pytest.raises(SystemExit):  # 0 joints: refused after the alias was read as --joints
+        render.main(["--untrained", "--gif", str(tmp_path / "x.gif"), "--lengths", "0"])
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "morph-render: warning: --lengths is deprecated: write --joints" and "lengths" in err[1]
+    assert bringup.main(["--sim-seconds", "0"]) == 2  # read as --seconds 0: refused before any node
+    out, err = capsys.readouterr()
+    assert "--sim-seconds is deprecated: write --seconds" in err and "cannot start: --seconds 0" in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+
+
+@pytest.mark.parametrize(
+    "module, argv",
+    [("trainer.cli.train", []), ("trainer.bags.cli", ["export"]), ("trainer.bags.record", ["morph-record"]),
+     ("trainer.bags.record_bringup", []), ("trainer.live.bringup", []), ("trainer.bags.rounds", []),
+     ("trainer.cli.theory", []), ("trainer.sweep.cli", []), ("trainer.live.in_process", [])],
+)  # fmt: skip
+def test_every_tool_that_writes_a_folder_or_file_names_it_out(module, argv, capsys):
+    assert "--out" in _help(module, capsys, argv)
+
+
+@pytest.mark.parametrize("module, prog, good, truncated", TOOLS, ids=[t[0] for t in TOOLS])
+def test_help_keeps_its_examples_lines_and_says_no_deprecated_name(module, prog, good, truncated, capsys):
+    """A backslash at a docstring's line end joined two example lines into one (morph-render's help);
+    morph-sweep's example used clip-mode, the old name of rule."""
+    argv = ["morph-record"] if module == "bags.record" else ["info"] if module == "bags.cli" else []
+    text = _help(f"trainer.{module}", capsys, argv)
+    assert not re.search(r"\S {5,}--[a-z]", text), re.search(r".*\S {5,}--[a-z].*", text).group(0)
+    assert "clip-mode=" not in text and "--lengths" not in text
+
+
+def test_every_option_of_morph_train_says_what_it_is():
+    """Options of fields a base class of TrainConfig declares (--bodies, --min-joints ...) had no help text."""
+    import argparse
+
+    from trainer.cli.train import build_parser
+
+    bare = [a.option_strings[0] for a in build_parser()._actions
+            if a.help != argparse.SUPPRESS and not re.sub(r"\(default: .*\)$", "", a.help or "").strip()]  # fmt: skip
+    assert bare == []

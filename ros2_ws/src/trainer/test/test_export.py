@@ -345,3 +345,61 @@ def test_the_deprecated_onnx_option_still_exports_and_says_so_once(tmp_path, cap
         export_cli.main(["--onnx", str(ckpt), str(tmp_path / "q.onnx"), str(ckpt), str(tmp_path / "r.onnx")])
     assert exit_.value.code == 2 and "not both" in capsys.readouterr().err
     assert not (tmp_path / "q.onnx").exists() and not (tmp_path / "r.onnx").exists()
+
+
+SHIPPED_POLICIES = sorted(SHIPPED.parent.glob("*.safetensors"))
+
+
+def _body_states(weights_config: PolicyConfig):
+    """(states, parents) of the body a shipped policy drives, from real MuJoCo: swimmer chains for a 4-feature
+    policy, centipedes (2..6 leg pairs, trees) for a 12-feature one; random efforts, a few steps apart."""
+    from morph_core.env.centipede import MorphCentipedeEnv
+
+    rng = np.random.default_rng(1)
+    if weights_config.global_features == 12:
+        envs = [MorphCentipedeEnv(leg_pairs=n) for n in (2, 3, 4, 6)]
+    else:
+        envs = [gymnasium.make("MorphSwimmer-v0", num_joints=n) for n in (1, 3, 6, 12)]
+    states = []
+    for k, env in enumerate(envs):
+        obs, _ = env.reset(seed=k)
+        for _ in range(4):
+            for _ in range(3):
+                obs, *_ = env.step(rng.uniform(-1, 1, env.action_space.shape[0]))
+            parents = np.asarray(obs["parents"]) if "parents" in obs else np.arange(len(obs["joint_pos"])) - 1
+            states.append((*(np.asarray(obs[k], np.float32) for k in ("joint_pos", "joint_vel", "global")), parents))
+        env.close()
+    return states
+
+
+@pytest.mark.parametrize("tree", [False, True], ids=["chain", "tree"])
+@pytest.mark.parametrize("shipped", SHIPPED_POLICIES, ids=lambda p: p.stem)
+def test_every_shipped_policy_exports_and_onnx_runtime_equals_the_numpy_policy(shipped, tree, tmp_path):
+    """morph-export on each model the nodes ship (the centipede's reads 12 global features, not 4): the CLI
+    writes the graph, and ONNX Runtime on the body's own states equals the NumPy and torch policies."""
+    assert {p.stem for p in SHIPPED_POLICIES} >= {"swimmer_gnn", "centipede_gnn"}
+    out = tmp_path / f"{shipped.stem}.onnx"
+    run = subprocess.run([*CLI, str(shipped), str(out), *(["--tree"] if tree else [])],
+                         capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    weights = load_checkpoint(shipped)
+    width = weights.config.global_features
+    assert f"global [{width}]" in run.stdout
+    session = _session(out)
+    assert session.get_inputs()[2].shape == [width]
+    policy, numpy_policy = GraphActorCritic.load(shipped).eval(), NumpyPolicy(GraphActorCritic.load(shipped))
+    worst, scale = 0.0, 0.0
+    for pos, vel, glob, parents in _body_states(weights.config):  # without --tree, a centipede read as a chain
+        feed = {"joint_pos": pos, "joint_vel": vel, "global": glob}
+        if tree:
+            feed["parents"] = parents.astype(np.int64)
+        (action,) = session.run(None, feed)
+        want = numpy_policy.mean(pos, vel, glob, parents.astype(np.int64) if tree else None)
+        with torch.no_grad():
+            batch = ChainBatch.from_padded(pos[None], vel[None], glob[None], [len(pos)],
+                                           parents=parents.astype(np.int64)[None] if tree else None)  # fmt: skip
+            mean = policy(batch)[0][0].numpy()
+        worst = max(worst, scaled_difference(action, want).max(), scaled_difference(action, mean).max())
+        scale = max(scale, float(np.abs(action).max()))
+    assert worst <= 1e-4
+    assert scale > 0.1, "outputs too small for the tolerance to mean anything"

@@ -8,7 +8,7 @@ from trainer.cli.gait import main
 
 
 def test_morph_gait_prints_each_bodys_speed(capsys):
-    main(["--lengths", "3", "--bodies", "y:1x1,star:3x1", "--seconds", "4"])
+    main(["--joints", "3", "--bodies", "y:1x1,star:3x1", "--seconds", "4"])
     rows = {line.split()[0]: float(line.split()[1]) for line in capsys.readouterr().out.splitlines()[2:]}
     y, star = parse_bodies("y:1x1,star:3x1").members()
     assert rows == pytest.approx(
@@ -28,8 +28,8 @@ def test_morph_gait_refuses_a_random_family_and_a_bad_spec(capsys):
     assert "random family" in capsys.readouterr().err
 
 
-def test_the_joints_option_of_before_still_works_and_says_it_is_deprecated(capsys):
-    main(["--joints", "2", "--seconds", "1"])
+def test_the_lengths_option_of_before_still_works_and_says_it_is_deprecated(capsys):
+    main(["--lengths", "2", "--seconds", "1"])  # chain lengths are --joints in every tool
     out, err = capsys.readouterr()
-    assert err == "morph-gait: warning: --joints is deprecated: write --lengths\n"
+    assert err == "morph-gait: warning: --lengths is deprecated: write --joints\n"
     assert [line.split()[0] for line in out.splitlines()[2:]] == ["chain-2"]

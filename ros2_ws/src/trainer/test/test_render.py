@@ -59,7 +59,7 @@ def test_tiled_gif_and_mp4_read_back(tmp_path):
     gif, mp4 = tmp_path / "out" / "swim.gif", tmp_path / "out" / "swim.mp4"
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}  # the default choice: EGL, else OSMesa
     done = _render(
-        "--checkpoint", str(SHIPPED), "--lengths", "2", "5", "--seconds", "0.4", "--frame-every", "2",
+        "--checkpoint", str(SHIPPED), "--joints", "2", "5", "--seconds", "0.4", "--frame-every", "2",
         "--layout", "tiled", "--columns", "2", "--width", "96", "--height", "64", "--gif", str(gif), "--mp4", str(mp4),
         env=env,
     )  # fmt: skip
@@ -91,7 +91,7 @@ def test_tiled_gif_and_mp4_read_back(tmp_path):
 def test_sequence_of_lengths_one_after_another(tmp_path):
     gif = tmp_path / "seq.gif"
     done = _render(
-        "--checkpoint", str(SHIPPED), "--lengths", "1", "3", "--seconds", "0.24", "--frame-every", "1",
+        "--checkpoint", str(SHIPPED), "--joints", "1", "3", "--seconds", "0.24", "--frame-every", "1",
         "--layout", "sequence", "--width", "80", "--height", "48", "--gif", str(gif),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -104,7 +104,7 @@ def test_sequence_of_lengths_one_after_another(tmp_path):
 def test_untrained_policy_mp4(tmp_path):
     mp4 = tmp_path / "untrained.mp4"
     done = _render(
-        "--untrained", "--lengths", "4", "--seconds", "0.2", "--width", "64", "--height", "48", "--mp4", str(mp4)
+        "--untrained", "--joints", "4", "--seconds", "0.2", "--width", "64", "--height", "48", "--mp4", str(mp4)
     )
     assert done.returncode == 0, done.stderr
     n_frames, _ = imageio_ffmpeg.count_frames_and_secs(str(mp4))
@@ -115,7 +115,7 @@ def test_untrained_policy_mp4(tmp_path):
 def test_trees_are_filmed_beside_chains_and_captioned_with_their_label(tmp_path):
     gif = tmp_path / "trees.gif"
     done = _render(
-        "--checkpoint", str(SHIPPED), "--lengths", "3", "--bodies", "star:3x1,y:1x2", "--seconds", "0.24",
+        "--checkpoint", str(SHIPPED), "--joints", "3", "--bodies", "star:3x1,y:1x2", "--seconds", "0.24",
         "--frame-every", "2", "--width", "96", "--height", "64", "--gif", str(gif),
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
@@ -158,7 +158,7 @@ def test_a_broken_backend_is_one_clear_line(tmp_path):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--untrained", "--gif", "x.gif", "--lengths", "0"], "lengths"),
+        (["--untrained", "--gif", "x.gif", "--joints", "0"], "lengths"),
         (["--untrained", "--gif", "x.gif", "--layout", "grid"], "layout"),
         (["--untrained"], "--gif"),
         (["--checkpoint", "nowhere.safetensors", "--gif", "x.gif"], "no such file"),

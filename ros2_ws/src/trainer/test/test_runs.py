@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,3 +187,42 @@ def test_the_body_tables_give_episode_lengths_and_distances_where_the_evaluation
     assert "| compensated | 2 | 992 ± 0 | 960 ± 0 |" in table
     assert "| compensated | 2 | 16.00 ± 8.00 | 80.00 ± 40.00 |" in table  # the root's travel, mean ± std over runs
     assert "| fixed | 1 | – | – |" in table  # recorded no distance: no figure rather than a zero
+
+
+def _tables(text: str) -> list[tuple[str, list[str], str]]:
+    """(heading, table lines, the paragraph after it) of every Markdown table in ``text``."""
+    out, lines, i = [], text.splitlines(), 0
+    while i < len(lines):
+        if lines[i].startswith("|"):
+            start = i
+            while i < len(lines) and lines[i].startswith("|"):
+                i += 1
+            heading = next((x for x in reversed(lines[:start]) if x.startswith("#")), "")
+            after = next((x for x in lines[i:] if x.strip()), "")
+            out.append((heading, lines[start:i], after))
+        i += 1
+    return out
+
+
+@pytest.mark.parametrize("data", ["made_up", "centipedes"])
+def test_summary_tables_have_headings_and_legends_and_no_nan(tmp_path, capsys, data):
+    """Each table under a heading and followed by its legend ((1), (2): ranks; never; –); a value a run does not
+    have is '–', never 'nan' (the centipede runs have no chain lengths, no action dimensions 9..11)."""
+    if data == "made_up":
+        runs = [write_run(tmp_path / f"fixed-s{s}", "fixed", s) for s in (1, 2)]
+        runs.append(write_run(tmp_path / "kl-stop-s1", "kl-stop", 1, scale=2.0))
+    else:
+        runs = sorted((Path(__file__).resolve().parents[4] / "docs/results_data/centipedes").glob("*-s*"))
+        assert len(runs) >= 2
+    summary.main(["--run", *map(str, runs)])
+    out, err = capsys.readouterr()
+    assert "nan" not in out.lower() and err == ""
+    tables = _tables(out)
+    assert len(tables) >= 3
+    for heading, rows, legend in tables:
+        assert heading.startswith("### ") and rows[1].startswith("|---"), (heading, rows[:2])
+        assert not legend.startswith(("|", "#")) and legend.endswith("."), (heading, legend)
+    ranking = next(t for t in tables if t[0] == "### The rules ranked claim by claim")
+    assert "(1) the best" in ranking[2] and all("(1)" in r or "(2)" in r for r in ranking[1][2:])
+    if data == "centipedes":
+        assert "late eval, no joints" not in out and "| – | " not in ranking[1][2]  # unmeasured claims left out

@@ -24,6 +24,19 @@ from morph_core.env.bodies import BodyMix, fit_global_features, parse_bodies
 from morph_core.policy.actor_critic import PolicyConfig
 from morph_core.util.config_cli import check_field_types, renamed_fields
 
+LEGGED_DEFAULTS = {"learning_rate": 3e-4, "gamma": 0.99, "gae_lambda": 0.95}
+"""PPO settings of bodies with legs (centipedes), in place of the paper's swimmer ones where a run did not set
+them: the centipede results' (CleanRL's Ant settings; sweeps/centipedes*.yaml, docs/centipedes.md). At the
+swimmer's 0.01 / 0.98 a 12-feature policy's updates reach KL 0.1-0.3."""
+
+
+def family_defaults(bodies: str, given) -> dict:
+    """The fields of ``LEGGED_DEFAULTS`` not in ``given`` (field names a user set) when ``bodies`` holds
+    centipedes; {} for swimmers, whose runs keep the dataclass defaults (bit for bit)."""
+    if not bodies or not parse_bodies(bodies).has_centipedes:
+        return {}
+    return {k: v for k, v in LEGGED_DEFAULTS.items() if k not in given}
+
 
 @renamed_fields(clip_mode="rule")
 @dataclass
@@ -80,8 +93,9 @@ class PPOConfig:
     max_joints: int = 10
     """longest chain drawn at a reset; with ``bodies``, the most joints its bodies have (set from it)"""
     bodies: str = ""
-    """the bodies drawn at each reset, in ``env.bodies``' grammar: chains and trees, e.g. '2-10,random:3-10'
-    (chains of 2..10 joints or random trees of 3..10); empty: chains of min_joints..max_joints"""
+    """the bodies drawn at each reset, in ``env.bodies``' grammar (docs/bodies.md): chains, trees and centipedes,
+    e.g. '2-10,random:3-10' (chains of 2..10 joints or random trees of 3..10) or 'centipede:2-4' (2..4 leg
+    pairs, with the centipede settings ``LEGGED_DEFAULTS``); empty: chains of min_joints..max_joints"""
     checkpoint_interval: int = 6000
     """env steps between checkpoints (taken at the end of the update that crosses the mark)"""
     torch_threads: int = 1

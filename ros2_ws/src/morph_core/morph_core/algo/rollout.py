@@ -100,6 +100,8 @@ def collect(
     steps, num_envs, max_joints = rollout.actions.shape
     episodes: list[Episode] = []
     for t in range(steps):
+        # The policy reads this step's observation where it is (``obs`` at first, then the rows the envs
+        # write into: ``step(copy_obs=False)``), and the rollout keeps a copy of it: one copy per step, not two.
         pos, vel, glob, num_joints, parents = obs.arrays()
         rollout.joint_pos[t], rollout.joint_vel[t], rollout.global_feats[t] = pos, vel, glob
         rollout.num_joints[t], rollout.parents[t] = num_joints, parents
@@ -109,17 +111,18 @@ def collect(
         rollout.actions[t], rollout.log_prob[t], rollout.values[t], _ = actor.act(
             pos, vel, glob, num_joints, noise, parents=parents, joint_desc=obs.joint_desc
         )
-        step = envs.step(rollout.actions[t])
+        step = envs.step(rollout.actions[t], copy_obs=False)
         rollout.rewards[t], rollout.terminated[t], rollout.truncated[t] = step.reward, step.terminated, step.truncated
         # A truncated episode would have gone on: GAE bootstraps it from the value of its final observation.
         rollout.final_values[t] = 0.0
-        trunc = [i for i in step.final_obs if step.truncated[i]]
-        if trunc:
-            finals = [step.final_obs[i] for i in trunc]
-            final = pad_observations(finals, max_joints, with_parents=True)
-            desc = pad_descriptions(finals, max_joints)
-            rollout.final_values[t, trunc] = actor.forward(*final[:4], parents=final[4], joint_desc=desc)[1]
+        if step.final_obs:
+            trunc = [i for i in step.final_obs if step.truncated[i]]
+            if trunc:
+                finals = [step.final_obs[i] for i in trunc]
+                final = pad_observations(finals, max_joints, with_parents=True)
+                desc = pad_descriptions(finals, max_joints)
+                rollout.final_values[t, trunc] = actor.forward(*final[:4], parents=final[4], joint_desc=desc)[1]
+            episodes += step.episodes
         obs = step.obs
-        episodes += step.episodes
     rollout.last_value[:] = actor.forward(*obs.arrays()[:4], parents=obs.parents, joint_desc=obs.joint_desc)[1]
-    return obs, episodes
+    return envs.observations(), episodes

@@ -335,6 +335,17 @@ def check_data(data: TransitionBatch, cfg: PPOConfig) -> None:
     episode_spans(data)
 
 
+def check_global_width(data: TransitionBatch, policy) -> None:
+    """``DataMismatchError`` unless the policy (its ``PolicyConfig``) reads the data's global features (4 a
+    swimmer's, 12 a legged body's)."""
+    if data.global_width != policy.global_features:
+        raise DataMismatchError(
+            f"the data hold {data.global_width} global features per step (4: a swimmer's, 12: a legged body's) "
+            f"and the run's policy reads {policy.global_features}: set --bodies to the bodies recorded "
+            "(e.g. centipede:2-4), which sets the policy's width"
+        )
+
+
 @dataclass
 class _Round:
     """The run's current data set and how far training on it has got (saved with the state)."""
@@ -404,6 +415,7 @@ def train_from_data(
     else:
         torch.manual_seed(cfg.seed)
         policy = GraphActorCritic(cfg.policy)
+    check_global_width(data, cfg.policy)
     learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
     gen = torch.Generator().manual_seed(cfg.seed)
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)

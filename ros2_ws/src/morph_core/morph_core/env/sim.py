@@ -33,9 +33,10 @@ replaced by the next episode's first).
 Centipedes (``bodies`` of the centipede family alone, e.g. ``centipede:3``): a ``MorphCentipedeEnv`` per
 episode (the size drawn from the spec at every reset, Ant-v5's reset noise, its 0.05 s control period), the
 joints in its tree order, the root's pose and twist in 3-D (``odometry``), its URDF from the compiled model.
-A fall does not end the episode here: the sim is a robot on a floor, it lies where it fell until
-``episode_steps`` or a reset (training ends the episode, ``MorphCentipedeEnv``'s health rule; the protocol's
-episode causes have no "fell"). A spec that mixes swimmers and centipedes is refused: the sim's clock has one
+A fall ends the episode as it ends in training (``MorphCentipedeEnv``'s health rule, Ant-v5's: the root's z out
+of its range): the fallen state is published, and the next ``advance`` begins a new episode announced with
+``EpisodeCause.FELL`` (a trainer reads it as ``terminated``, not truncated). A spec that mixes swimmers and
+centipedes is refused: the sim's clock has one
 control period (a swimmer's 0.04 s, a centipede's 0.05 s).
 
 Effort units are the motors' normalised commands (the env's action, ctrl
@@ -96,6 +97,7 @@ class CentipedeBodies:
         self.bodies = bodies
         self._env = BodyEnv(bodies)
         self.joint_range = bodies.joint_range
+        self.fell, self.reward = False, 0.0
 
     def __getattr__(self, name):  # num_joints, tree, dt, model, data, leg_pairs
         if name == "_env":
@@ -112,9 +114,12 @@ class CentipedeBodies:
         self._env.reset(seed=seed)
 
     def advance(self, efforts: np.ndarray) -> bool:
-        """One control period; True if MuJoCo had to reset a state that blew up (a fall is not reported)."""
-        self._env.advance(efforts)
-        return self._env.env.unstable
+        """One control period; True if MuJoCo had to reset a state that blew up. ``fell`` says whether the body
+        is unhealthy after it (the env's ``terminated`` but for the blow-up), ``reward`` what the env paid."""
+        self.reward, terminated = self._env.advance(efforts)
+        unstable = self._env.env.unstable
+        self.fell = terminated and not unstable
+        return unstable
 
     @property
     def joint_positions(self) -> np.ndarray:
@@ -197,6 +202,9 @@ class SwimmerSim:
         """why the current episode began"""
         self.episode_start_ns = 0
         """stamp of the current episode's first state"""
+        self.fell = False
+        """the robot fell in the last step (a legged body: ``CentipedeBodies.fell``): the next ``advance`` begins a
+        new episode (``EpisodeCause.FELL``)"""
         # The seed goes in once: later resets draw from the same generator, so a run
         # (seed, sequence of resets and efforts) is reproducible.
         self._env.reset(seed=seed)
@@ -244,8 +252,8 @@ class SwimmerSim:
 
     @property
     def episode_over(self) -> bool:
-        """The episode has run its ``episode_steps``: the next ``advance`` resets."""
-        return 0 < self.episode_steps <= self.episode_step
+        """The episode has run its ``episode_steps``, or the robot fell: the next ``advance`` resets."""
+        return self.fell or 0 < self.episode_steps <= self.episode_step
 
     def reset(self, cause: EpisodeCause = EpisodeCause.RESET) -> None:
         """Begin a new episode, one control period after the current state: a fresh swimmer (its
@@ -283,6 +291,7 @@ class SwimmerSim:
         self.episode_step = 0
         self.episode_cause = cause
         self.episode_start_ns = self.stamp_ns
+        self.fell = False
         self._clear_efforts()
 
     def _clear_efforts(self) -> None:
@@ -332,13 +341,14 @@ class SwimmerSim:
             return False
         self._ticks += 1
         self.episode_step += 1
+        self.fell = bool(getattr(self.robot, "fell", False))  # shown, then the next advance resets
         return True
 
     def advance(self, now: float) -> bool:
         """The next state: one step, or the next episode's first state once this one is over.
         Returns True when a new episode began."""
         if self.episode_over:
-            self.reset(EpisodeCause.STEPS)
+            self.reset(EpisodeCause.FELL if self.fell else EpisodeCause.STEPS)
             return True
         return not self.step(now)
 

@@ -276,28 +276,39 @@ class SwimmerVecEnv:
             p.joint_desc[i] = 0.0
             p.joint_desc[i, : env.num_joints] = model_descriptions(env.model)
 
-    def step(self, actions: np.ndarray) -> StepResult:
-        """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range."""
+    def live_observations(self) -> PaddedObs:
+        """The rows the bodies write their observations into (views, not copies): what ``observations()``
+        would copy, valid until the next ``step`` or reset. For a loop that copies them on itself (a rollout
+        stores every step's observation anyway)."""
+        return self._padded
+
+    def step(self, actions: np.ndarray, copy_obs: bool = True) -> StepResult:
+        """``actions``: [E, J] padded; each swimmer takes its first N entries, clipped to the ctrl range.
+        ``copy_obs`` False: the result's ``obs`` is ``live_observations()`` rather than a copy."""
         applied = applied_action(actions).astype(np.float64)  # all swimmers' at once: one call, not E
-        outcomes = self._threads.map(lambda i: self._advance(i, applied[i]), range(self.num_envs))
+        if self._threads.num_threads == 1:  # the default: no pool to hand the swimmers to
+            outcomes = [self._advance(i, applied[i]) for i in range(self.num_envs)]
+        else:
+            outcomes = self._threads.map(lambda i: self._advance(i, applied[i]), range(self.num_envs))
         reward = np.array([r for r, _ in outcomes])
         terminated = np.array([term for _, term in outcomes])
         self.episode_steps += 1
         self.episode_returns += reward
         truncated = ~terminated & (self.episode_steps >= self.max_episode_steps)
         result = StepResult(obs=None, reward=reward, terminated=terminated, truncated=truncated)  # type: ignore[arg-type]
-        for i in np.flatnonzero(terminated | truncated).tolist():
-            env = self.envs[i]
-            result.final_obs[i] = env._observation()
-            if self._padded.joint_desc is not None:
-                result.final_obs[i]["joint_desc"] = self._padded.joint_desc[i, : env.num_joints].copy()
-            ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
-            result.episodes.append(Episode(env.num_joints, ret, length, env.body_label))
-            self.episode_steps[i], self.episode_returns[i] = 0, 0.0
-            env.reset()
-            self._write_body(i)
-            self._write(i)
-        result.obs = self.observations()
+        if terminated.any() or truncated.any():
+            for i in np.flatnonzero(terminated | truncated).tolist():
+                env = self.envs[i]
+                result.final_obs[i] = env._observation()
+                if self._padded.joint_desc is not None:
+                    result.final_obs[i]["joint_desc"] = self._padded.joint_desc[i, : env.num_joints].copy()
+                ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
+                result.episodes.append(Episode(env.num_joints, ret, length, env.body_label))
+                self.episode_steps[i], self.episode_returns[i] = 0, 0.0
+                env.reset()
+                self._write_body(i)
+                self._write(i)
+        result.obs = self.observations() if copy_obs else self._padded
         return result
 
     def _advance(self, i: int, applied: np.ndarray) -> tuple[float, bool]:

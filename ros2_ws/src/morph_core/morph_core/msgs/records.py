@@ -57,6 +57,13 @@ class OdometryRecord:
     def body_angular(self) -> tuple[float, float, float]:
         return self.angular_xy[0], self.angular_xy[1], self.angular_z
 
+    @property
+    def planar(self) -> bool:
+        """A body in the plane (a swimmer's: the orientation a turn about z alone, as its sim writes it); False
+        for one in 3-D (a legged body: a centipede, a legged robot)."""
+        qx, qy, _, _ = self.orientation_xyzw
+        return qx == 0.0 and qy == 0.0
+
 
 @dataclass(frozen=True)
 class EffortRecord:
@@ -104,7 +111,8 @@ class EpisodeStartRecord:
     num_joints: int | None = None
     cause: str | None = None
     """why it began, hence how the previous episode ended: "start", "steps" (time limit), "reset",
-    "rebuild" or "diverged" (``protocol.episode_start.EpisodeCause``)"""
+    "rebuild", "diverged" or "fell" (a legged body fell: its last step terminated;
+    ``protocol.episode_start.EpisodeCause``)"""
 
 
 @dataclass(frozen=True)

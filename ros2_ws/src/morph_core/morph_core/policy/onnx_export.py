@@ -2,7 +2,9 @@
 
 One chain per call, of any length N (a dynamic axis, ``num_joints``):
 
-    inputs   joint_pos [N], joint_vel [N] (torso to tail), global [4] (yaw, yaw rate, vx, vy), float32
+    inputs   joint_pos [N], joint_vel [N] (torso to tail), global [G], float32; G is the policy's
+             ``global_features``: 4 for a swimmer's (yaw, yaw rate, vx, vy), 12 for a legged body's
+             (``env.centipede.GLOBAL_FEATURES``)
     outputs  action [N]: the policy's mean action (unclipped; the policy node clips to [-1, 1])
              value [1]: the critic's estimate, only when exported ``with_value``
 
@@ -45,6 +47,7 @@ from torch import nn
 
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
 
@@ -76,7 +79,7 @@ class ExportError(RuntimeError):
 
 
 class SingleChainPolicy(nn.Module):
-    """``policy``'s mean action (and value) of one chain: (joint_pos [N], joint_vel [N], global [4]) -> outputs.
+    """``policy``'s mean action (and value) of one chain: (joint_pos [N], joint_vel [N], global [G]) -> outputs.
 
     Applies the policy's own modules as ``GraphFeatureExtractor.forward`` and
     ``GraphActorCritic.forward`` do, for a batch of one chain: every slot holds a joint (no cuts),
@@ -112,7 +115,7 @@ class SingleChainPolicy(nn.Module):
 
 
 class SingleTreePolicy(SingleChainPolicy):
-    """``policy``'s mean action (and value) of one kinematic tree: (joint_pos [N], joint_vel [N], global [4],
+    """``policy``'s mean action (and value) of one kinematic tree: (joint_pos [N], joint_vel [N], global [G],
     parents [N] int64) -> outputs. The index plan of one tree (``index_plan``): slot j holds joint j, whose
     child is link j + 1 and whose parent link (its sender) is link parents[j] + 1."""
 
@@ -146,6 +149,8 @@ class ExportResult:
     max_error: float
     """largest difference ONNX Runtime - torch over the checked lengths (``check_against_policy``)"""
     num_nodes: int
+    global_features: int = 4
+    """the width of the ``global`` input: the policy's (4 a swimmer's, 12 a legged body's)"""
 
 
 def policy_from_checkpoint(path: str | Path) -> tuple[GraphActorCritic, PolicyWeights]:
@@ -180,6 +185,19 @@ def _quiet_exporter():
             yield
     finally:
         logger.setLevel(level)
+
+
+def global_input_text(width: int) -> str:
+    """The ``global`` input of a graph whose policy reads ``width`` global features, as its doc string says it."""
+    if width == NUM_GLOBAL_FEATURES:
+        return f"global [{width}] (yaw, yaw rate, vx, vy)"
+    return f"global [{width}] (a body in 3-D: env.centipede.GLOBAL_FEATURES when 12)"
+
+
+def random_global(rng: np.random.Generator, width: int) -> np.ndarray:
+    """[width] float32 global features of a body's scale: a turned torso's yaw first, then unit-scale values
+    (a swimmer's yaw rate and velocities; a legged body's rates, velocities, height and up vector)."""
+    return np.array([rng.uniform(-6, 6), *rng.normal(0.0, 1.0, width - 1)], dtype=np.float32)
 
 
 def export_model(
@@ -218,11 +236,12 @@ def export_model(
     except Exception as err:  # the exporter raises many types; one message naming the step
         raise ExportError(f"torch's ONNX exporter failed: {type(err).__name__}: {err}") from err
     model = program.model_proto
+    glob = global_input_text(policy.config.global_features)
     if tree:
-        inputs = "one kinematic tree: joint_pos [N], joint_vel [N] (topological order), global [4] (yaw, yaw rate, "
-        inputs += "vx, vy), parents [N] int64 (parent joint, -1: the torso)"
+        inputs = f"one kinematic tree: joint_pos [N], joint_vel [N] (topological order), {glob}, "
+        inputs += "parents [N] int64 (parent joint, -1: the torso)"
     else:
-        inputs = "one chain: joint_pos [N], joint_vel [N] (torso to tail), global [4] (yaw, yaw rate, vx, vy)"
+        inputs = f"one chain: joint_pos [N], joint_vel [N] (torso to tail), {glob}"
     if described:
         inputs += f", joint_desc [N, {described}] (each joint's description, policy.joint_description)"
     model.doc_string = f"Graph policy, deterministic actor of {inputs} -> action [N] (mean, unclipped)" + (
@@ -284,7 +303,7 @@ def check_against_policy(
         # States of a swimming chain's scale: angles within the joint range, fast joints, a turned torso.
         pos = rng.uniform(-1.7, 1.7, n).astype(np.float32)
         vel = rng.normal(0.0, 3.0, n).astype(np.float32)
-        glob = np.array([rng.uniform(-6, 6), *rng.normal(0.0, 1.0, 3)], dtype=np.float32)
+        glob = random_global(rng, policy.config.global_features)  # the policy's width: 4, or 12 for legs
         inputs = (pos, vel, glob) if shape is None else (pos, vel, glob, random_parents(rng, n, shape))
         described = policy.config.joint_features
         desc = rng.uniform(-1, 1, (n, described)).astype(np.float32) if described else None
@@ -351,4 +370,5 @@ def export_checkpoint(
     if not error <= tolerance:
         raise ExportError(f"the exported graph differs from the policy by {error:.3g} (> {tolerance:g}); not written")
     atomic_write_bytes(out, data)
-    return ExportResult(out, with_value, tree, tuple(lengths), error, len(model.graph.node))
+    width = policy.config.global_features
+    return ExportResult(out, with_value, tree, tuple(lengths), error, len(model.graph.node), width)

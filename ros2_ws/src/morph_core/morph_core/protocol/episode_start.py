@@ -42,6 +42,9 @@ class EpisodeCause(enum.IntEnum):
     """the chain was rebuilt (``num_joints`` set)"""
     DIVERGED = 4
     """the previous episode's physics diverged; its last step's state was never published"""
+    FELL = 5
+    """the previous episode's body fell (a legged body's health rule, Ant-v5's: the env's ``terminated``); its
+    last state, the fallen one, was published: the step into it is the episode's last, terminated"""
 
 
 class EpisodeStartError(ValueError):

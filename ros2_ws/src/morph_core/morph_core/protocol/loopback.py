@@ -65,6 +65,7 @@ from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 from morph_core.protocol.controller import Answer, Controller
+from morph_core.protocol.episode_start import EpisodeCause
 
 
 def _numpy(policy) -> NumpyPolicy:
@@ -121,6 +122,8 @@ class StepTruth:
     action: np.ndarray | None
     """the controller's action (before the sim's clip, in the env's joint order); None if the state was never
     stepped from"""
+    reward: float | None = None
+    """what the env paid for that step (a centipede's: Ant-v5's, contact cost included); None for others"""
 
 
 class LoopbackRecording:
@@ -155,6 +158,7 @@ class LoopbackRecording:
         self._described: tuple[int, ...] | None = None  # the parents of the body last described
         self._latest: Answer | None = None  # the controller's answer to the state published last
         self._announce_next = True
+        self._cause: str | None = None  # the next announcement's, when it says more than start/steps
         self._state_published = False
 
     @property
@@ -176,6 +180,13 @@ class LoopbackRecording:
         for i in range(steps):
             if not self._state_published:
                 self.records += self._state_records()
+            if self.sim.fell:  # as the sim node does: the fallen state answered, then a new episode, announced
+                self.records += self._answer_records(self.stamp_ns, self._latest)
+                self.sim.reset(EpisodeCause.FELL)
+                self._ticks += 1
+                self._episode += 1
+                self._announce_next, self._cause = True, "fell"
+                self.records += self._state_records()
             stamp = self.stamp_ns
             answer = self._latest
             if late is not None and late(i):
@@ -194,7 +205,8 @@ class LoopbackRecording:
         self.sim.step(0.0)
         self._ticks += 1
         stepped_with = self.sim.applied.copy() if action is None else action
-        self.truth[-1] = StepTruth(stamp, self._episode, self.truth[-1].observation, stepped_with)
+        reward = getattr(self._robot(), "reward", None)
+        self.truth[-1] = StepTruth(stamp, self._episode, self.truth[-1].observation, stepped_with, reward)
 
     def finish(self) -> None:
         """Publish the state reached last and let the controller answer it (the sim will not step again)."""
@@ -252,8 +264,8 @@ class LoopbackRecording:
             out.append(DescriptionRecord(self._log(), text))
             self._described = body_parents(self._body())
         if self._announce_next:
-            out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints))
-            self._announce_next = False
+            out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints, self._cause))
+            self._announce_next, self._cause = False, None
         odometry, glob = self._odometry(stamp)
         out.append(odometry)
         names = tuple(self.sim.joint_names(self.prefix))

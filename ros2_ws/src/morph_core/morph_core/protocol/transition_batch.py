@@ -27,16 +27,18 @@ Keys of the ``.npz`` (T rows, J = longest chain, 0 if T = 0):
     num_joints       int64   [T]
     joint_pos        float64 [T, J]  joint angles, in the robot's tree order (a chain's: torso to tail)
     joint_vel        float64 [T, J]
-    global           float64 [T, 4]  yaw (unwrapped), yaw rate, vx, vy (world frame), as the policy sees them
+    global           float64 [T, G]  the global features as the policy sees them: G = 4, a swimmer's yaw
+                                     (unwrapped), yaw rate, vx, vy (world frame); G = 12, a legged body's
+                                     (``env.centipede.GLOBAL_FEATURES``); any G >= 1 is read, one per file
     action           float64 [T, J]  the sampled action (policy_info), else the effort command
     log_prob         float64 [T]     behaviour log-prob of the action; NaN without policy_info
-    reward           float64 [T]     Swimmer-v5's reward over the control period
+    reward           float64 [T]     the task's reward over the control period (Swimmer-v5's, Ant-v5's)
     terminated       bool    [T]
     truncated        bool    [T]
     has_policy_info  bool    [T]     False: no behaviour log-prob, the step cannot enter a PPO ratio
     next_joint_pos   float64 [T, J]  observation at the next state
     next_joint_vel   float64 [T, J]
-    next_global      float64 [T, 4]
+    next_global      float64 [T, G]
     parents          int64   [T, J]  parent joint of each joint (-1: the torso, and at padding); optional when
                                      read: without it every row is a chain
 """
@@ -55,14 +57,14 @@ from morph_core.policy.chains import NUM_GLOBAL_FEATURES
 from morph_core.policy.index_plan import chain_parents
 from morph_core.util.atomic import atomic_write_bytes
 
-# npz key -> (dataclass field, dtype, per-row shape: "J" = padded joints)
+# npz key -> (dataclass field, dtype, per-row shape: "J" = padded joints, "G" = the global features' width)
 _LAYOUT: dict[str, tuple[str, type, tuple]] = {
     "episode": ("episode", np.int64, ()),
     "stamp_ns": ("stamp_ns", np.int64, ()),
     "num_joints": ("num_joints", np.int64, ()),
     "joint_pos": ("joint_pos", np.float64, ("J",)),
     "joint_vel": ("joint_vel", np.float64, ("J",)),
-    "global": ("global_feats", np.float64, (NUM_GLOBAL_FEATURES,)),
+    "global": ("global_feats", np.float64, ("G",)),
     "action": ("action", np.float64, ("J",)),
     "log_prob": ("log_prob", np.float64, ()),
     "reward": ("reward", np.float64, ()),
@@ -71,7 +73,7 @@ _LAYOUT: dict[str, tuple[str, type, tuple]] = {
     "has_policy_info": ("has_policy_info", np.bool_, ()),
     "next_joint_pos": ("next_joint_pos", np.float64, ("J",)),
     "next_joint_vel": ("next_joint_vel", np.float64, ("J",)),
-    "next_global": ("next_global", np.float64, (NUM_GLOBAL_FEATURES,)),
+    "next_global": ("next_global", np.float64, ("G",)),
     "parents": ("parents", np.int64, ("J",)),
 }
 EXPORT_KEYS = tuple(_LAYOUT)
@@ -120,13 +122,16 @@ class TransitionBatch:
 
     # -- building ---------------------------------------------------------------
     @classmethod
-    def empty(cls) -> TransitionBatch:
-        return cls.from_arrays(cls._blank(0, 0))
+    def empty(cls, global_width: int = NUM_GLOBAL_FEATURES) -> TransitionBatch:
+        return cls.from_arrays(cls._blank(0, 0, global_width))
 
     @classmethod
-    def _blank(cls, t_count: int, width: int) -> dict[str, np.ndarray]:
+    def _blank(cls, t_count: int, width: int, global_width: int) -> dict[str, np.ndarray]:
         layout = _LAYOUT.items()
-        return {k: np.full((t_count, *_row_shape(s, width)), _PAD.get(k, 0), dtype=d) for k, (_, d, s) in layout}
+        return {
+            k: np.full((t_count, *_row_shape(s, width, global_width)), _PAD.get(k, 0), dtype=d)
+            for k, (_, d, s) in layout
+        }
 
     @classmethod
     def from_transitions(cls, transitions: Sequence) -> TransitionBatch:
@@ -136,7 +141,7 @@ class TransitionBatch:
             return cls.empty()
         t_count = len(transitions)
         width = max(len(t.joint_pos) for t in transitions)
-        out = cls._blank(t_count, width)
+        out = cls._blank(t_count, width, len(transitions[0].global_feats))  # one width: checked by the assignment
         for i, t in enumerate(transitions):
             n = len(t.joint_pos)
             out["parents"][i, :n] = chain_parents(n) if t.parents is None else t.parents
@@ -173,6 +178,10 @@ class TransitionBatch:
         batches = [b for b in batches if len(b)]
         if not batches:
             return cls.empty()
+        widths = {b.global_width for b in batches}
+        if len(widths) > 1:
+            raise TransitionBatchError(f"batches of {' and '.join(map(str, sorted(widths)))} global features: one "
+                                       "policy reads one width")  # fmt: skip
         width = max(b.max_joints for b in batches)
         out: dict[str, list[np.ndarray]] = {k: [] for k in EXPORT_KEYS}
         offset = 0
@@ -195,6 +204,11 @@ class TransitionBatch:
     @property
     def max_joints(self) -> int:
         return self.joint_pos.shape[1]
+
+    @property
+    def global_width(self) -> int:
+        """The global features per row (4 a swimmer's, 12 a legged body's)."""
+        return self.global_feats.shape[1]
 
     @property
     def is_chains(self) -> bool:
@@ -263,8 +277,8 @@ class TransitionBatch:
             raise TransitionBatchError(f"{path}: {err}") from None
 
 
-def _row_shape(shape: tuple, width: int) -> tuple[int, ...]:
-    return tuple(width if s == "J" else s for s in shape)
+def _row_shape(shape: tuple, width: int, global_width: int) -> tuple[int, ...]:
+    return tuple(width if s == "J" else global_width if s == "G" else s for s in shape)
 
 
 def _width(joint_pos: np.ndarray) -> int:
@@ -282,9 +296,11 @@ def _chain_rows(num_joints: np.ndarray, width: int) -> np.ndarray:
 def _check(arrays: dict[str, np.ndarray]) -> None:
     t_count = len(arrays["episode"]) if arrays["episode"].ndim == 1 else -1
     width = arrays["joint_pos"].shape[1] if arrays["joint_pos"].ndim == 2 else -1
+    glob = arrays["global"]
+    global_width = glob.shape[1] if glob.ndim == 2 and glob.shape[1] >= 1 else -1
     for k, (_, dtype, shape) in _LAYOUT.items():
         a = arrays[k]
-        want = (t_count, *_row_shape(shape, width))
+        want = (t_count, *_row_shape(shape, width, global_width))
         if a.dtype != dtype or a.shape != want:
             raise TransitionBatchError(f"{k}: expected {np.dtype(dtype)} {want}, got {a.dtype} {a.shape}")
     n = arrays["num_joints"]

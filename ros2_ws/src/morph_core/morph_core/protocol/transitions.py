@@ -18,15 +18,27 @@ next state s' one control period later:
   ``has_policy_info`` is False and the log-prob NaN: PPO cannot use the
   step); either way clip(action) must be the effort the sim reports as
   applied over the period (s'.effort), or the step is skipped;
-- reward: Swimmer-v5's, from the torso x of s and s' (their odometry), the
-  control period, and that action clipped to the motors' range (what the sim
-  applied, and what the simulator loop charges: ``env.reward``);
-- terminated: never (the swimmer task has no terminal states; the one the
-  env has, a physics divergence, leaves no next state on the wire: the sim
-  resets and announces a new episode, so that step is not there to keep);
-  truncated: on the last transition before an episode boundary, a skipped
-  step or the end of the stream, with s' kept as ``next_*`` for the
-  bootstrap ``gamma * V(s')``.
+- reward: the task's (``TransitionConfig.task``), from what the topics
+  carry. ``swimmer``: Swimmer-v5's, from the torso x of s and s' (their
+  odometry), the control period, and that action clipped to the motors'
+  range (what the sim applied, and what the simulator loop charges:
+  ``env.reward``). ``ant`` (legged bodies, the centipedes' task): Ant-v5's
+  forward velocity (the root's x of s and s' over the period), healthy
+  reward (s''s odometry: the root's z within ``ANT_HEALTHY_Z_RANGE``) and
+  control cost (the same clipped action), by ``env.reward.ant_reward``.
+  Ant-v5's contact cost is not rebuilt: the contact forces are on no topic
+  (charged as zero; how far the rebuilt return lies from the env's:
+  docs/centipedes.md). The observation's global features are the task's too
+  (4 planar, 12 in 3-D);
+- terminated: on the last transition of an episode whose successor is
+  announced with the cause ``fell`` (a legged body fell: the sim published
+  the fallen state, then a new episode, as the env ends one at
+  ``terminated``); never otherwise (the swimmer task has no terminal states;
+  the one the env has, a physics divergence, leaves no next state on the
+  wire: the sim resets and announces a new episode, so that step is not
+  there to keep); truncated: on the last transition before any other
+  episode boundary, a skipped step or the end of the stream, with s' kept
+  as ``next_*`` for the bootstrap ``gamma * V(s')``.
 
 Pairing is by stamp: the odometry of s has s's stamp, an effort answers the
 state named by its answer tag (``msgs.stamps``), a policy_info carries the
@@ -86,9 +98,18 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
+from morph_core.env.centipede_model import ANT_TIMESTEP
 from morph_core.env.model import MAX_JOINTS
-from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, applied_action, swimmer_reward
-from morph_core.msgs.joint_state import JointStateError, validate_joint_state
+from morph_core.env.reward import (
+    ANT_FRAME_SKIP,
+    ANT_HEALTHY_Z_RANGE,
+    CTRL_COST_WEIGHT,
+    FORWARD_REWARD_WEIGHT,
+    ant_reward,
+    applied_action,
+    swimmer_reward,
+)
+from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES, JointStateError, validate_joint_state
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -107,14 +128,34 @@ from morph_core.protocol.transition_batch import TransitionBatch
 
 _ANSWER_MAPS = 8  # trees whose answer layouts are kept (one robot at a time; a few across description changes)
 
+TASKS = ("swimmer", "ant")
+"""what a transition's reward and observation are: Swimmer-v5's (4 planar global features), or Ant-v5's, the
+legged bodies' (12 in 3-D; falls terminate)"""
+TASK_GLOBAL_FEATURES = {"swimmer": NUM_GLOBAL_FEATURES, "ant": LEGGED_GLOBAL_FEATURES}
+TASK_CONTROL_PERIODS = {"swimmer": 0.04, "ant": ANT_TIMESTEP * ANT_FRAME_SKIP}
+"""each task's control period [s]: the swimmer's 4 physics steps of 0.01, a centipede's 5"""
+
+
+def task_of(global_features: int) -> str:
+    """The task of a policy reading ``global_features`` (``TASK_GLOBAL_FEATURES``); ValueError for another width."""
+    for task, width in TASK_GLOBAL_FEATURES.items():
+        if width == global_features:
+            return task
+    raise ValueError(f"no task has {global_features} global features ({TASK_GLOBAL_FEATURES})")
+
+
+_NO_CONTACT_FORCES = np.zeros((1, 6))  # Ant-v5's contact cost: its forces are on no topic, charged as zero
+
 
 @dataclass(frozen=True)
 class TransitionConfig:
     """How records become transitions."""
 
-    control_period: float = 0.04
-    """the sim's control period [s] (Swimmer-v5: 4 physics steps of 0.01): consecutive states of an
-    episode are this far apart, and it is the reward's dt"""
+    task: str = "swimmer"
+    """the reward and observation rebuilt (``TASKS``): ``swimmer`` or ``ant`` (legged bodies: centipedes)"""
+    control_period: float = 0.0
+    """the sim's control period [s]; 0: the task's (``TASK_CONTROL_PERIODS``: a swimmer's 0.04, a centipede's
+    0.05): consecutive states of an episode are this far apart, and it is the reward's dt"""
     stamp_tolerance_ns: int = 1000
     """how far a stamp difference may be from the control period and still be consecutive"""
     applied_atol: float = 0.0
@@ -125,17 +166,30 @@ class TransitionConfig:
     later states have arrived; later ones are counted as late and unused"""
     max_joints: int = MAX_JOINTS
     forward_reward_weight: float = FORWARD_REWARD_WEIGHT
+    """the swimmer task's (the ant task's weights are Ant-v5's defaults, ``env.reward``)"""
     ctrl_cost_weight: float = CTRL_COST_WEIGHT
 
     def __post_init__(self):
-        if not (math.isfinite(self.control_period) and self.control_period > 0):
-            raise ValueError(f"control_period must be a finite number > 0, got {self.control_period}")
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {', '.join(TASKS)}, got {str(self.task)[:40]!r}")
+        if not (math.isfinite(self.control_period) and self.control_period >= 0):
+            raise ValueError(f"control_period must be a finite number > 0 (0: the task's), got {self.control_period}")
         if self.stamp_tolerance_ns < 0 or self.applied_atol < 0 or self.settle_states < 0:
             raise ValueError("stamp_tolerance_ns, applied_atol and settle_states must be >= 0")
 
     @property
+    def period(self) -> float:
+        """The control period [s]: ``control_period``, or the task's."""
+        return self.control_period or TASK_CONTROL_PERIODS[self.task]
+
+    @property
     def control_period_ns(self) -> int:
-        return seconds_to_ns(self.control_period)
+        return seconds_to_ns(self.period)
+
+    @property
+    def global_features(self) -> int:
+        """The width of the observation's global features (the task's)."""
+        return TASK_GLOBAL_FEATURES[self.task]
 
 
 @dataclass
@@ -313,6 +367,7 @@ class _Observation:
     vel: np.ndarray
     glob: np.ndarray
     x: float
+    z: float
 
 
 @dataclass
@@ -327,6 +382,8 @@ class _Slot:
     efforts: list[EffortRecord] = field(default_factory=list)
     infos: list[PolicyInfoRecord] = field(default_factory=list)
     announced: bool = False
+    cause: str | None = None
+    """the announcement's cause (``EpisodeStartRecord.cause``): "fell" terminates the step before it"""
     conflict: bool = False
     # Received after the state, while it was the latest: they may be for a rebuilt robot whose state is
     # about to come with the same stamp (see _restamp); else they are the state's own.
@@ -353,17 +410,19 @@ class TransitionAssembler:
         self,
         config: TransitionConfig | None = None,
         joint_map: JointMap | None = None,
-        global_features: int = NUM_GLOBAL_FEATURES,
+        global_features: int | None = None,
     ):
         """``joint_map``: the robot's joints until a description in the stream replaces it (one known
         otherwise, e.g. ``JointMap.from_urdf`` of a URDF file); default ``JointMap()``, each state's joints a
         chain in the message's order. ``global_features``: the width of the policy whose observations are
-        rebuilt (``protocol.controller.GLOBAL_FEATURES``: 4 a swimmer's, 12 a legged body's; the reward is
-        still a swimmer's)."""
+        rebuilt (``protocol.controller.GLOBAL_FEATURES``: 4 a swimmer's, 12 a legged body's); default the
+        config's task's (the reward is always the task's)."""
+        self.config = config or TransitionConfig()
+        if global_features is None:
+            global_features = self.config.global_features
         if global_width_error(global_features) is not None:
             raise ValueError(f"a policy that {global_width_error(global_features)}")
         self.global_features = global_features
-        self.config = config or TransitionConfig()
         self.joint_map = JointMap() if joint_map is None else joint_map
         self._generation = 0
         """descriptions adopted (kept across ``flush``): which robot, to the policy node, a state is of"""
@@ -421,6 +480,7 @@ class TransitionAssembler:
         elif isinstance(record, EpisodeStartRecord):
             slot = self._slot_for(record.stamp_ns)
             if slot is not None:
+                slot.cause = record.cause
                 if slot.state is None:
                     slot.announced = True
                 else:
@@ -503,7 +563,10 @@ class TransitionAssembler:
         odom, announced = old.later_odom, old.announced_later
         old.later_odom, old.announced_later = None, False
         # Without an odometry of its own, which state the stamp's odometry belongs to cannot be told.
-        new = _Slot(record.stamp_ns, self._states_seen, odom=odom, announced=announced, conflict=odom is None)
+        new = _Slot(
+            record.stamp_ns, self._states_seen, odom=odom, announced=announced, conflict=odom is None,
+            cause=old.cause if announced else None,
+        )  # fmt: skip
         self._set_state(new, record)
         cause = "announced" if announced else "new_chain" if _other_robot(old, new) else "stamp_gap"
         self.stats.count_boundary(cause)
@@ -547,8 +610,9 @@ class TransitionAssembler:
             a, b = self._slots[self._sequence[0]], self._slots[self._sequence[1]]
             step = self._judge(a, b)
             if step is None:
-                if self._held is not None:
-                    self._ready.append(self._release(truncated=True))
+                if self._held is not None:  # the episode's last step into a: ended by a fall, or cut off
+                    fell = b.cause == "fell" and (b.announced or b.announced_later) and a.obs is not None
+                    self._ready.append(self._release(truncated=not fell, terminated=fell))
             else:
                 if self._held is not None:  # the run goes on
                     step["episode"] = self._held["episode"]
@@ -577,8 +641,8 @@ class TransitionAssembler:
         self.stats.episodes += 1
         return self._next_episode - 1
 
-    def _release(self, truncated: bool) -> Transition:
-        t, self._held = Transition(**self._held, truncated=truncated), None
+    def _release(self, truncated: bool, terminated: bool = False) -> Transition:
+        t, self._held = Transition(**self._held, terminated=terminated, truncated=truncated), None
         self.stats.transitions += 1
         self.stats.without_policy_info += not t.has_policy_info
         return t
@@ -617,10 +681,16 @@ class TransitionAssembler:
         action, log_prob, has_info = answer
         tree = a.order.tree
         cfg = self.config
-        reward = swimmer_reward(
-            obs.x, obs_next.x, cfg.control_period, applied_action(action), cfg.forward_reward_weight,
-            cfg.ctrl_cost_weight,
-        )  # fmt: skip
+        if cfg.task == "ant":
+            lo, hi = ANT_HEALTHY_Z_RANGE  # the state's finiteness, the rest of the rule, is checked above
+            healthy = lo <= obs_next.z <= hi
+            velocity = (obs_next.x - obs.x) / cfg.period
+            reward, _ = ant_reward(velocity, healthy, applied_action(action), _NO_CONTACT_FORCES)
+        else:
+            reward = swimmer_reward(
+                obs.x, obs_next.x, cfg.period, applied_action(action), cfg.forward_reward_weight,
+                cfg.ctrl_cost_weight,
+            )  # fmt: skip
         return dict(
             stamp_ns=a.stamp,
             names=tree.names,
@@ -631,7 +701,6 @@ class TransitionAssembler:
             log_prob=log_prob,
             has_policy_info=has_info,
             reward=float(reward),
-            terminated=False,
             next_joint_pos=obs_next.pos,
             next_joint_vel=obs_next.vel,
             next_global=obs_next.glob,
@@ -677,7 +746,7 @@ class TransitionAssembler:
                 slot.obs_error = slot.order_error
             elif odom is None:
                 slot.obs_error = "no_odometry"
-            elif not _finite(odom.x, odom.y, odom.orientation_xyzw, odom.body_linear_xy, odom.angular_z):
+            elif not _finite(odom.position, odom.orientation_xyzw, odom.body_linear, odom.body_angular):
                 slot.obs_error = "non_finite"
             else:
                 try:
@@ -687,7 +756,7 @@ class TransitionAssembler:
                     return
                 order = slot.order
                 glob = self._controller.observe(slot.stamp, (slot.generation, order.tree.names), odom)
-                slot.obs = _Observation(order.to_tree(pos), order.to_tree(vel), glob, float(odom.x))
+                slot.obs = _Observation(order.to_tree(pos), order.to_tree(vel), glob, float(odom.x), float(odom.z))
 
     def _laid_out(self, tree: KinematicTree, names: tuple[str, ...]) -> JointOrder | None:
         """How an answer's values, one per name of ``names``, lay onto ``tree`` (``JointOrder.to_tree``); None
@@ -788,7 +857,7 @@ def assemble(
     records: Iterable[Record],
     config: TransitionConfig | None = None,
     joint_map: JointMap | None = None,
-    global_features: int = NUM_GLOBAL_FEATURES,
+    global_features: int | None = None,
 ) -> Assembled:
     """Transitions of one finished stream of records in receive order (e.g. one bag); the arguments are
     ``TransitionAssembler``'s."""
@@ -831,10 +900,7 @@ def _same_state(a: JointStateRecord, b: JointStateRecord) -> bool:
 
 
 def _same_odometry(a: OdometryRecord, b: OdometryRecord) -> bool:
-    return (a.x, a.y, tuple(a.orientation_xyzw), tuple(a.body_linear_xy), a.angular_z) == (
-        b.x,
-        b.y,
-        tuple(b.orientation_xyzw),
-        tuple(b.body_linear_xy),
-        b.angular_z,
-    )
+    def fields(r: OdometryRecord) -> tuple:
+        return r.position, tuple(r.orientation_xyzw), tuple(r.body_linear), tuple(r.body_angular)
+
+    return fields(a) == fields(b)

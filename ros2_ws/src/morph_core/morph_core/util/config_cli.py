@@ -125,7 +125,17 @@ class DefaultsHelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def field_docs(cls) -> dict[str, str]:
-    """Attribute docstrings (a string literal right after a field) of a dataclass."""
+    """Attribute docstrings (a string literal right after a field) of a dataclass, its base classes' included
+    (``TrainConfig``'s fields come from ``PPOConfig`` and ``SimConfig``: without them ``morph-train --bodies``
+    had no help text); a class's own docstring of a field wins over a base's."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass is not object and dataclasses.is_dataclass(klass):
+            docs.update(_own_field_docs(klass))
+    return docs
+
+
+def _own_field_docs(cls) -> dict[str, str]:
     try:
         tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
     except (OSError, TypeError):

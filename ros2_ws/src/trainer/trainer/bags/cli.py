@@ -26,7 +26,9 @@ command tune the assembly (``--control-period``, ``--settle-states``, ...);
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import re
 import sys
 from collections import Counter
 from dataclasses import dataclass, field
@@ -34,7 +36,7 @@ from pathlib import Path
 
 from morph_core.algo.train_from_data import describe_bodies
 from morph_core.env.bodies import body_label
-from morph_core.msgs.records import DescriptionRecord
+from morph_core.msgs.records import DescriptionRecord, OdometryRecord
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
 from morph_core.protocol.transitions import (
@@ -79,10 +81,14 @@ class BagSummary:
     ppo_steps: int = 0
     """transitions with their behaviour log-prob (policy_info)"""
     batch: TransitionBatch = field(default_factory=TransitionBatch.empty)
+    task: str = "swimmer"
+    """the transitions' task (``bag_task``): ``swimmer``, or ``ant`` (a legged body); several: joined by commas"""
 
     def as_dict(self) -> dict:
         return {
             "path": self.path,
+            "task": self.task,
+            "steps_terminated": int(self.batch.terminated.sum()),
             "topics": [{"topic": t, "type": ty, "messages": n} for t, ty, n in self.topics],
             "rejected": {f"{topic}: {reason}": n for (topic, reason), n in sorted(self.rejected.items())},
             "warnings": list(self.warnings),
@@ -108,13 +114,14 @@ def summarize_bag(
     """Read one bag and turn it into transitions (raises ``BagError`` for a bag that cannot be read).
     ``joint_map``: the robot until the bag's robot_description says otherwise (``TransitionAssembler``);
     default ``bag_robot``'s."""
+    config = bag_config(path, config, namespace)
     reader = BagReader(path, namespace=namespace)
     asm = TransitionAssembler(config, bag_robot(path, namespace) if joint_map is None else joint_map)
     transitions, described = [], {}
     for record in reader.records():
         transitions += asm.push(record)
         if isinstance(record, DescriptionRecord) and not asm.joint_map.is_fallback:
-            described.setdefault(body_label(asm.joint_map.robot.tree))
+            described.setdefault(described_body(record.text, asm.joint_map.robot.tree))
     transitions += asm.flush()
     batch = TransitionBatch.from_transitions(transitions)
     stats = reader.stats
@@ -140,7 +147,38 @@ def summarize_bag(
         steps_per_body=Counter(batch.steps_per_body()),
         ppo_steps=int(batch.has_policy_info.sum()),
         batch=batch,
+        task=config.task,
     )
+
+
+def bag_task(path: str | Path, namespace: str | None = None) -> str:
+    """The task of a bag's transitions (``protocol.transitions.TASKS``): ``ant`` when its first odometry is of a
+    body in 3-D (``OdometryRecord.planar`` False: a legged body), else ``swimmer``."""
+    for record in BagReader(path, namespace=namespace).records():
+        if isinstance(record, OdometryRecord):
+            return "swimmer" if record.planar else "ant"
+    return "swimmer"
+
+
+def bag_config(path: str | Path, config: TransitionConfig, namespace: str | None = None) -> TransitionConfig:
+    """``config`` for the bag: with the task left at its default, the bag's own (``bag_task``)."""
+    if config.task != TransitionConfig.task:
+        return config
+    return dataclasses.replace(config, task=bag_task(path, namespace))
+
+
+def described_body(urdf: str, tree) -> str:
+    """What a robot_description describes, by what it is: a swimmer by its shape (``chain-6``, ``star-3x2``), a
+    centipede by its size (``centipede-5``, from the sim's robot name), any other robot by its URDF name and its
+    tree's shape (Gymnasium's ant: ``robot 'ant' (star-4x2 tree)``, not a swimmer ``star-4x2``)."""
+    match = re.search(r"<robot\b[^>]*\bname\s*=\s*([\"'])(.*?)\1", urdf[:4096])
+    name = match.group(2) if match else ""
+    shape = body_label(tree)
+    if not name or name.startswith("swimmer"):
+        return shape
+    if (size := re.fullmatch(r"centipede(\d+)", name)) is not None:
+        return f"centipede-{size.group(1)}"
+    return f"robot {name!r} ({shape} tree)"
 
 
 def bag_robot(path: str | Path, namespace: str | None = None) -> JointMap | None:
@@ -171,6 +209,7 @@ def total(summaries: list[BagSummary]) -> BagSummary:
         out.described += [label for label in s.described if label not in out.described]
         out.steps_per_body.update(s.steps_per_body)
         out.ppo_steps += s.ppo_steps
+        out.task = ",".join(dict.fromkeys(s.task for s in summaries))
     out.topics = [(name, ty, n) for name, (ty, n) in sorted(topics.items())]
     out.batch = TransitionBatch.concatenate([s.batch for s in summaries])
     return out
@@ -196,6 +235,8 @@ def format_summary(s: BagSummary) -> str:
     lines.append(f"  episodes: {st.episodes} (runs of consecutive steps)")
     chains = ", ".join(f"{n} joints: {c}" for n, c in sorted(s.steps_per_chain.items()))
     lines.append(f"  steps: {st.transitions}" + (f" ({chains})" if chains else ""))
+    if s.task != "swimmer":  # a legged body's: 12 global features, Ant-v5's reward, falls terminate
+        lines.append(f"  task: {s.task} ({int(s.batch.terminated.sum())} episodes ended by a fall)")
     if s.steps_per_body:
         lines.append("  bodies: " + ", ".join(f"{label} {n}" for label, n in s.steps_per_body.items()))
     lines.append(
@@ -206,10 +247,22 @@ def format_summary(s: BagSummary) -> str:
         lines.append(f"  applied effort not reported by the state (command trusted): {st.applied_unverified}")
     skipped = {r: getattr(s.skips, r) for r in SkipCounts.STEP_REASONS}
     unused = {r: getattr(s.skips, r) for r in SkipCounts.MESSAGE_REASONS}
-    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}")
+    lines.append(f"  skipped steps: {_counts(skipped) or 'none'}" + (f" ({why})" if (why := no_steps(s)) else ""))
     lines.append(f"  unused messages: {_counts(unused) or 'none'}")
     lines += [f"  warning: {w}" for w in s.warnings]
     return "\n".join(lines)
+
+
+def no_steps(s: BagSummary) -> str:
+    """Why a bag gave no step when no step was skipped (every step left out is counted under its reason, but a
+    bag can hold no step to leave out); '' when it gave steps or the skipped steps say why."""
+    st = s.stats
+    if st.transitions or any(getattr(s.skips, r) for r in SkipCounts.STEP_REASONS):
+        return ""
+    if not st.states:
+        return "no joint_states of the robot's topics were read: morph-bag info lists the bag's topics"
+    return (f"{st.states} states in {st.episodes} episodes, none followed by a next state of its episode: a step "
+            "is a state, its answer and the next state")  # fmt: skip
 
 
 def _counts(counts: dict) -> str:

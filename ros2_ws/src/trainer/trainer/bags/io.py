@@ -167,10 +167,13 @@ def joint_state_record(msg, log_ns: int) -> JointStateRecord:
 
 
 def odometry_record(msg, log_ns: int) -> OdometryRecord:
-    p, q, lin = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear
+    """The pose and the body-frame twist in 3-D (a swimmer's sim publishes zeros out of its plane: a bag recorded
+    before the record held them reads as it did)."""
+    p, q, lin, ang = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear, msg.twist.twist.angular
     return OdometryRecord(
-        log_ns, _stamp_ns(msg), float(p.x), float(p.y), (q.x, q.y, q.z, q.w), (lin.x, lin.y), msg.twist.twist.angular.z
-    )
+        log_ns, _stamp_ns(msg), float(p.x), float(p.y), (q.x, q.y, q.z, q.w), (lin.x, lin.y), float(ang.z),
+        float(p.z), float(lin.z), (float(ang.x), float(ang.y)),
+    )  # fmt: skip
 
 
 def effort_record(msg, log_ns: int) -> EffortRecord:

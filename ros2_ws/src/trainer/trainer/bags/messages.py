@@ -70,10 +70,10 @@ def record_message(r: Record):
         return "joint_states", msg
     if isinstance(r, OdometryRecord):
         pose = _T["geometry_msgs/msg/Pose"](
-            position=_T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=0.0),
+            position=_T["geometry_msgs/msg/Point"](x=r.x, y=r.y, z=r.z),
             orientation=_T["geometry_msgs/msg/Quaternion"](*r.orientation_xyzw),
         )
-        twist = _T["geometry_msgs/msg/Twist"](linear=_vector(*r.body_linear_xy), angular=_vector(z=r.angular_z))
+        twist = _T["geometry_msgs/msg/Twist"](linear=_vector(*r.body_linear), angular=_vector(*r.body_angular))
         msg = _T["nav_msgs/msg/Odometry"](
             header=header(r.stamp_ns, "odom"),
             child_frame_id="torso",
@@ -99,7 +99,10 @@ def record_message(r: Record):
         )
         return "policy_info", msg
     if isinstance(r, EpisodeStartRecord):
-        cause = EpisodeCause.START if r.episode == 0 else EpisodeCause.STEPS
+        if r.cause is not None:  # the record's own (a fall's included); else what a plain recording holds
+            cause = EpisodeCause[r.cause.upper()]
+        else:
+            cause = EpisodeCause.START if r.episode == 0 else EpisodeCause.STEPS
         label, data = pack_episode_start(r.episode, r.stamp_ns, r.num_joints, cause)
         layout = _T["std_msgs/msg/MultiArrayLayout"](dim=[_dim(label, len(data))], data_offset=0)
         return "episode_start", _T["std_msgs/msg/Int64MultiArray"](layout=layout, data=np.array(data, np.int64))

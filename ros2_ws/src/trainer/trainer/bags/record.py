@@ -1,6 +1,7 @@
 """Record the swimmer's topics into a rosbag2 bag (MCAP or sqlite3), as ``ros2 bag record`` would.
 
-    morph-record --ros-args -r __ns:=/robot1 -p output:=bags/run1 -p max_episodes:=10
+    morph-record --out bags/run1 --ros-args -r __ns:=/robot1 -p max_episodes:=10
+    (``-p output:=bags/run1``, the parameter ``--out`` sets, works as well)
 
 Topics (relative names resolve under the node's namespace): ``episode_start``,
 ``robot_description``, ``joint_states``, ``odom``, ``effort_commands``,
@@ -36,7 +37,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
+import signal
 import sys
 import textwrap
 import time
@@ -49,6 +52,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
 from morph_core.util.config_cli import CommandLineParser
@@ -351,27 +355,49 @@ def build_parser() -> CommandLineParser:
         shown = "[" + ", ".join(default) + "]" if isinstance(default, list) else repr(default)
         text = f"{name:<{width}}  {description} (default: {shown})"
         lines.append(textwrap.fill(text, 110, initial_indent="  ", subsequent_indent=" " * (width + 4)))
-    return CommandLineParser(
+    parser = CommandLineParser(
         prog="morph-record",
-        usage="morph-record [-h] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]",
+        usage="morph-record [-h] [--out DIR] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]",
         description=__doc__,
         epilog="\n".join(lines),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--out", default=None, metavar="DIR",
+                        help="bag folder to create (must not exist): the parameter output")  # fmt: skip
+    return parser
+
+
+def with_out(argv: list[str], out: str | None) -> list[str]:
+    """``argv`` with ``--out DIR`` as the ROS parameter ``output`` (a ValueError when ``-p output:=`` is given too)."""
+    if out is None:
+        return argv
+    if any(arg.startswith("output:=") for arg in argv):
+        raise ValueError("--out and -p output:= name the bag twice: give --out alone")
+    return [*argv, "--ros-args", "-p", f"output:={json.dumps(out)}"]  # a quoted YAML string: a path stays one
 
 
 def main(args=None) -> int:
     argv = list(sys.argv if args is None else args)
     # Arguments outside --ros-args are the recorder's own: --help prints it and exits before anything is
     # created; anything else is refused (it used to be ignored, and the recorder started in this folder).
-    build_parser().parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    parser = build_parser()
+    own = parser.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
+    try:
+        argv = with_out(argv, own.out)  # rclpy reads the arguments after --ros-args alone
+    except ValueError as err:
+        parser.error(str(err))
+    # SIGINT/SIGTERM end the loop here, not rclpy's handler: that one shut the context down first, and the
+    # bag's closing line then failed to reach rosout ("publisher's context is invalid") on every stop.
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    stop: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda number, _frame: stop.append(number))
     node = None
     executor = SingleThreadedExecutor()  # one for the run: rclpy.spin_once(node) rebuilds the wait set per call
     try:
         node = RecorderNode()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished:
+        while rclpy.ok() and not node.finished and not stop:
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -92,6 +92,16 @@ def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, t
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
+def _legged(spec: str | None) -> bool:
+    """Whether the body spec draws centipedes (a bad spec: no; the sim refuses it, with its reason)."""
+    from morph_core.env.bodies import parse_bodies
+
+    try:
+        return bool(spec) and parse_bodies(spec).has_centipedes
+    except ValueError:
+        return False
+
+
 def run(args) -> int:
     profile = fastdds_profile()
     if profile:
@@ -105,7 +115,7 @@ def run(args) -> int:
     ns = "/" + args.namespace.strip("/") if args.namespace.strip("/") else ""
     recorder_params = {"output": str(out), "storage": args.storage}
     sim_params = {
-        "num_joints": args.joints,
+        **({"num_joints": args.joints} if args.bodies is None else {"topology": args.bodies}),
         "lockstep": "true",
         "real_time_factor": 0.0,
         "effort_timeout": 2.0,
@@ -115,6 +125,11 @@ def run(args) -> int:
     policy_params = {"deterministic": "false", "seed": args.seed}
     if args.checkpoint:
         policy_params["checkpoint"] = args.checkpoint
+    elif _legged(args.bodies):
+        from morph_policy_node.bringup import CENTIPEDE_MODEL
+        from morph_policy_node.policy_node import SHIPPED_MODEL
+
+        policy_params["checkpoint"] = str(SHIPPED_MODEL.with_name(CENTIPEDE_MODEL))  # reads 12 global features
 
     rclpy.init()
     node = rclpy.create_node("record_bringup", namespace=ns or "/")
@@ -138,7 +153,8 @@ def run(args) -> int:
         topics = ["joint_states", "effort_commands", "policy_info"] + (["episode_start"] if episodes else [])
         _wait_for_subscriber(node, recorder, [[f"{ns}/{t}" for t in topics]], "morph_record", args.startup_timeout)
         procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
-        print(f"record_bringup: recording {what}, {args.joints} joints, into {out}", flush=True)
+        body = f"{args.joints} joints" if args.bodies is None else f"bodies {args.bodies}"
+        print(f"record_bringup: recording {what}, {body}, into {out}", flush=True)
         deadline = time.monotonic() + args.timeout
         while recorder.poll() is None:
             if any(p.poll() is not None for p in procs[1:]):
@@ -198,8 +214,15 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--out", required=True, help="bag folder to create (must not exist)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes to record")
-    ap.add_argument("--steps-per-episode", type=int, default=250, help="control steps per episode (0.04 s each)")
-    ap.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    ap.add_argument(
+        "--steps-per-episode", type=int, default=250,
+        help="control steps per episode (0.04 s each; a centipede's 0.05, ending early at a fall)",
+    )  # fmt: skip
+    body = ap.add_mutually_exclusive_group()
+    body.add_argument("--joints", type=int, default=6, help="chain length of the simulated swimmer")
+    body.add_argument("--bodies", default=None,
+                      help="a body spec instead (env.bodies: y:2x2, centipede:2-4, ...): one drawn at each reset; "
+                      "with centipedes the default --checkpoint is the shipped centipede policy")  # fmt: skip
     ap.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="the bag's storage format")
     ap.add_argument("--checkpoint", default=None, help="policy .safetensors (default: the shipped model)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the sim's resets and the policy's sampling")

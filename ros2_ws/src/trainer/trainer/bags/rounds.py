@@ -468,7 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     if "--" in argv:
         i = argv.index("--")
         argv, train_args = argv[:i], argv[i + 1 :]
-    ap = CommandLineParser(prog="bag_rounds", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = CommandLineParser(prog=os.environ.get("MORPH_PROG", "python -m trainer.bags.rounds"), description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     ap.add_argument("--out", type=Path, required=True, help="experiment directory (continued if it exists)")
     ap.add_argument("--rounds", type=int, default=0, help="rounds to have done in all")
     ap.add_argument("--episodes-per-round", type=int, default=RoundsConfig.episodes_per_round)

@@ -2,13 +2,13 @@
 
 For each run directory, each checkpoint in ``checkpoints/`` is evaluated
 deterministically (the policy's mean action), ``--episodes`` episodes per
-chain length (default 2..10 plus the unseen 15 and 20) and per tree of
+chain length (``--joints``, default 2..10 plus the unseen 15 and 20) and per tree of
 ``--bodies`` (``env.bodies``' grammar, named trees: ``--bodies y:2x2,star:3x2``),
 into the run's ``eval.csv`` (a row per episode, keyed by the body's label:
 ``chain-N`` or the tree's, beside its joint count). Checkpoints already in ``eval.csv`` are skipped, so an
 interrupted evaluation resumes. ``--stride k`` evaluates every k-th
 checkpoint (the last one always); ``--from-step S`` only those from step S
-on (zero-shot on long chains late in training: ``--lengths 30 40
+on (zero-shot on long chains late in training: ``--joints 30 40
 --from-step 500000``, the same checkpoints as the full pass with the same
 stride). ``--processes 2`` evaluates two
 checkpoints at a time, one per core (each checkpoint's results are the same
@@ -16,7 +16,9 @@ as alone). Figures comparing the clip modes go to ``--plots DIR``.
 
 Centipedes are a family of ``--bodies`` (``--bodies centipede:2-5``: every size from 2 to 5 leg pairs,
 trained or zero-shot); an episode ends when the centipede falls. With centipedes in ``--bodies`` and no
-``--lengths``, no swimmer chains are evaluated. A policy trained on swimmers alone (4 global features)
+``--joints``, no swimmer chains are evaluated. A run that trained on centipedes, given neither ``--bodies``
+nor ``--joints``, is evaluated on the bodies it trained on and zero-shot on 5, 6, 8 and 10 leg pairs (the
+sizes docs/centipedes.md reports), not on swimmer chains. A policy trained on swimmers alone (4 global features)
 cannot drive a centipede (12): refused.
 
 ``--checkpoint FILE`` instead of ``--run`` evaluates one policy file (a shipped
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import multiprocessing
 import re
 import sys
@@ -77,6 +80,29 @@ class EvalConfig:
     """threads stepping the swimmers of one checkpoint (morph-train's --env-threads)"""
     processes: int = 1
     """checkpoints evaluated at a time, each in its own process (2 uses both cores of a 2-core machine)"""
+
+
+CENTIPEDE_ZERO_SHOT = (5, 6, 8, 10)
+"""leg pairs a centipede run is evaluated on zero-shot by default: the sizes docs/centipedes.md reports"""
+
+
+def run_bodies(run_dir: Path) -> str:
+    """The ``bodies`` spec the run in ``run_dir`` trained on ('' for chains of min_joints..max_joints)."""
+    try:
+        return str(json.loads((run_dir / "config.json").read_text()).get("bodies", "") or "")
+    except (OSError, ValueError, AttributeError):
+        return ""  # no readable config: the defaults (a run without one is refused where it is read)
+
+
+def run_eval_config(run_dir: Path, cfg: EvalConfig, given: set[str]) -> EvalConfig:
+    """``cfg`` for the run in ``run_dir``: a run that trained on centipedes, with neither ``lengths`` nor
+    ``bodies`` in ``given`` (the options the user set), is evaluated on its own bodies and zero-shot on the
+    ``CENTIPEDE_ZERO_SHOT`` sizes instead of the swimmer chains; any other run takes ``cfg`` as it is."""
+    trained = run_bodies(run_dir)
+    if given & {"lengths", "bodies"} or not _has_centipedes(trained):
+        return cfg
+    zero_shot = ",".join(f"centipede:{n}" for n in CENTIPEDE_ZERO_SHOT)
+    return replace_nested(cfg, {"lengths": [], "bodies": f"{trained},{zero_shot}"})
 
 
 def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
@@ -210,22 +236,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_deprecated_alias("--no-eval", "--eval", value=False, shown="--eval false")
     add_dataclass_options(parser, EvalConfig, skip=("lengths",))
     parser.add_deprecated_alias("--threads", "--env-threads")
-    parser.add_argument(
-        "--lengths", type=int, nargs="*", default=None, help="chain lengths (default: 2..10 15 20; none: trees only)"
-    )
+    parser.add_argument("--joints", dest="lengths", type=int, nargs="*", default=None, metavar="N",
+                        help="chain lengths (default: 2..10 15 20; none: trees only)")  # fmt: skip
+    parser.add_deprecated_alias("--lengths", "--joints")
     args = parser.parse_args(argv)
     overrides = overrides_from_args(args, EvalConfig)
     if args.lengths is not None:
         overrides["lengths"] = args.lengths
     elif _has_centipedes(overrides.get("bodies", "")):
-        overrides["lengths"] = []  # a centipede evaluation films no swimmer chains unless asked (--lengths)
+        overrides["lengths"] = []  # a centipede evaluation films no swimmer chains unless asked (--joints)
     cfg = replace_nested(EvalConfig(), overrides)
     bad_lengths = any(not 1 <= n <= 64 for n in cfg.lengths)
     if min(cfg.episodes, cfg.stride, cfg.processes) < 1 or cfg.from_step < 0 or bad_lengths:
         parser.error("episodes, stride and processes must be >= 1, from-step >= 0, lengths in 1..64")
     try:
         if not eval_bodies(cfg):
-            parser.error("nothing to evaluate: give --lengths or --bodies")
+            parser.error("nothing to evaluate: give --joints or --bodies")
     except ValueError as e:
         parser.error(str(e))
     if args.checkpoint is not None:
@@ -253,8 +279,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(str(e))
     if args.eval:
         for run in args.run:
+            run_cfg = run_eval_config(run, cfg, set(overrides))
+            if run_cfg is not cfg:
+                print(f"morph-eval: {run} trained on {run_bodies(run)}: evaluating {run_cfg.bodies} (--bodies or "
+                      "--joints to choose)", file=sys.stderr, flush=True)  # fmt: skip
             try:
-                evaluate_run(run, cfg)
+                evaluate_run(run, run_cfg)
             except (CheckpointError, FileNotFoundError) as err:  # a damaged checkpoint, or a run without any
                 print(f"morph-eval: error: {err}", file=sys.stderr)
                 return 1

@@ -3,7 +3,8 @@
     morph-export CHECKPOINT.safetensors OUT.onnx [--with-value] [--tree]
 
 The graph takes one chain of any length N (joint_pos [N], joint_vel [N],
-global [4], float32) and returns the mean action [N] (and, with
+global [G], float32; G the policy's global features: 4 for a swimmer's, 12
+for the shipped centipede policy's) and returns the mean action [N] (and, with
 ``--with-value``, the critic's value [1]); with ``--tree`` it takes one
 kinematic tree instead, a fourth input parents [N] int64 (joint j's parent
 joint, -1 for the torso). See ``morph_core.policy.onnx_export`` and
@@ -62,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     outputs = "action, value" if result.with_value else "action"
     lengths = ", ".join(map(str, result.lengths_checked))
-    inputs = "joint_pos [N], joint_vel [N], global [4]" + (", parents [N]" if result.tree else "")
+    inputs = f"joint_pos [N], joint_vel [N], global [{result.global_features}]"
+    inputs += ", parents [N]" if result.tree else ""
     checked = f"{lengths} joints" + (" (random, star and chain trees)" if result.tree else "")
     print(f"wrote {result.path}: inputs {inputs} -> {outputs}; "
           f"{result.num_nodes} nodes; equal to the torch policy within {result.max_error:.2g} "

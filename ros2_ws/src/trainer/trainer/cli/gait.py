@@ -9,9 +9,9 @@ from morph_core.util.config_cli import CommandLineParser
 
 def main(argv: list[str] | None = None) -> None:
     parser = CommandLineParser(prog="morph-gait", description=__doc__)
-    parser.add_argument("--lengths", type=int, nargs="*", default=[2, 3, 5, 6, 10, 15, 20],
-                        help="chain lengths (joints) to swim, as morph-eval's --lengths")  # fmt: skip
-    parser.add_deprecated_alias("--joints", "--lengths", shown="--lengths")
+    parser.add_argument("--joints", dest="lengths", type=int, nargs="*", default=[2, 3, 5, 6, 10, 15, 20], metavar="N",
+                        help="chain lengths (joints) to swim, as morph-eval's --joints")  # fmt: skip
+    parser.add_deprecated_alias("--lengths", "--joints")
     parser.add_argument("--bodies", default="", help="named trees too, an env.bodies spec (e.g. y:2x2,star:3x2)")
     parser.add_argument("--seconds", type=float, default=40.0, help="sim time per body")
     parser.add_argument("--seed", type=int, default=0)

@@ -10,13 +10,13 @@ thin) or one after another (``--layout sequence``). Each view is captioned
 with its chain length (a tree: its body label and joints), the trust-region
 rule the policy was trained with (the checkpoint's ``clip_mode`` metadata,
 else its run's ``config.json``) and the return so far. With ``--bodies`` and
-no ``--lengths``, only the bodies are filmed.
+no ``--joints``, only the bodies are filmed.
 
     morph-render --checkpoint runs/compensated-s1/checkpoints/policy_00743424.safetensors \\
-        --lengths 2 6 10 20 --gif swim.gif --mp4 swim.mp4
-    morph-render --untrained --lengths 3 --seconds 4 --gif untrained.gif
+        --joints 2 6 10 20 --gif swim.gif --mp4 swim.mp4
+    morph-render --untrained --joints 3 --seconds 4 --gif untrained.gif
     morph-render --checkpoint policy.safetensors --bodies star:3x2,y:1x2,comb:4 --gif trees.gif
-    morph-render --checkpoint centipedes/checkpoints/policy_00004096.safetensors --bodies centipede:3,centipede:5 \
+    morph-render --checkpoint centipedes/checkpoints/policy_00004096.safetensors --bodies centipede:3,centipede:5 \\
         --height 240 --seconds 4 --gif centipedes.gif
 
 Centipedes (``--bodies centipede:N``) are filmed from the side and above, following the front segment;
@@ -213,7 +213,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gif", type=Path, default=None, help="write an animated GIF here")
     parser.add_argument("--mp4", type=Path, default=None, help="write an H.264 MP4 here")
     add_dataclass_options(parser, VideoConfig, skip=("lengths",))
-    parser.add_argument("--lengths", type=int, nargs="+", default=None, help="chain lengths (default: 2 6 10 20)")
+    parser.add_argument("--joints", dest="lengths", type=int, nargs="+", default=None, metavar="N",
+                        help="chain lengths, joints per swimmer (default: 2 6 10 20)")  # fmt: skip
+    parser.add_deprecated_alias("--lengths", "--joints")
     args = parser.parse_args(argv)
     if not args.untrained and args.checkpoint is None:
         parser.error("give --checkpoint PATH or --untrained")

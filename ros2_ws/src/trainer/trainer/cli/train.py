@@ -1,4 +1,10 @@
-"""``morph-train``: PPO on swimmers of mixed chain lengths, under a trust-region rule of the table.
+"""``morph-train``: PPO on bodies of mixed sizes (swimmer chains and trees, centipedes), under a trust-region rule
+of the table.
+
+Bodies: chains of ``--min-joints``..``--max-joints`` joints by default, or ``--bodies SPEC`` (docs/bodies.md,
+e.g. ``2-10,random:3-10``, ``centipede:2-4``). Bodies with legs (centipedes) take the centipede results' PPO
+settings where no option sets them: ``--learning-rate 0.0003 --gamma 0.99 --gae-lambda 0.95``
+(docs/centipedes.md); swimmers the paper's (0.01, 0.98, 0.98).
 
 Every TrainConfig field is an option (``--rule``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...; ``--clip-mode`` is the deprecated name of
@@ -51,13 +57,14 @@ import sys
 from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
+from morph_core.algo.ppo_config import family_defaults
 from morph_core.algo.rollout_workers import RolloutWorkerError
 from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
-from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
     BoolAction,
@@ -67,7 +74,7 @@ from morph_core.util.config_cli import (
     overrides_from_args,
     replace_nested,
 )
-from trainer.bags.cli import bag_robot
+from trainer.bags.cli import bag_config, bag_robot, no_steps, summarize_bag
 from trainer.bags.io import BagError, BagReader
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
 from trainer.cli.train_session import (
@@ -169,7 +176,8 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     batches, warnings, skips = [], [], SkipCounts()
     for bag in bags:
         reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        asm = TransitionAssembler(joint_map=bag_robot(bag, namespace))  # its first states are of its first robot
+        config = bag_config(bag, TransitionConfig(), namespace)  # a swimmer's task, or a legged body's
+        asm = TransitionAssembler(config, bag_robot(bag, namespace))  # its first states are of its first robot
         batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
         warnings += reader.stats.warnings
         skips.merge(asm.skips)
@@ -204,7 +212,12 @@ def _train_from_bags(args) -> None:
         print(f"morph-train: warning: {w}", file=sys.stderr)
     if not len(data):
         skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
-        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {skipped or 'none'})")
+        why = skipped or "none; " + (
+            no_steps(summarize_bag(args.from_bags[0], TransitionConfig(), args.namespace))
+            if len(args.from_bags) == 1
+            else "morph-bag info BAG says why, bag by bag"
+        )
+        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {why})")
     missing = int((~data.has_policy_info).sum())
     if missing == len(data):
         try:
@@ -366,9 +379,14 @@ def main(argv: list[str] | None = None) -> int:
         if (args.out / "state.safetensors").exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         try:
-            cfg = replace_nested(TrainConfig(), overrides)
+            legged = family_defaults(overrides.get("bodies", ""), overrides)
+            cfg = replace_nested(TrainConfig(), {**legged, **overrides})
         except (TypeError, ValueError) as err:
             parser.error(str(err))
+        if legged:
+            given = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in legged.items())
+            print(f"morph-train: bodies with legs: {given} (the centipede results' settings; give an option to "
+                  "set it otherwise)", flush=True)  # fmt: skip
     pool = None
     if cfg.rollout_workers > 1:
         try:

@@ -9,9 +9,10 @@ its subscriptions made in advance), then each pair in ``/swimmer<i>``: the
 sim (lockstep, paced at ``--real-time-factor``, real time by default; chain
 length redrawn from 2..10 at each reset, seed i) and, once the trainer listens to the pair, the sampling policy
 (``deterministic:=false``, seed i). The bring-up makes a key pair for the run
-(``protocol.trust``, in a private temporary directory removed at the end): the
-trainer signs its weights with the private key, and every policy node trusts
-the public key and no other. The trainer pushes its weights to every policy
+(``protocol.trust``, in a private temporary directory removed at the end), or
+takes the user's (``--signing-key KEY``, also when given to the trainer after
+``--``): the trainer signs its weights with the private key, and every policy
+node trusts the public key and no other. The trainer pushes its weights to every policy
 node and sets each sim's episode length. The bring-up ends when the
 trainer does (``--max-updates``, or the config's total_timesteps) and stops the
 pairs; the run directory is ``--out``. Options after ``--`` go to
@@ -30,7 +31,7 @@ import time
 from pathlib import Path
 
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
-from morph_core.protocol.trust import public_key_path, write_key_pair
+from morph_core.protocol.trust import load_public_key, load_signing_key, public_key_path, write_key_pair
 from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
 from trainer.bags.messages import DATA_TOPIC_TYPES
 from trainer.bags.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
@@ -48,14 +49,15 @@ def pair_params(
     checkpoint: str | None,
     real_time_factor: float = 1.0,
     trusted_key: str | Path | None = None,
+    bodies: str | None = None,
 ) -> tuple[dict, dict]:
-    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``."""
+    """(sim, policy) parameters of pair ``index``; the policy node takes weights signed by ``trusted_key``. With
+    ``bodies`` (a body spec: centipedes included) the sim draws from it instead of chains of the joint range."""
     sim = {
         "lockstep": "true",
         "real_time_factor": real_time_factor,
         "effort_timeout": 2.0,
-        "min_joints": min_joints,
-        "max_joints": max_joints,
+        **({"min_joints": min_joints, "max_joints": max_joints} if not bodies else {"topology": bodies}),
         "seed": index,
     }
     policy = {"deterministic": "false", "seed": index}
@@ -75,11 +77,42 @@ def run_key_pair(directory: str | Path) -> Path:
     return key
 
 
+def user_key_pair(key: Path) -> Path:
+    """``key``, a user's private signing key whose public half is ``KEY.pub`` beside it, checked before anything
+    starts: the trainer signs with it, every policy node trusts ``KEY.pub``. ``BringupError`` says why not."""
+    try:
+        signer, public = load_signing_key(key), load_public_key(public_key_path(key))
+    except ValueError as err:  # KeyFileError: missing, unreadable, readable by others, not a key
+        raise BringupError(f"--signing-key: {err} (morph-keys new KEY makes a pair: KEY and KEY.pub)") from None
+    if public.fingerprint != signer.fingerprint:
+        raise BringupError(f"--signing-key: {public_key_path(key)} is not the public half of {key}")
+    return Path(key).resolve()  # the nodes and the trainer read it whatever their folder
+
+
+def split_signing_key(extra: list[str]) -> tuple[list[str], Path | None]:
+    """The trainer's options without ``--signing-key KEY`` (or ``--signing-key=KEY``), and KEY: a key given to
+    the trainer after ``--`` is the bring-up's ``--signing-key``, so that the nodes trust it too."""
+    out, key, i = [], None, 0
+    while i < len(extra):
+        arg = extra[i]
+        if arg == "--signing-key" and i + 1 < len(extra):
+            key, i = Path(extra[i + 1]), i + 2
+            continue
+        if arg.startswith("--signing-key="):
+            key = Path(arg.split("=", 1)[1])
+        else:
+            out.append(arg)
+        i += 1
+    return out, key
+
+
 def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
     """``morph-train``'s arguments (without the program)."""
     cmd = ["--live", "--namespaces", *namespaces, "--out", str(args.out)]
     if signing_key is not None:
         cmd += ["--signing-key", str(signing_key)]
+    if args.bodies:  # the run's bodies: its policy's width (12 with legs), its task and joint range
+        cmd += ["--bodies", args.bodies]
     cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
     if args.resume:
         cmd.append("--resume")
@@ -104,17 +137,21 @@ def run(args, extra: list[str]) -> int:
         os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
     import rclpy
 
-    keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
-    key = run_key_pair(keys)
+    if args.signing_key is not None:  # the user's own key: the nodes trust its public half
+        key, keys = user_key_pair(args.signing_key), None
+    else:
+        keys = tempfile.mkdtemp(prefix="morph-live-keys-")  # mode 0700: the private key is this run's alone
+        key = run_key_pair(keys)
     rclpy.init()
     node = rclpy.create_node("live_bringup")
     trainer = subprocess.Popen(trainer_command(namespaces, args, extra, key))
     procs: list[subprocess.Popen] = []
     specs: list[tuple[str, str, dict]] = []
+    interrupted = False
     try:
         for i, ns in enumerate(namespaces):
             sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
-                                      public_key_path(key))  # fmt: skip
+                                      public_key_path(key), args.bodies)  # fmt: skip
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
             inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
@@ -123,25 +160,37 @@ def run(args, extra: list[str]) -> int:
             procs.append(_start(*specs[-1]))
         print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
         deadline = time.monotonic() + args.timeout
-        while trainer.poll() is None:
-            if time.monotonic() > deadline:
-                print(f"live_bringup: timed out after {args.timeout} s: stopping the trainer", flush=True)
-                break
-            # A node that ended (killed, or stuck in the middleware and ended by its runner) comes back, as
-            # a launch file's respawn would do; the trainer takes its pair back when it answers again.
-            for k, proc in enumerate(procs):
-                if proc.poll() is not None:
-                    module, ns, _ = specs[k]
-                    print(f"live_bringup: {module} in {ns} ended ({proc.returncode}): restarting it", flush=True)
-                    procs[k] = _start(*specs[k])
-            time.sleep(0.5)
+        try:
+            _watch(trainer, procs, specs, deadline, args.timeout)
+        except KeyboardInterrupt:  # Ctrl-C: every process of the group got it; the rest stop below
+            print("live_bringup: interrupted: stopping the trainer and the pairs", flush=True)
+            interrupted = True
     finally:
         _stop([trainer])
         _stop(procs)
         node.destroy_node()
         rclpy.try_shutdown()
-        shutil.rmtree(keys, ignore_errors=True)
-    return 0 if trainer.returncode in (0, None) else 1
+        if keys is not None:
+            shutil.rmtree(keys, ignore_errors=True)
+    return 130 if interrupted else 0 if trainer.returncode in (0, None) else 1
+
+
+def _watch(trainer, procs: list, specs: list, deadline: float, timeout: float) -> None:
+    """Until the trainer ends: restart a node that failed; end at the deadline, or when a node ended as told to."""
+    while trainer.poll() is None:
+        if time.monotonic() > deadline:
+            print(f"live_bringup: timed out after {timeout} s: stopping the trainer", flush=True)
+            break
+        ended = [k for k, proc in enumerate(procs) if proc.poll() is not None]
+        if any(procs[k].returncode == 0 for k in ended):
+            break  # a node ends 0 only when told to stop (Ctrl-C reaches the whole group): the run ends
+        # A node that failed (killed, or stuck in the middleware and ended by its runner) comes back, as
+        # a launch file's respawn would do; the trainer takes its pair back when it answers again.
+        for k in ended:
+            module, ns, _ = specs[k]
+            print(f"live_bringup: {module} in {ns} ended ({procs[k].returncode}): restarting it", flush=True)
+            procs[k] = _start(*specs[k])
+        time.sleep(0.5)
 
 
 def main(argv=None) -> int:
@@ -168,7 +217,10 @@ def main(argv=None) -> int:
                     help="stop after this many updates (0: at the run's total_timesteps)")  # fmt: skip
     ap.add_deprecated_alias("--updates", "--max-updates")
     ap.add_argument("--resume", action=BoolAction, default=False, help="continue the run in --out")
-    ap.add_argument("--episode-steps", type=int, default=1000, help="control steps per episode (0.04 s each)")
+    ap.add_argument(
+        "--episode-steps", type=int, default=1000,
+        help="control steps per episode (0.04 s each; a centipede's 0.05, ending early at a fall)",
+    )  # fmt: skip
     ap.add_argument(
         "--real-time-factor",
         type=float,
@@ -178,11 +230,22 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--min-joints", type=int, default=2, help="shortest chain a sim draws at a reset")
     ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
+    ap.add_argument("--bodies", default="", help="a body spec instead of chains (env.bodies: y:2x2, centipede:2-4, "
+                    "...), drawn by the sims at each reset and given to the trainer as its --bodies")  # fmt: skip
     ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
                     "weights replace it)")  # fmt: skip
+    ap.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
+                    help="your private key (morph-keys new KEY): the trainer signs with it and the nodes trust "
+                    "KEY.pub (default: a key pair made for the run and removed at its end; -- --signing-key KEY "
+                    "is taken as this option)")  # fmt: skip
     ap.add_argument("--timeout", type=float, default=24 * 3600.0, help="wall seconds before stopping")
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for each node")
     args = ap.parse_args(argv)
+    extra, trainer_key = split_signing_key(extra)
+    if trainer_key is not None:
+        if args.signing_key is not None and args.signing_key != trainer_key:
+            ap.error("--signing-key is given twice with two keys (before and after --): give it once")
+        args.signing_key = trainer_key
     if args.pairs < 1:
         ap.error("--pairs must be >= 1")
     if not args.real_time_factor >= 0:

@@ -1,6 +1,6 @@
 """Live training against the simulator trainer at the same env-step count: a table and the curves side by side.
 
-    python -m trainer.live.compare runs/live-vs-sim/live-s* --simulator runs/live-vs-sim/simulator-s* \
+    python -m trainer.live.compare runs/live-vs-sim/live-s* --simulator runs/live-vs-sim/simulator-s* \\
         --plot docs/figures/live
 
 Reads each run's own ``progress.csv`` (``trainer.reports.runs``). The x axis is

@@ -1,6 +1,6 @@
 """Live training without DDS: what the topics add to learning, isolated.
 
-    python -m trainer.live.in_process --out runs/live-in-process/lag2-drop0.1 --lag 2 --drop-states 0.1 \
+    python -m trainer.live.in_process --out runs/live-in-process/lag2-drop0.1 --lag 2 --drop-states 0.1 \\
         --seed 1 --total-timesteps 150000
 
 The live trainer's learning half (``trainer.live.learner.LiveLearner``, the
@@ -61,7 +61,8 @@ class InProcessOptions:
 
 
 def runs_of(transitions: list[Transition]) -> list[list[Transition]]:
-    """The assembler's output split into its runs (consecutive transitions, each run ending truncated)."""
+    """The assembler's output split into its runs (consecutive transitions, each run ending terminated or
+    truncated)."""
     runs: list[list[Transition]] = []
     for t in transitions:
         if not runs or runs[-1][-1].episode != t.episode:

@@ -216,14 +216,14 @@ class LiveLearner:
 
     # -- data -------------------------------------------------------------------------
     def add_episode(self, transitions: Sequence[Transition], versions: Sequence[int | None]) -> int:
-        """Take one episode (consecutive transitions, the last truncated) and the weights version of each
-        step; returns how many steps entered the pool."""
+        """Take one episode (consecutive transitions, the last terminated (a fall) or truncated) and the weights
+        version of each step; returns how many steps entered the pool."""
         if len(transitions) != len(versions):
             raise ValueError(f"{len(transitions)} transitions but {len(versions)} versions")
         if not transitions:
             return 0
-        if not transitions[-1].truncated:
-            raise ValueError("an episode handed over must end in a truncated step")
+        if not (transitions[-1].truncated or transitions[-1].terminated):
+            raise ValueError("an episode handed over must end in a terminated or truncated step")
         lo = self.version - self.max_staleness
         keep_from = 0
         for i, (t, v) in enumerate(zip(transitions, versions, strict=True)):

@@ -93,6 +93,7 @@ from morph_core.protocol.transitions import (
     Transition,
     TransitionAssembler,
     TransitionConfig,
+    task_of,
 )
 from morph_core.protocol.trust import Signer
 from trainer.bags.io import (
@@ -177,9 +178,9 @@ class _Pair:
     """One namespace's stream."""
 
     ns: str
-    assembler: TransitionAssembler = field(
-        default_factory=lambda: TransitionAssembler(TransitionConfig(settle_states=SETTLE_STATES))
-    )
+    task: str = "swimmer"
+    """the run's task (``protocol.transitions.task_of``: a swimmer's, or a legged body's)"""
+    assembler: TransitionAssembler = field(init=False)
     episode: list[Transition] = field(default_factory=list)
     versions: OrderedDict = field(default_factory=OrderedDict)
     """policy_info stamp -> weights version (None: not said)"""
@@ -194,6 +195,9 @@ class _Pair:
     chunk_sequence: int | None = None
     """the last stream chunk's sequence number"""
     chunks_lost: int = 0
+
+    def __post_init__(self):
+        self.assembler = TransitionAssembler(TransitionConfig(task=self.task, settle_states=SETTLE_STATES))
 
 
 def _nonzero(skips: SkipCounts) -> str:
@@ -234,7 +238,7 @@ class LiveTrainer(Node):
         services = MutuallyExclusiveCallbackGroup()
         for ns in options.namespaces:
             ns = "/" + ns.strip("/")
-            pair = self.pairs[ns] = _Pair(ns)
+            pair = self.pairs[ns] = _Pair(ns, task_of(cfg.policy.global_features))
             if options.stream_chunks:
                 self.create_subscription(UInt8MultiArray, f"{ns}/{CHUNK_TOPIC}", self._chunk_handler(pair), CHUNK_QOS)
             else:
@@ -321,7 +325,7 @@ class LiveTrainer(Node):
                 self._join(pair)
             for t in out:
                 pair.episode.append(t)
-                if t.truncated:
+                if t.truncated or t.terminated:  # the episode's last step: cut off, or a fall
                     versions = [pair.versions.get(s.stamp_ns) for s in pair.episode]
                     self.learner.add_episode(pair.episode, versions)
                     pair.episode = []

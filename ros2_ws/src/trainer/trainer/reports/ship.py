@@ -1,6 +1,6 @@
 """Pick the best evaluated checkpoint of training runs and write it, with its provenance, to ``--dest``.
 
-    python -m trainer.reports.ship --run runs/compensated-s* \
+    python -m trainer.reports.ship --run runs/compensated-s* \\
         --dest ros2_ws/src/morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors
 
 The destination is always given: the path above is where the policy node

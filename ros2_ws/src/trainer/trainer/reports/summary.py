@@ -21,6 +21,7 @@ on trees.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -41,35 +42,26 @@ def main(argv: list[str] | None = None) -> None:
         groups = load_runs(args.run)
     except ValueError as e:
         parser.error(str(e))
+    with warnings.catch_warnings():  # NumPy's "mean of empty slice": a '–' in a cell, said by the legends
+        warnings.simplefilter("ignore", RuntimeWarning)
+        print(report(groups))
 
-    print("| run | >= 100 | >= 200 | mean of the last 10 updates |\n|---|---:|---:|---:|")
+
+def report(groups: dict[str, list[Run]]) -> str:
+    """Every table of the runs in ``groups`` (rule -> runs), each under a heading with a legend; a table with no
+    rows is left out, a value a run does not have is '–' (never 'nan')."""
+    rows = []
     for runs in groups.values():
         for run in runs:
             marks = training_marks(run)
             first = ["never" if marks[k] == np.inf else f"{int(marks[k]) // 1000}k" for k in ("to_100", "to_200")]
-            print(f"| {run.dir.name} | {first[0]} | {first[1]} | {marks['last']:.0f} |")
-
-    for rule, runs in groups.items():
-        dims = runs[0].trained_lengths
-        fracs = per_dimension(runs, "clip_frac")
-        print(f"\nclip fraction per dimension, {rule} ({len(runs)} runs): "
-              + " ".join(f"{d}:{f:.2f}" for d, f in zip(dims, fracs, strict=True)))  # fmt: skip
-        kls = per_dimension(runs, "approx_kl")
-        if np.isfinite(kls).all():
-            print(f"KL per dimension, {rule}: " + " ".join(f"{d}:{k:.4f}" for d, k in zip(dims, kls, strict=True)))
-        logged = [series(r.progress, "epochs")[1] for r in runs if "epochs" in r.progress[0]]
-        epochs = np.mean(np.concatenate(logged)) if logged else np.nan
-        if epochs < runs[0].config["update_epochs"]:  # the KL stop cut updates short (NaN: not logged)
-            print(f"epochs per update, {rule}: {epochs:.1f} of {runs[0].config['update_epochs']}")
-        betas = [series(r.progress, "kl_beta")[1][-1] for r in runs]
-        if np.isfinite(betas).all():
-            print(f"KL penalty beta at the end, {rule}: " + " ".join(f"{b:g}" for b in betas))
-        late = [late_trained_mean(run) for run in runs]
-        if all(np.isfinite(late)):
-            print(f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {rule}: {np.mean(late):.1f}")
-
-    print("\n| run | unseen n | late mean, unseen | late mean, best trained (n) | unseen on top at checkpoints |")
-    print("|---|---:|---:|---:|---:|")
+            rows.append(f"| {run.dir.name} | {first[0]} | {first[1]} | {_num(marks['last'])} |")
+    parts = [_section("Training return per run", "| run | >= 100 | >= 200 | mean of the last 10 updates |\n"
+                      "|---|---:|---:|---:|", rows,
+                      ">= 100, >= 200: the first step at which the training return (trailing mean over 5 updates) "
+                      "reached it (k = 1000 steps); never: not in the run")]  # fmt: skip
+    parts.append(per_rule_lines(groups))
+    rows = []
     for runs in groups.values():
         for run in runs:
             means = eval_means(run)
@@ -82,16 +74,67 @@ def main(argv: list[str] | None = None) -> None:
                 continue  # no chain longer than the training range was evaluated
             run_late = late_means(run)
             late = {n: run_late.get(n, np.nan) for n in [*trained, unseen]}
-            best = max(trained, key=late.get)
+            best = max(trained, key=lambda n: late[n] if np.isfinite(late[n]) else -np.inf)
             steps = sorted(means[unseen])
             on_top = sum(means[unseen][s] > max(means[n][s] for n in trained) for s in steps)
-            print(f"| {run.dir.name} | {unseen} | {late[unseen]:.0f} | {late[best]:.0f} ({best}) "
-                  f"| {on_top} of {len(steps)} |")  # fmt: skip
+            rows.append(f"| {run.dir.name} | {unseen} | {_num(late[unseen])} | {_num(late[best])} ({best}) "
+                        f"| {on_top} of {len(steps)} |")  # fmt: skip
+    parts.append(_section(
+        "The longest unseen chain against the trained ones",
+        "| run | unseen n | late mean, unseen | late mean, best trained (n) | unseen on top at checkpoints |\n"
+        "|---|---:|---:|---:|---:|", rows,
+        "late: the deterministic eval return averaged over the checkpoints from half the run's steps on; unseen n: "
+        "the longest chain evaluated, never trained on; (n): the trained length that scored best late",
+    ))  # fmt: skip
+    parts += [training_table(groups), zero_shot_table(groups), tree_table(groups), ranking_table(groups)]
+    return "\n".join(part for part in parts if part).strip()
 
-    print(training_table(groups))
-    print(zero_shot_table(groups))
-    print(tree_table(groups))
-    print(ranking_table(groups))
+
+def _num(value: float, digits: int = 0) -> str:
+    """A cell's number, or '–' where there is none (NaN: not measured, not evaluated)."""
+    return f"{value:.{digits}f}" if np.isfinite(value) else "–"
+
+
+def _section(title: str, header: str, rows: list[str], legend: str) -> str:
+    """A Markdown table under a heading, its legend below it; '' when it has no rows."""
+    if not rows:
+        return ""
+    return f"\n### {title}\n\n{header}\n" + "\n".join(rows) + f"\n\n{legend}.\n"
+
+
+def per_rule_lines(groups: dict[str, list[Run]]) -> str:
+    """Per rule: the clip fraction and KL per trained action dimension, the epochs per update a KL stop left, the
+    KL penalty's final beta, the late eval return over the trained lengths (each only where measured)."""
+    lines = []
+    for rule, runs in groups.items():
+        dims = runs[0].trained_lengths
+        fracs = per_dimension(runs, "clip_frac")
+        shown = [(d, f) for d, f in zip(dims, fracs, strict=True) if np.isfinite(f)]  # dimensions no body has: none
+        if shown:
+            lines.append(f"clip fraction per dimension, {rule} ({len(runs)} runs): "
+                         + " ".join(f"{d}:{f:.2f}" for d, f in shown))  # fmt: skip
+        kls = [(d, k) for d, k in zip(dims, per_dimension(runs, "approx_kl"), strict=True) if np.isfinite(k)]
+        if kls:
+            lines.append(f"KL per dimension, {rule}: " + " ".join(f"{d}:{k:.4f}" for d, k in kls))
+        logged = [series(r.progress, "epochs")[1] for r in runs if "epochs" in r.progress[0]]
+        epochs = np.mean(np.concatenate(logged)) if logged else np.nan
+        if epochs < runs[0].config["update_epochs"]:  # the KL stop cut updates short (NaN: not logged)
+            lines.append(f"epochs per update, {rule}: {epochs:.1f} of {runs[0].config['update_epochs']}")
+        betas = [series(r.progress, "kl_beta")[1][-1] for r in runs]
+        if np.isfinite(betas).all():
+            lines.append(f"KL penalty beta at the end, {rule}: " + " ".join(f"{b:g}" for b in betas))
+        late = [late_trained_mean(run) for run in runs]
+        if all(np.isfinite(late)):
+            lines.append(
+                f"late eval return, mean over {dims.start}..{dims.stop - 1} joints, {rule}: {np.mean(late):.1f}"
+            )
+    if not lines:
+        return ""
+    legend = (
+        "d:value per action dimension d (joints) over all updates and runs, dimensions the runs' bodies "
+        "never have left out; late: checkpoints from half the run's steps on"
+    )
+    return "\n### Per rule: clipping and KL per action dimension\n\n" + "\n\n".join(lines) + f"\n\n{legend}.\n"
 
 
 def per_dimension(runs: list[Run], key: str) -> np.ndarray:
@@ -113,26 +156,42 @@ def tree_table(groups: dict[str, list[Run]]) -> str:
     episodes' length and the root's forward travel where the evaluation recorded them, and the training return
     of the last 10 updates on chains and on trees for runs that trained on both."""
     trees = sorted({b for runs in groups.values() for r in runs for b in late_tree_means(r)}, key=label_order)
-    lines = []
+    parts = []
+    titles = {"return": "Late eval return per body", "steps": "Late episode length per body (control steps)",
+              "distance": "Late forward travel per body (m)"}  # fmt: skip
     for column, what in (("return", "rule"), ("steps", "rule: episode length"), ("distance", "rule: distance, m")):
         late = {rule: [late_tree_means(r, column) for r in runs] for rule, runs in groups.items()}
         if not trees or not any(m for means in late.values() for m in means):
             continue
-        lines += [f"\n| {what} | runs | " + " | ".join(trees) + " |", "|---|---:|" + "---:|" * len(trees)]
+        header = f"| {what} | runs | " + " | ".join(trees) + " |\n|---|---:|" + "---:|" * len(trees)
         digits = 2 if column == "distance" else 0
+        rows = []
         for rule, means in late.items():
             cells = [_mean_std([m.get(b, np.nan) for m in means], digits) for b in trees]
-            lines.append(f"| {rule} | {len(means)} | " + " | ".join(cells) + " |")
-    mixed = {rule: [r for r in runs if "return_trees" in r.progress[0]] for rule, runs in groups.items()}
-    if any(mixed.values()):
-        lines += ["\n| rule | runs | training return, last 10 updates: chains | trees |", "|---|---:|---:|---:|"]
-        for rule, runs in mixed.items():
-            last = {k: [float(np.nanmean(series(r.progress, k)[1][-10:])) for r in runs]
-                    for k in ("return_chains", "return_trees")}  # fmt: skip
-            if runs:
-                lines.append(f"| {rule} | {len(runs)} | {_mean_std(last['return_chains'])} | "
-                             f"{_mean_std(last['return_trees'])} |")  # fmt: skip
-    return "\n".join(lines)
+            rows.append(f"| {rule} | {len(means)} | " + " | ".join(cells) + " |")
+        parts.append(_section(titles[column], header, rows,
+                              "the checkpoints from half the run's steps on, deterministic, mean ± std over the runs; "
+                              "–: not evaluated (or not recorded) in every run"))  # fmt: skip
+    mixed = {rule: [r for r in runs if _trains_chains_and_trees(r)] for rule, runs in groups.items()}
+    rows = []
+    for rule, runs in mixed.items():
+        last = {k: [float(np.nanmean(series(r.progress, k)[1][-10:])) for r in runs]
+                for k in ("return_chains", "return_trees")}  # fmt: skip
+        if runs:
+            rows.append(f"| {rule} | {len(runs)} | {_mean_std(last['return_chains'])} | "
+                        f"{_mean_std(last['return_trees'])} |")  # fmt: skip
+    parts.append(_section("Training return on chains and on trees",
+                          "| rule | runs | training return, last 10 updates: chains | trees |\n|---|---:|---:|---:|",
+                          rows, "runs that trained on both; mean ± std over the runs"))  # fmt: skip
+    return "\n".join(part for part in parts if part)
+
+
+def _trains_chains_and_trees(run: Run) -> bool:
+    """A run whose progress has training returns of chains and of other bodies (centipedes alone have none of
+    chains: their row would be a '–' beside a figure filed under trees)."""
+    if "return_trees" not in run.progress[0]:
+        return False
+    return all(np.isfinite(series(run.progress, k)[1]).any() for k in ("return_chains", "return_trees"))
 
 
 def late_means(run: Run) -> dict[int, float]:
@@ -165,17 +224,21 @@ def training_marks(run: Run) -> dict[str, float]:
 def training_table(groups: dict[str, list[Run]]) -> str:
     """Per rule: runs that reached 200, median steps to 100 and 200, the last 10 updates (mean [min..max])
     and the best trailing mean, averaged over runs."""
-    lines = ["\n| rule | reached 200 | steps to 100, median | steps to 200, median | last 10 updates, mean [min..max] "
-             "| best trailing mean (5 updates), mean |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    header = ("| rule | reached 200 | steps to 100, median | steps to 200, median | last 10 updates, mean [min..max] "
+              "| best trailing mean (5 updates), mean |\n|---|---:|---:|---:|---:|---:|")  # fmt: skip
+    rows = []
     for rule, runs in groups.items():
         marks = [training_marks(r) for r in runs]
         to = {t: float(np.median([m[f"to_{t}"] for m in marks])) for t in (100, 200)}
         steps = {t: "never" if to[t] == np.inf else f"{to[t] / 1000:.0f}k" for t in to}
         last = [m["last"] for m in marks]
         reached = sum(np.isfinite(m["to_200"]) for m in marks)
-        lines.append(f"| {rule} | {reached} of {len(runs)} | {steps[100]} | {steps[200]} | {np.mean(last):.0f} "
-                     f"[{min(last):.0f}..{max(last):.0f}] | {np.mean([m['best'] for m in marks]):.0f} |")  # fmt: skip
-    return "\n".join(lines)
+        spread = f"{_num(np.mean(last))} [{_num(min(last))}..{_num(max(last))}]"
+        rows.append(f"| {rule} | {reached} of {len(runs)} | {steps[100]} | {steps[200]} | {spread} "
+                    f"| {_num(np.mean([m['best'] for m in marks]))} |")  # fmt: skip
+    return _section("Training marks per rule", header, rows,
+                    "reached 200: runs whose trailing mean (5 updates) of the training return reached 200; steps to "
+                    "100, 200: the median over the runs (k = 1000 steps; never: the median run did not)")  # fmt: skip
 
 
 def zero_shot_table(groups: dict[str, list[Run]]) -> str:
@@ -183,13 +246,16 @@ def zero_shot_table(groups: dict[str, list[Run]]) -> str:
     unseen = sorted({n for runs in groups.values() for r in runs for n in late_means(r) if n > r.config["max_joints"]})
     if not unseen:
         return ""
-    lines = ["\n| rule | runs | trained (mean) | " + " | ".join(f"{n} (unseen)" for n in unseen) + " |",
-             "|---|---:|---:|" + "---:|" * len(unseen)]  # fmt: skip
+    header = ("| rule | runs | trained (mean) | " + " | ".join(f"{n} (unseen)" for n in unseen) + " |\n"
+              "|---|---:|---:|" + "---:|" * len(unseen))  # fmt: skip
+    rows = []
     for rule, runs in groups.items():
         cells = [_mean_std([late_trained_mean(r) for r in runs])]
         cells += [_mean_std([late_means(r).get(n, np.nan) for r in runs]) for n in unseen]
-        lines.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(f"| {rule} | {len(runs)} | " + " | ".join(cells) + " |")
+    return _section("Zero-shot: chains longer than any trained on", header, rows,
+                    "late deterministic eval return, mean ± std over the runs; trained: averaged over the trained "
+                    "lengths; n (unseen): n joints, never trained on; –: not evaluated in every run")  # fmt: skip
 
 
 def _mean_std(values: list[float], digits: int = 0) -> str:
@@ -217,11 +283,16 @@ def ranking_table(groups: dict[str, list[Run]]) -> str:
         ),
     }
     values = {claim: {rule: f(runs) for rule, runs in groups.items()} for claim, (f, _) in claims.items()}
-    lines = ["\n| rule | " + " | ".join(claims) + " |", "|---|" + "---:|" * len(claims)]
+    claims = {c: v for c, v in claims.items() if any(not np.isnan(x) for x in values[c].values())}  # measured
+    header = "| rule | " + " | ".join(claims) + " |\n|---|" + "---:|" * len(claims)
+    rows = []
     for rule in groups:
         cells = [_ranked(values[claim], rule, higher, steps="steps" in claim) for claim, (_, higher) in claims.items()]
-        lines.append(f"| {rule} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(f"| {rule} | " + " | ".join(cells) + " |")
+    return _section("The rules ranked claim by claim", header, rows,
+                    "value (rank): the rule's mean over its runs (steps: the median; k = 1000 steps) and, in "
+                    "parentheses, its rank among the rules on that claim: (1) the best, (2) the next, ties share a "
+                    "rank; never: not reached; –: not measured for this rule; unmeasured claims: left out")  # fmt: skip
 
 
 def _ranked(values: dict[str, float], rule: str, higher: bool, steps: bool) -> str:

@@ -1,10 +1,10 @@
 """``morph-sweep``: a grid or list of training runs on Ray Tune, each an ordinary run directory, then their table.
 
     morph-sweep --spec sweeps/rules.yaml --out runs/rules                       # a spec file
-    morph-sweep --grid clip-mode=fixed,compensated --grid seed=1,2,3 --set total-timesteps=200000 --out runs/s
+    morph-sweep --grid rule=fixed,compensated --grid seed=1,2,3 --set total-timesteps=200000 --out runs/s
     morph-sweep --spec sweeps/rules.yaml --out runs/rules --address HEAD:6379   # on a Ray cluster
 
-Each trial trains into ``OUT/<trial name>`` (``clip_mode=fixed,seed=1``: the overrides that vary) as
+Each trial trains into ``OUT/<trial name>`` (``rule=fixed,seed=1``: the overrides that vary) as
 ``morph-train --out`` would, then evaluates its late checkpoints there (``eval.csv``; the spec's ``eval``:
 morph-eval's options, ``from_step`` half the run's steps unless given). A trial that fails or whose process
 dies is started again (``--max-failures``) and resumes from its run directory's last state, with the result
@@ -189,22 +189,24 @@ def summary(out: Path, trials: list[Trial], status: dict) -> str:
     """The sweep's Markdown: its trials, then trainer.reports.summary's tables for each group of trials."""
     import warnings
 
-    import numpy as np
-
     from trainer.reports import summary as tables
     from trainer.reports.runs import load_run
 
-    warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's "mean of empty slice": a '–' or nan in a cell
-    lines = [f"# Sweep {out}\n", "| trial | node | steps | last 10 updates | late eval, trained lengths | "
-             "late eval per length |", "|---|---|---:|---:|---:|---|"]  # fmt: skip
+    warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's "mean of empty slice": a '–' in a cell
+    lines = [f"# Sweep {out}\n", "## Trials\n", "| trial | node | steps | last 10 updates | late eval, trained "
+             "lengths | late eval per length |", "|---|---|---:|---:|---:|---|"]  # fmt: skip
     for t in trials:
         run = load_run(out / t.name)
         late = tables.late_means(run)
         per_length = " ".join(f"{n}:{r:.0f}" for n, r in sorted(late.items()))
         trained = tables.late_trained_mean(run)
         lines.append(f"| {t.name} | {status[t.name]['node_ip']} | {run.progress[-1]['global_step']} | "
-                     f"{tables.training_marks(run)['last']:.0f} | {'–' if np.isnan(trained) else f'{trained:.0f}'} "
-                     f"| {per_length} |")  # fmt: skip
+                     f"{tables._num(tables.training_marks(run)['last'])} | {tables._num(trained)} "
+                     f"| {per_length or '–'} |")  # fmt: skip
+    lines.append("\nlast 10 updates: the mean training return of the run's last 10 updates; late eval: the "
+                 "deterministic eval return over the checkpoints from half the run's steps on, averaged over the "
+                 "trained chain lengths, then per chain length (n:return); –: none evaluated (a run of other "
+                 "bodies: their tables follow)")  # fmt: skip
     for label, members in groups(trials).items():
         lines.append(f"\n## {label or 'all trials'}: trainer.reports.summary\n")
         text, err = io.StringIO(), io.StringIO()
