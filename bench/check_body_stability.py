@@ -15,6 +15,13 @@ size for 1..12 joints, and ``--random-large`` per size at 16, 20, ..., ``MAX_TRE
 
     python bench/check_body_stability.py              # the full sweep quoted in docs/bodies.md
     python bench/check_body_stability.py --quick      # a few shapes, a few seconds
+    python bench/check_body_stability.py --legged 3   # the legged family instead (docs/bodies.md)
+
+``--legged N`` sweeps every legged kind (4, 6, 8 legs x 2, 3 joints x round, long, wide torsos) at body
+seeds 0..N-1 (and, with ``--held-out``, as many from 1000 on) under Ant-v5's task with termination off:
+the same four patterns (a body fails when MuJoCo resets a state that blew up or its state is not finite),
+and also zero action (a body fails when it falls below its healthy height: it cannot stand on its joint
+limits); under random actions it reports the median steps before the first unhealthy state, beside Ant's.
 """
 
 from __future__ import annotations
@@ -99,6 +106,73 @@ def shapes(quick: bool, random_draws: int, random_large: int, chains: int) -> li
     return out
 
 
+def check_walker(body, steps: int, seeds: int) -> tuple[dict[str, int], int, list[int]]:
+    """(pattern -> episodes of ``seeds`` that blew up or ended non-finite, episodes that fell at zero action,
+    steps each random-action episode stayed healthy)."""
+    from morph_core.env.centipede import MorphCentipedeEnv
+
+    env = MorphCentipedeEnv(layout="ant", terminate_when_unhealthy=False) if body == "ant" else (
+        MorphCentipedeEnv(body=body, terminate_when_unhealthy=False))  # fmt: skip
+    failed, fell, healthy_steps = {}, 0, []
+    rng = np.random.default_rng(0)
+    for pattern in (*PATTERNS, "zero"):
+        failed[pattern] = 0
+        for seed in range(seeds):
+            env.reset(seed=seed)
+            bad, first_fall = False, None
+            for step in range(steps):
+                a = np.zeros(env.num_joints) if pattern == "zero" else actions(pattern, step, 1, env.num_joints, rng)[0]
+                env.step(a)
+                bad |= env.unstable
+                if first_fall is None and not env.is_healthy:
+                    first_fall = step
+            bad |= not (np.isfinite(env.data.qpos).all() and np.isfinite(env.data.qvel).all())
+            failed[pattern] += int(bad)
+            if pattern == "zero":
+                fell += int(first_fall is not None)
+            if pattern == "random":
+                healthy_steps.append(steps if first_fall is None else first_fall)
+    return failed, fell, healthy_steps
+
+
+def legged_sweep(seeds: int, held_out: bool, steps: int, episodes: int) -> int:
+    from morph_core.env.legged_model import LEGGED_JOINTS_PER_LEG, LEGGED_LEGS, TORSOS, LeggedBody
+
+    started = time.monotonic()
+    body_seeds = list(range(seeds)) + (list(range(1000, 1000 + seeds)) if held_out else [])
+    print(f"{steps} steps per episode, {episodes} episodes per pattern, patterns {', '.join(PATTERNS)}, zero")
+    print(
+        f"{'kind':<16} {'bodies':>6} {'episodes':>8} {'diverged':>8} {'fell at zero':>12} "
+        f"{'random: median healthy steps':>28}"
+    )
+    bad = 0
+    kinds = [("ant", ["ant"])] + [
+        (f"legged-{n}x{j}-{t}", [LeggedBody(n, j, t, s) for s in body_seeds])
+        for n in LEGGED_LEGS for j in LEGGED_JOINTS_PER_LEG for t in TORSOS
+    ]  # fmt: skip
+    for kind, bodies in kinds:
+        diverged = fell = 0
+        lengths: list[int] = []
+        for body in bodies:
+            failed, f, h = check_walker(body, steps, episodes)
+            diverged += sum(failed.values())
+            fell += f
+            lengths += h
+            if any(failed.values()) or f:
+                print(
+                    f"  {getattr(body, 'label', body)}: diverged {failed}, fell at zero {f}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+        if kind != "ant":
+            bad += diverged
+        count = len(bodies) * episodes
+        print(f"{kind:<16} {len(bodies):>6} {count * (len(PATTERNS) + 1):>8} {diverged:>8} {fell:>5}/{count:<6} "
+              f"{float(np.median(lengths)):>28.0f}", flush=True)  # fmt: skip
+    print(f"{time.monotonic() - started:.0f} s")
+    return 1 if bad else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=1000)
@@ -107,8 +181,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--random-large", type=int, default=4, help="random trees per size, 16..32 joints")
     parser.add_argument("--chains", type=int, default=MAX_JOINTS, help="sweep chains of 1..CHAINS joints")
     parser.add_argument("--quick", action="store_true", help="a few small shapes, 200 steps")
+    parser.add_argument("--legged", type=int, default=0, help="sweep the legged family at body seeds 0..N-1 instead")
+    parser.add_argument("--held-out", action="store_true", help="with --legged: N more seeds from 1000 on")
     args = parser.parse_args(argv)
     steps = 200 if args.quick else args.steps
+    if args.legged:
+        return legged_sweep(args.legged, args.held_out, steps, args.seeds)
     started = time.monotonic()
     swept = shapes(args.quick, args.random_draws, args.random_large, args.chains)
     totals: dict[str, list[int]] = defaultdict(lambda: [0, 0, 0, 0])  # shapes, episodes, failed, max joints

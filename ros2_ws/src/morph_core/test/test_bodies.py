@@ -239,7 +239,7 @@ def test_swimmers_and_centipedes_mix_with_twelve_globals():
     mix = parse_bodies("2-3,centipede:2")
     assert mix.has_centipedes and mix.global_features == 12 and mix.joint_range == (2, 8)
     assert parse_bodies("2-4,y:2x2").global_features == 4
-    with pytest.raises(ValueError, match="holds centipedes"):
+    with pytest.raises(ValueError, match="holds walkers"):
         MorphSwimmerEnv(bodies="2,centipede:2")
 
 

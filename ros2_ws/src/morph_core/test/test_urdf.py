@@ -21,7 +21,8 @@ from morph_core.env.bodies import parse_bodies
 from morph_core.env.model import GEAR, HINGE_RANGE_DEG, SEGMENT_LENGTH, SEGMENT_RADIUS, swimmer_model
 from morph_core.env.segments import segment_poses
 from morph_core.env.sim import SwimmerSim
-from morph_core.env.urdf import NO_EFFORT_LIMIT, robot_urdf, swimmer_urdf
+from morph_core.env.urdf import robot_urdf, swimmer_urdf
+from morph_core.policy.joint_description import NO_EFFORT_LIMIT
 from morph_core.policy.tree import KinematicTree, TreeError, read_urdf
 
 LENGTHS = [1, 6, 64]

@@ -67,7 +67,7 @@ def test_a_swimmer_policy_cannot_evaluate_a_centipede(tmp_path):
     from morph_core.algo.evaluate import evaluate_policy
     from morph_core.env.bodies import Centipede
 
-    with pytest.raises(ValueError, match="reads 4 global features, a centipede 12"):
+    with pytest.raises(ValueError, match="reads 4 global features, a walker 12"):
         evaluate_policy(untrained_weights(seed=0), [Centipede(2)], episodes=1, max_steps=2)
 
 

@@ -197,3 +197,31 @@ def test_each_new_rule_trains_and_resumes_bit_for_bit(tmp_path, rule):
     assert epochs == ([1, 1, 1] if rule.startswith("kl-stop") else [2, 2, 2])
     for r in ra:
         assert 0.0 <= float(r["clip_frac_first"]) <= 1.0 and float(r["approx_kl_last"]) >= 0.0
+
+
+def test_init_fine_tunes_a_shipped_policy_on_a_users_mjcf(tmp_path):
+    """``--init`` in the simulator: the run starts from the checkpoint's weights and architecture, on
+    ``--bodies mjcf:PATH`` (Gymnasium's ant.xml, a walker); a resumed run refuses ``--init``."""
+    import gymnasium
+    from safetensors.numpy import load_file
+
+    from morph_core.policy.weights import load_checkpoint
+    from trainer.cli.train import main
+
+    ant = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
+    init = os.path.join(os.path.dirname(__file__), "..", "..", "morph_policy_node", "morph_policy_node", "models",
+                        "centipede_gnn.safetensors")  # fmt: skip
+    run = tmp_path / "ant"
+    args = ["--out", str(run), "--bodies", f"mjcf:{ant}", "--init", init, "--total-timesteps", "256",
+            "--num-envs", "2", "--num-steps", "128", "--minibatch-size", "128", "--update-epochs", "1",
+            "--learning-rate", "0", "--compile", "false", "--tensorboard", "false",
+            "--progress-bar", "false"]  # fmt: skip
+    assert main(args) == 0
+    assert json.loads((run / "init.json").read_text())["init"] == os.path.realpath(init)
+    assert json.loads((run / "config.json").read_text())["policy"]["global_features"] == 12
+    start = load_checkpoint(init).arrays
+    (saved,) = sorted((run / "checkpoints").glob("*.safetensors"))
+    after = load_file(str(saved))
+    assert all(np.array_equal(after[k], start[k]) for k in start if k != "log_std")  # learning rate 0
+    with pytest.raises(SystemExit):
+        main([*args[:2], "--resume", "--init", init])

@@ -52,6 +52,9 @@ class RolloutBatch:
     """[N, J] int64 parent joint of each joint (-1: the torso, and at padding; ``policy.index_plan``); None
     when every sample is a chain, however given (checked at construction; chains-only parents become None, so
     that the update takes its chain path)"""
+    joint_desc: torch.Tensor | None = None
+    """[N, J, D] float32 each joint's description (``policy.joint_description``; zero at padding) for a policy
+    that reads them (``PolicyConfig.joint_features`` = D); None: none"""
 
     def __post_init__(self):
         n, j = self.joint_pos.shape if self.joint_pos.ndim == 2 else (None, None)
@@ -77,6 +80,13 @@ class RolloutBatch:
             mask = (torch.arange(j) < self.num_joints.unsqueeze(1)).numpy()
             parents = check_parents(self.parents.numpy(), mask)
             object.__setattr__(self, "parents", None if is_chain(parents, mask) else torch.from_numpy(parents))
+        if self.joint_desc is not None:
+            d = self.joint_desc
+            if d.ndim != 3 or tuple(d.shape[:2]) != (n, j) or d.dtype != torch.float32:
+                got = f"{list(d.shape)} {d.dtype}"
+                raise ValueError(f"RolloutBatch.joint_desc must be [{n}, {j}, D] float32, got {got}")
+            if not torch.isfinite(d).all():
+                raise ValueError("RolloutBatch.joint_desc holds NaN or inf")
         if n and (int(self.num_joints.min()) < 1 or int(self.num_joints.max()) > j):
             raise ValueError(f"RolloutBatch.num_joints must be in 1..{j}")
         for name in [*shapes][1:]:
@@ -110,8 +120,13 @@ class RolloutBatch:
         if self.parents is not None:
             parents = self.parents.numpy()[rows, :width]
             tree = None if is_chain(parents, mask) else torch.from_numpy(parents)
+        desc = (
+            None
+            if self.joint_desc is None
+            else torch.from_numpy(np.ascontiguousarray(self.joint_desc.numpy()[rows, :width]))
+        )
         arrays = (pos, vel, self.global_feats.numpy()[rows], num_joints, mask)
-        return ChainBatch(*map(torch.from_numpy, arrays), tree), torch.from_numpy(actions)
+        return ChainBatch(*map(torch.from_numpy, arrays), tree, desc), torch.from_numpy(actions)
 
 
 @dataclass(frozen=True)

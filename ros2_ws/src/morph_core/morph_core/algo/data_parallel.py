@@ -133,13 +133,22 @@ class SharedArrays:
 
 
 def shared_layout(
-    num_steps: int, num_envs: int, max_joints: int, num_params: int, processes: int, global_features: int
+    num_steps: int,
+    num_envs: int,
+    max_joints: int,
+    num_params: int,
+    processes: int,
+    global_features: int,
+    joint_features: int = 0,
 ) -> dict:
     """Everything the processes share: the rollout, its advantages and returns, the parameters, the current
     epoch's minibatches and, per helper, one gradient and its part's size and statistics."""
     n, helpers = num_steps * num_envs, processes - 1
     return {
-        **{f"rollout.{k}": v for k, v in rollout_layout(num_steps, num_envs, max_joints, global_features).items()},
+        **{
+            f"rollout.{k}": v
+            for k, v in rollout_layout(num_steps, num_envs, max_joints, global_features, joint_features).items()
+        },
         "advantages": ((num_steps, num_envs), np.float32),
         "returns": ((num_steps, num_envs), np.float32),
         "theta": ((num_params,), np.float32),
@@ -156,7 +165,7 @@ def shared_layout(
 def shared_rollout(shared: SharedArrays, run: RolloutSpec) -> Rollout:
     return Rollout(
         run.num_steps, run.num_envs, run.max_joints, lambda name, shape, dtype: shared[f"rollout.{name}"],
-        run.global_features,
+        run.global_features, run.joint_features,
     )  # fmt: skip
 
 
@@ -230,7 +239,13 @@ class Helpers:
         self.bounds = env_bounds(run.num_envs, spec.processes)
         self.theta = learner.params.theta
         layout = shared_layout(
-            run.num_steps, run.num_envs, run.max_joints, self.theta.numel(), spec.processes, run.global_features
+            run.num_steps,
+            run.num_envs,
+            run.max_joints,
+            self.theta.numel(),
+            spec.processes,
+            run.global_features,
+            run.joint_features,
         )
         self.shared = SharedArrays(layout)
         self.rollout = shared_rollout(self.shared, run)

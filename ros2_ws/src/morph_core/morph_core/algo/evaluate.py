@@ -11,11 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from morph_core.env.bodies import Centipede
+from morph_core.env.bodies import Centipede, is_walker
 from morph_core.env.centipede_batch import CentipedeBatch
+from morph_core.env.mjcf_body import MjcfBody
+from morph_core.env.model import swimmer_model
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_batch import SwimmerBatch
-from morph_core.env.vec_env import MAX_EPISODE_STEPS
+from morph_core.env.vec_env import MAX_EPISODE_STEPS, model_descriptions
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 
@@ -70,7 +72,11 @@ def evaluate_episodes(
     bodies = list(dict.fromkeys(bodies))  # a body asked twice is evaluated once
     seeds = [seed + k for k in range(episodes)]
     groups = [
-        CentipedeBatch(body.leg_pairs, seeds) if isinstance(body, Centipede) else SwimmerBatch(body, seeds, num_threads)
+        CentipedeBatch(body.leg_pairs, seeds)
+        if isinstance(body, Centipede)
+        else CentipedeBatch(body, seeds)
+        if is_walker(body) or isinstance(body, MjcfBody)
+        else SwimmerBatch(body, seeds, num_threads)
         for body in bodies
     ]
     actor = policy if isinstance(policy, NumpyPolicy) else NumpyPolicy(policy)
@@ -78,14 +84,21 @@ def evaluate_episodes(
     count, width = len(bodies) * episodes, max(g.num_joints for g in groups)
     pos, vel = np.zeros((count, width), np.float32), np.zeros((count, width), np.float32)
     global_width = actor.global_mlp[0][0].shape[0]  # the policy's; a swimmer's 4 features padded to it
-    if global_width < 12 and any(isinstance(b, Centipede) for b in bodies):
-        raise ValueError(f"this policy reads {global_width} global features, a centipede 12: train it on centipedes")
+    if global_width < 12 and any(is_walker(b) for b in bodies):
+        raise ValueError(f"this policy reads {global_width} global features, a walker 12: train it on walkers")
     glob = np.zeros((count, global_width), np.float32)
     num_joints = np.repeat(np.array([g.num_joints for g in groups], dtype=np.int64), episodes)
     parents = np.full((count, width), -1, np.int64)
     rows = [slice(g * episodes, (g + 1) * episodes) for g in range(len(bodies))]
     for swimmers, r in zip(groups, rows, strict=True):
         parents[r, : swimmers.num_joints] = swimmers.parents
+    desc = None  # the joints' descriptions, for a policy that reads them
+    if getattr(actor, "joint_features", 0):  # (an actor without the attribute reads none)
+        desc = np.zeros((count, width, actor.joint_features), np.float32)
+        for swimmers, r in zip(groups, rows, strict=True):
+            model = swimmers.envs[0].model if isinstance(swimmers, CentipedeBatch) else swimmer_model(swimmers.parents)
+            desc[r, : swimmers.num_joints] = model_descriptions(model)
+    described = {} if desc is None else {"joint_desc": desc}
     for swimmers, r in zip(groups, rows, strict=True):
         swimmers.write_observation(pos[r], vel[r], glob[r])
     returns, steps = np.zeros(count), np.zeros(count, dtype=np.int64)
@@ -97,10 +110,19 @@ def evaluate_episodes(
         if idx.size == 0:
             break
         if idx.size == count:  # every swimmer still going (the usual case)
-            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents)).astype(np.float64)
+            applied = applied_action(actor.mean_actions(pos, vel, glob, num_joints, parents, **described)).astype(
+                np.float64
+            )
         else:  # the ended swimmers' rows keep their last actions and are not stepped
             applied[idx] = applied_action(
-                actor.mean_actions(pos[idx], vel[idx], glob[idx], num_joints[idx], parents[idx])
+                actor.mean_actions(
+                    pos[idx],
+                    vel[idx],
+                    glob[idx],
+                    num_joints[idx],
+                    parents[idx],
+                    **({} if desc is None else {"joint_desc": desc[idx]}),
+                )
             )
         for swimmers, r in zip(groups, rows, strict=True):
             going = np.flatnonzero(alive[r])

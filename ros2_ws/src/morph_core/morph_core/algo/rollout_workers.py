@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from morph_core.algo.param_buffer import FlatParameters
-from morph_core.algo.rollout import Rollout, collect, rollout_layout
+from morph_core.algo.rollout import Rollout, collect
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.vec_env import Episode, SwimmerVecEnv
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
@@ -81,6 +81,11 @@ class RolloutSpec:
     def global_features(self) -> int:
         """The width of the rollout's global observations (12 with centipedes, else the swimmer's 4)."""
         return parse_bodies(self.bodies).global_features
+
+    @property
+    def joint_features(self) -> int:
+        """The width of the joints' descriptions the policy reads (0: none; then the rollout has none)."""
+        return int(self.policy.get("joint_features", 0))
 
     def worker(self, rank: int, workers: int) -> WorkerSpec:
         """Worker ``rank`` of ``workers`` sharing the swimmers out (``env_bounds``)."""
@@ -127,14 +132,16 @@ class RolloutWorker:
     ):
         run = spec.rollout
         self.spec = spec
-        self.envs = SwimmerVecEnv(spec.hi - spec.lo, run.bodies, seed=run.seed + spec.lo, num_threads=run.env_threads)
+        self.envs = SwimmerVecEnv(spec.hi - spec.lo, run.bodies, seed=run.seed + spec.lo, num_threads=run.env_threads,
+                                  joint_descriptions=run.joint_features > 0)  # fmt: skip
         self._params = None
         if policy is None:
             policy = GraphActorCritic(PolicyConfig.from_dict(run.policy))
             self._params = FlatParameters(policy)  # the parameters as one vector, as the learner sends them
         self.policy = policy
         if rollout is None:
-            rollout = Rollout(run.num_steps, spec.hi - spec.lo, run.max_joints, global_features=run.global_features)
+            rollout = Rollout(run.num_steps, spec.hi - spec.lo, run.max_joints, global_features=run.global_features,
+                              joint_features=run.joint_features)  # fmt: skip
         self.rollout = rollout
         self.generator = torch.Generator().manual_seed(spec.noise_seed) if generator is None else generator
         self.obs = self.envs.observations()
@@ -152,7 +159,7 @@ class RolloutWorker:
     def collect_columns(self, theta: np.ndarray) -> tuple[dict[str, np.ndarray], list[Episode]]:
         """``collect``, and this worker's columns by array name: what a worker in another process sends."""
         episodes = self.collect(theta)
-        return {name: getattr(self.rollout, name) for name in rollout_layout(1, 1, 1)}, episodes
+        return {name: getattr(self.rollout, name) for name in self.rollout.names()}, episodes
 
     def get_state(self) -> WorkerState:
         return WorkerState(*self.envs.get_state(), self.generator.get_state())

@@ -91,18 +91,27 @@ def train(
     resume: bool = False,
     on_row: RowHook | None = None,
     rollout_pool: PoolFactory | None = None,
+    init: str | Path | None = None,
 ) -> Path:
     """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors). ``on_row(row,
     saved)`` hears each progress row once it is written and, when ``saved``, the state of its step too (a Ray
     Tune trial reports it, with the run's own state files as its checkpoint). ``rollout_pool`` makes the
-    workers of ``cfg.rollout_workers`` > 1."""
+    workers of ``cfg.rollout_workers`` > 1. ``init``: a policy checkpoint (.safetensors beside its .json) a new
+    run starts from (fine-tuning), its architecture the run's (its global width must be the bodies')."""
     if cfg.rollout_workers > 1 and rollout_pool is None:
         raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
+    initial = None
+    if init is not None:
+        if resume:
+            raise ValueError("init starts a new run; a resumed run continues from its own state")
+        initial = GraphActorCritic.load(init)
+        cfg = dataclasses.replace(cfg, policy=initial.config)  # the run's config says what it trains
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)
     # Threads before init: the orthogonal init's QR differs in its last bits with the thread count.
     torch.set_num_threads(1)
     torch.manual_seed(cfg.seed)
-    learner = Learner.create(GraphActorCritic(cfg.policy), cfg.learning_rate, cfg.adam_eps, cfg.compile)
+    policy = GraphActorCritic(cfg.policy) if initial is None else initial
+    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
     gen = torch.Generator().manual_seed(cfg.seed)
     helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
     pool = _rollout_pool(cfg, learner, gen, helpers, rollout_pool)
@@ -116,6 +125,8 @@ def train(
             _check_policy_checkpoints(run.checkpoints, run.counters["global_step"], learner.policy)
         else:
             run.start()
+            if init is not None:
+                run.write_json("init.json", {"init": str(Path(init).resolve())})
         _train_loop(cfg, run, learner, gen, pool, helpers)
     finally:
         pool.close()

@@ -16,6 +16,8 @@ Its parts, each in a module of its own:
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from morph_core.algo.batch import RolloutBatch
@@ -78,6 +80,9 @@ def compile_ahead(learner: Learner, cfg: UpdateConfig, max_joints: int, off_poli
     glob = torch.randn(n, learner.policy.config.global_features, generator=gen)  # the policy's width
     batch = RolloutBatch(num_joints, pos, vel, glob, actions,
                          -torch.rand(n, generator=gen), zeros, torch.randn(n, generator=gen), zeros)  # fmt: skip
+    if described := learner.policy.config.joint_features:  # drawn after the rest: the draws above stay as they were
+        desc = torch.rand(n, max_joints, described, generator=gen) * mask.unsqueeze(2)
+        batch = dataclasses.replace(batch, joint_desc=desc)
     if off_policy:
         batch = with_proximal(learner.policy, batch)
     rule = get_rule(cfg.rule)

@@ -12,6 +12,14 @@ A spec is one or more items separated by commas; at each reset one item is drawn
                                                link (the torso included); B defaults to 2
     centipede:N  |  centipede:LO-HI            a centipede (``env.centipede``) of N (LO..HI) leg pairs,
                                                drawn uniformly                             (4N joints)
+    legged:LxJ[:TORSO][:sLO-HI]                generated legged bodies (``env.legged_model``): L legs (4, 6,
+                                               8; a range LO-HI takes its even sizes), J joints per leg (2,
+                                               3, or 2-3), a torso (round, long, wide; default any), a body
+                                               seed in LO..HI (default ``LEGGED_TRAIN_SEEDS``); each drawn
+                                               uniformly                                    (L*J joints)
+    mjcf:PATH                                  a user's MJCF file (``env.mjcf_body``): a walker when its root
+                                               has a free joint, a swimmer when it is planar; refused as the
+                                               sim node's ``model_file`` is. PATH holds no comma.
 
 Every size of a named shape (K, A, S, B) may be a range ``LO-HI`` too (``star:2-3x1-2``: the four stars
 of 2..3 arms of 1..2 joints, one drawn uniformly). Limits: chains 1..``MAX_JOINTS`` joints (as
@@ -21,7 +29,8 @@ of 2..3 arms of 1..2 joints, one drawn uniformly). Limits: chains 1..``MAX_JOINT
 (``bench/check_body_stability.py``, docs/bodies.md); centipedes ``MIN_LEG_PAIRS``..``MAX_LEG_PAIRS`` leg pairs.
 A bad spec raises ``ValueError`` with the reason.
 
-Swimmers and centipedes may be mixed in one spec (``2-4,centipede:2-3``): each env draws its family at
+Centipedes and legged bodies are walkers: Ant-v5's task (``env.centipede.MorphCentipedeEnv``).
+Swimmers and walkers may be mixed in one spec (``2-4,centipede:2-3``): each env draws its family at
 every reset like any item. The policy's global input is then the centipede's 12 features, a swimmer's 4
 (yaw, yaw rate, vx, vy: the centipede's first four, same meanings) zero-padded (``BodyMix.global_features``).
 A swimmer draw is a ``KinematicTree``, a centipede draw a ``Centipede`` (its size; ``.tree`` its tree).
@@ -48,6 +57,8 @@ from functools import cache
 import numpy as np
 
 from morph_core.env.centipede_model import JOINTS_PER_LEG_PAIR, MAX_LEG_PAIRS, MIN_LEG_PAIRS
+from morph_core.env.legged_model import LEGGED_JOINTS_PER_LEG, LEGGED_LEGS, MAX_SEED, TORSOS, LeggedBody
+from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.model import MAX_JOINTS
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.index_plan import joint_depths
@@ -72,6 +83,9 @@ _Y_RE = re.compile(rf"y:{_RANGE}x{_RANGE}")
 _COMB_RE = re.compile(rf"comb:{_RANGE}")
 _RANDOM_RE = re.compile(rf"random:{_RANGE}(?::b{_INT})?")
 _CENTIPEDE_RE = re.compile(rf"centipede:{_RANGE}")
+_LEGGED_RE = re.compile(rf"legged:{_RANGE}x{_RANGE}(?::(round|long|wide))?(?::s(\d{{1,10}})(?:-(\d{{1,10}}))?)?")
+LEGGED_TRAIN_SEEDS = (0, 99)
+"""body seeds a ``legged:`` item draws without ``:s``; evaluations hold out seeds from 1000 on"""
 SWIMMER_GLOBAL_FEATURES = 4
 """a swimmer's global vector: yaw, yaw rate, vx, vy (``swimmer_env.GLOBAL_FEATURES``)"""
 CENTIPEDE_GLOBAL_FEATURES = 12
@@ -309,8 +323,94 @@ class CentipedeFamily:
         return Centipede(self.lo)
 
 
-Family = ChainFamily | StarFamily | YFamily | CombFamily | RandomTreeFamily | CentipedeFamily
-Body = KinematicTree | Centipede
+@dataclass(frozen=True)
+class LeggedFamily:
+    """Generated legged bodies (``env.legged_model.LeggedBody``): legs, joints per leg, torso and seed, each
+    drawn uniformly in that order (a fixed one not drawn)."""
+
+    legs: tuple[int, ...]
+    joints: tuple[int, ...]
+    torsos: tuple[str, ...]
+    seeds: tuple[int, int]
+
+    def __str__(self) -> str:
+        legs = _range_text(self.legs[0], self.legs[-1])
+        joints = _range_text(self.joints[0], self.joints[-1])
+        torso = "" if self.torsos == TORSOS else f":{self.torsos[0]}"
+        return f"legged:{legs}x{joints}{torso}:s{_range_text(*self.seeds)}"
+
+    @property
+    def joint_range(self) -> tuple[int, int]:
+        return self.legs[0] * self.joints[0], self.legs[-1] * self.joints[-1]
+
+    def _count(self) -> int:
+        return len(self.legs) * len(self.joints) * len(self.torsos) * (self.seeds[1] - self.seeds[0] + 1)
+
+    def members(self) -> list[LeggedBody] | None:
+        """Every body, when there are at most 64; None otherwise (as a random family)."""
+        if self._count() > 64:
+            return None
+        return [LeggedBody(n, j, t, s) for n in self.legs for j in self.joints for t in self.torsos
+                for s in range(self.seeds[0], self.seeds[1] + 1)]  # fmt: skip
+
+    def draw(self, rng: np.random.Generator) -> LeggedBody:
+        def pick(options):
+            return options[0] if len(options) == 1 else options[int(rng.integers(len(options)))]
+
+        lo, hi = self.seeds
+        legs, joints, torso = pick(self.legs), pick(self.joints), pick(self.torsos)
+        return LeggedBody(legs, joints, torso, lo if lo == hi else int(rng.integers(lo, hi + 1)))
+
+    def first(self) -> LeggedBody:
+        return LeggedBody(self.legs[0], self.joints[0], self.torsos[0], self.seeds[0])
+
+
+def _legged_family(m: re.Match) -> LeggedFamily:
+    lo, hi = _pair(m[1], m[2], "legged legs", LEGGED_LEGS[0], LEGGED_LEGS[-1])
+    legs = tuple(n for n in LEGGED_LEGS if lo <= n <= hi)
+    if not legs:
+        raise ValueError(f"legged legs must be one of {LEGGED_LEGS}, got {_range_text(lo, hi)}")
+    jlo, jhi = _pair(m[3], m[4], "legged joints per leg", LEGGED_JOINTS_PER_LEG[0], LEGGED_JOINTS_PER_LEG[-1])
+    torsos = TORSOS if m[5] is None else (m[5],)
+    seeds = LEGGED_TRAIN_SEEDS if m[6] is None else _pair(m[6], m[7], "legged body seed", 0, MAX_SEED)
+    return LeggedFamily(legs, tuple(range(jlo, jhi + 1)), torsos, seeds)
+
+
+@dataclass(frozen=True)
+class MjcfFamily:
+    """One user's MJCF (``env.mjcf_body.MjcfBody``); the file is read when first needed (``RobotModelError``,
+    a ValueError, says why it is refused)."""
+
+    body: MjcfBody
+
+    def __str__(self) -> str:
+        return f"mjcf:{self.body.path}"
+
+    @property
+    def joint_range(self) -> tuple[int, int]:
+        return self.body.num_joints, self.body.num_joints
+
+    @property
+    def is_walker(self) -> bool:
+        return self.body.task == "walker"
+
+    def members(self) -> list[MjcfBody]:
+        return [self.body]
+
+    def draw(self, rng: np.random.Generator) -> MjcfBody:
+        return self.body
+
+    def first(self) -> MjcfBody:
+        return self.body
+
+
+Family = (
+    ChainFamily | StarFamily | YFamily | CombFamily | RandomTreeFamily | CentipedeFamily | LeggedFamily | MjcfFamily
+)
+WALKER_FAMILIES = (CentipedeFamily, LeggedFamily)
+"""families run by Ant-v5's task (``MorphCentipedeEnv``) rather than the swimmer's (and an ``MjcfFamily`` whose
+root is free)"""
+Body = KinematicTree | Centipede | LeggedBody | MjcfBody
 """what a ``BodyMix`` draws"""
 
 
@@ -327,6 +427,12 @@ def _parse_item(item: str) -> Family:
         family = CombFamily(_pair(m[1], m[2], "comb spine joints", 3))
     elif m := _CENTIPEDE_RE.fullmatch(item):
         return CentipedeFamily(*_pair(m[1], m[2], "centipede leg pairs", MIN_LEG_PAIRS, MAX_LEG_PAIRS))
+    elif m := _LEGGED_RE.fullmatch(item):
+        return _legged_family(m)
+    elif item.startswith("mjcf:"):
+        if not item[5:].strip():
+            raise ValueError("mjcf: needs a path to an MJCF file")
+        return MjcfFamily(MjcfBody(item[5:].strip()))
     elif m := _RANDOM_RE.fullmatch(item):
         lo, hi = _pair(m[1], m[2], "random tree joints", 1, MAX_TREE_JOINTS)
         b = DEFAULT_BRANCHING if m[3] is None else int(m[3])
@@ -335,8 +441,12 @@ def _parse_item(item: str) -> Family:
         return RandomTreeFamily(lo, hi, b)
     else:
         family_name = item.split(":", 1)[0]
-        known = "N, LO-HI, chain:, star:KxA, y:SxB, comb:S, random:LO-HI[:bB], centipede:LO-HI"
-        if ":" in item and family_name not in ("chain", "star", "y", "comb", "random", "centipede"):
+        known = (
+            "N, LO-HI, chain:, star:KxA, y:SxB, comb:S, random:LO-HI[:bB], centipede:LO-HI, "
+            "legged:LxJ[:TORSO][:sLO-HI], mjcf:PATH"
+        )
+        families = ("chain", "star", "y", "comb", "random", "centipede", "legged", "mjcf")
+        if ":" in item and family_name not in families:
             raise ValueError(f"unknown body family {family_name[:20]!r} (known: {known})")
         raise ValueError(f"cannot read body item {item[:40]!r} (forms: {known})")
     lo, hi = family.joint_range
@@ -381,14 +491,22 @@ class BodyMix:
         return any(isinstance(item, CentipedeFamily) for item in self.items)
 
     @property
+    def has_walkers(self) -> bool:
+        """Whether any family is run by Ant-v5's task: centipedes, legged bodies."""
+        return any(
+            isinstance(item, WALKER_FAMILIES) or (isinstance(item, MjcfFamily) and item.is_walker)
+            for item in self.items
+        )
+
+    @property
     def swimmers_only(self) -> bool:
-        return not self.has_centipedes
+        return not self.has_walkers
 
     @property
     def global_features(self) -> int:
-        """The policy's global input width for these bodies: a swimmer's 4, or 12 with any centipede (a
+        """The policy's global input width for these bodies: a swimmer's 4, or 12 with any walker (a
         swimmer's four then zero-padded)."""
-        return CENTIPEDE_GLOBAL_FEATURES if self.has_centipedes else SWIMMER_GLOBAL_FEATURES
+        return CENTIPEDE_GLOBAL_FEATURES if self.has_walkers else SWIMMER_GLOBAL_FEATURES
 
     def members(self) -> list[Body] | None:
         """Every body the mix can draw, in spec order without repeats; None when a family is random."""
@@ -456,7 +574,7 @@ def body_label(body: int | Body) -> str:
     ``tree.topology_hash``."""
     if isinstance(body, int):
         return chain_label(body)
-    if isinstance(body, Centipede):
+    if isinstance(body, Centipede | LeggedBody | MjcfBody):
         return body.label
     tree = body
     if tree.is_chain:
@@ -465,10 +583,16 @@ def body_label(body: int | Body) -> str:
     return label if label is not None else "tree-" + tree.topology_hash[:8]
 
 
+def is_walker(body) -> bool:
+    """Whether ``body`` (what a ``BodyMix`` draws, or a chain length) runs Ant-v5's task: a centipede, a
+    legged body, a user's MJCF with a free root."""
+    return isinstance(body, Centipede | LeggedBody) or (isinstance(body, MjcfBody) and body.task == "walker")
+
+
 def swimmers_only(mix: BodyMix, what: str) -> BodyMix:
-    """``mix`` when it holds swimmers alone, else ValueError naming ``what`` refuses centipedes."""
-    if mix.has_centipedes:
-        raise ValueError(f"{what} runs swimmers; {str(mix)!r} holds centipedes (MorphCentipedeEnv runs those)")
+    """``mix`` when it holds swimmers alone, else ValueError naming ``what`` refuses walkers."""
+    if mix.has_walkers:
+        raise ValueError(f"{what} runs swimmers; {str(mix)!r} holds walkers (MorphCentipedeEnv runs those)")
     return mix
 
 

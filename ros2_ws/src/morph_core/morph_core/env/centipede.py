@@ -3,7 +3,11 @@
 ``leg_pairs`` is an int (a fixed body) or an inclusive range ``(lo, hi)``
 from which the size is drawn at every reset with the env's seeded generator,
 as the swimmer's chain length is (``env.centipede_model`` builds the bodies,
-``env.reward.ant_reward`` pays them). ``layout="ant"`` runs the same env on
+``env.reward.ant_reward`` pays them). The same task runs any other body on
+legs with a free root (``env.legged_model.LeggedBody``, a user's MJCF:
+``reset(options={"body": body})``, or ``body=`` at construction): its model
+is the body's, its healthy heights the body's ``healthy_z_range`` (Ant-v5's
+rule carried over by standing height), everything else as for a centipede. ``layout="ant"`` runs the same env on
 Gymnasium's Ant body instead (``centipede_model.ant_mjcf``): with
 ``observation_mode="flat"`` it is Ant-v5, step for step (``test_centipede``).
 
@@ -105,6 +109,7 @@ class MorphCentipedeEnv(gymnasium.Env):
         healthy_z_range: tuple[float, float] = ANT_HEALTHY_Z_RANGE,
         contact_force_range: tuple[float, float] = ANT_CONTACT_FORCE_RANGE,
         reset_noise_scale: float = ANT_RESET_NOISE_SCALE,
+        body=None,
     ):
         if observation_mode not in OBSERVATION_MODES:
             raise ValueError(f"observation_mode must be one of {OBSERVATION_MODES}, got {observation_mode!r}")
@@ -124,27 +129,50 @@ class MorphCentipedeEnv(gymnasium.Env):
         self.healthy_reward = healthy_reward
         self.terminate_when_unhealthy = terminate_when_unhealthy
         self.healthy_z_range = tuple(healthy_z_range)
+        self._centipede_healthy_z_range = self.healthy_z_range  # a walker body brings its own
         self.contact_force_range = tuple(contact_force_range)
         self.reset_noise_scale = reset_noise_scale
         # cfrc_ext costs a pass over the bodies per step: computed only when something reads it
         self._needs_contact_forces = contact_cost_weight != 0 or observation_mode == "flat"
         self.leg_pairs = 0
+        self.walker = None
+        """the body when it is not a centipede (``walker_body``'s kinds), else None"""
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
-        self._build(self.leg_pair_range[0])
+        self._build(self.leg_pair_range[0] if body is None else self._check_walker(body))
 
     # -- body ----------------------------------------------------------------
-    def _build(self, leg_pairs: int) -> None:
-        if leg_pairs == self.leg_pairs:
+    def _check_walker(self, body):
+        if self.layout == "ant":
+            raise ValueError("the ant layout runs Ant's body alone")
+        if not all(hasattr(body, a) for a in ("model", "label", "healthy_z_range")):
+            raise ValueError(f"a walker body has model(), label and healthy_z_range, got {type(body).__name__}")
+        return body
+
+    def _build(self, leg_pairs) -> None:
+        """Build (or reset, when it is the current one) the centipede of ``leg_pairs`` or the walker body."""
+        walker = None if isinstance(leg_pairs, numbers.Integral) else leg_pairs
+        if (walker is None and self.walker is None and leg_pairs == self.leg_pairs) or (
+            walker is not None and walker == self.walker
+        ):
             mujoco.mj_resetData(self.model, self.data)
             return
-        model = ant_model() if self.layout == "ant" else centipede_model(leg_pairs)
-        self.leg_pairs = leg_pairs
+        if walker is not None:
+            model = walker.model()
+            self.leg_pairs, self.walker = 0, walker
+            self.healthy_z_range = tuple(walker.healthy_z_range)
+        else:
+            model = ant_model() if self.layout == "ant" else centipede_model(leg_pairs)
+            self.leg_pairs, self.walker = leg_pairs, None
+            self.healthy_z_range = self._centipede_healthy_z_range
         self.model, self.data = model, mujoco.MjData(model)
         self.tree = KinematicTree.from_mujoco(model)
         self.parents = self.tree.parents
         self.num_joints = self.tree.num_joints
-        self.body_label = "ant" if self.layout == "ant" else f"centipede-{leg_pairs}"
+        if walker is not None:
+            self.body_label = walker.label
+        else:
+            self.body_label = "ant" if self.layout == "ant" else f"centipede-{leg_pairs}"
         self.topology_hash = self.tree.topology_hash
         # The tree's joints are the hinges after the root's free joint, in qpos order: checked, not assumed.
         names = tuple(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(1, model.njnt))
@@ -155,7 +183,11 @@ class MorphCentipedeEnv(gymnasium.Env):
         order = np.array([joint_of[name] for name in motors], dtype=np.int64)
         # ctrl[i] = action[order[i]]; None when the motors are in the tree's order (every centipede)
         self._ctrl_order = None if np.array_equal(order, np.arange(self.num_joints)) else order
-        if self.layout == "ant":
+        # a user's MJCF: ctrl = action[order] * its ctrl range's far end (``MjcfBody.ctrl_map``), cost on the action
+        self._ctrl_scale = None
+        if walker is not None and hasattr(walker, "ctrl_map"):
+            self._ctrl_order, self._ctrl_scale = walker.ctrl_map()
+        if self.layout == "ant" and walker is None:
             assert tuple(motors) == ANT_ACTUATOR_ORDER
         self._root = 1  # the root segment's body id
         self._qpos, self._qvel, self._ctrl = self.data.qpos, self.data.qvel, self.data.ctrl
@@ -182,9 +214,15 @@ class MorphCentipedeEnv(gymnasium.Env):
 
     # -- gymnasium API -------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Reset; ``options={"leg_pairs": n}`` forces this episode's size (nothing is drawn then)."""
+        """Reset; ``options={"leg_pairs": n}`` forces this episode's size (nothing is drawn then),
+        ``options={"body": body}`` runs a walker body (``LeggedBody``, ...) instead; without options, the
+        current walker body stays, or a centipede's size is drawn."""
         super().reset(seed=seed)
-        if options and "leg_pairs" in options:
+        if options and "body" in options:
+            n = self._check_walker(options["body"])
+        elif not options and self.walker is not None:
+            n = self.walker
+        elif options and "leg_pairs" in options:
             n = check_leg_pairs(options["leg_pairs"])
             if self.layout == "ant" and n != 2:
                 raise ValueError(f"the ant layout has 2 leg pairs, got {n}")
@@ -224,7 +262,10 @@ class MorphCentipedeEnv(gymnasium.Env):
             raise ValueError(f"action contains NaN or inf: {a}")
         m, d = self.model, self.data
         x_before, y_before = self._xpos_root[0], self._xpos_root[1]
-        self._ctrl[:] = a if self._ctrl_order is None else a[self._ctrl_order]
+        if self._ctrl_scale is None:
+            self._ctrl[:] = a if self._ctrl_order is None else a[self._ctrl_order]
+        else:
+            self._ctrl[:] = a[self._ctrl_order] * self._ctrl_scale
         before = [w.number for w in self._warnings]
         mujoco.mj_step(m, d, nstep=self.frame_skip)
         if self._needs_contact_forces:
@@ -234,8 +275,9 @@ class MorphCentipedeEnv(gymnasium.Env):
         y_velocity = (self._xpos_root[1] - y_before) / self.dt
         healthy = self.is_healthy
         cfrc = d.cfrc_ext if self._needs_contact_forces else self._no_forces
+        charged = self._ctrl if self._ctrl_scale is None else a  # a user's MJCF: the cost on the action
         reward, terms = ant_reward(
-            x_velocity, healthy, self._ctrl, cfrc, self.forward_reward_weight, self.healthy_reward,
+            x_velocity, healthy, charged, cfrc, self.forward_reward_weight, self.healthy_reward,
             self.ctrl_cost_weight, self.contact_cost_weight, self.contact_force_range,
         )  # fmt: skip
         self._last_step = (x_velocity, y_velocity, terms, unstable)

@@ -14,18 +14,26 @@ from collections.abc import Sequence
 import numpy as np
 
 from morph_core.env.centipede import MorphCentipedeEnv
+from morph_core.env.swimmer_env import MorphSwimmerEnv
 
 
 class CentipedeBatch:
     """``len(seeds)`` centipedes of ``leg_pairs`` leg pairs, centipede k reset with ``seeds[k]`` (as
-    ``MorphCentipedeEnv(leg_pairs=leg_pairs).reset(seed=seeds[k])``)."""
+    ``MorphCentipedeEnv(leg_pairs=leg_pairs).reset(seed=seeds[k])``); or ``leg_pairs`` another walker body
+    (``env.legged_model.LeggedBody``, a user's MJCF: ``MorphCentipedeEnv(body=...)``)."""
 
-    def __init__(self, leg_pairs: int, seeds: Sequence[int]):
+    def __init__(self, leg_pairs, seeds: Sequence[int]):
         if len(seeds) < 1:
             raise ValueError("a batch needs at least one centipede")
-        self.envs = [MorphCentipedeEnv(leg_pairs=leg_pairs) for _ in seeds]
+        options = None
+        if isinstance(leg_pairs, int):
+            self.envs = [MorphCentipedeEnv(leg_pairs=leg_pairs) for _ in seeds]
+        elif getattr(leg_pairs, "task", "walker") == "swimmer":  # a user's planar MJCF: the swimmer's task
+            self.envs, options = [MorphSwimmerEnv() for _ in seeds], {"body": leg_pairs}
+        else:
+            self.envs = [MorphCentipedeEnv(body=leg_pairs) for _ in seeds]
         for env, seed in zip(self.envs, seeds, strict=True):
-            env.reset(seed=int(seed))
+            env.reset(seed=int(seed), options=options)
         first = self.envs[0]
         self.size, self.num_joints, self.tree, self.parents = len(seeds), first.num_joints, first.tree, first.parents
         self.dt = first.dt
@@ -42,6 +50,8 @@ class CentipedeBatch:
         return np.array([env.data.qpos[0] for env in self.envs])
 
     def write_observation(self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray) -> None:
-        """Every centipede's graph observation into its row (12 global features; wider rows keep zeros)."""
+        """Every centipede's graph observation into its row (12 global features, a swimmer's 4; wider rows keep
+        zeros)."""
+        width = 4 if isinstance(self.envs[0], MorphSwimmerEnv) else 12
         for k, env in enumerate(self.envs):
-            env.write_observation(joint_pos[k], joint_vel[k], global_feats[k, :12])
+            env.write_observation(joint_pos[k], joint_vel[k], global_feats[k, :width])

@@ -68,7 +68,7 @@ SEGMENT_SPACING = 0.5
 _SIDE_STEP = repr(ANT_LEG_STEP * 2**0.5)  # Ant's diagonal step, sideways: the same lengths
 _SIDE_SHIN = repr(2 * ANT_LEG_STEP * 2**0.5)
 
-_HEADER = """<mujoco model="{name}">
+_OPEN = """<mujoco model="{name}">
   <compiler angle="degree" inertiafromgeom="true"/>
   <option integrator="RK4" timestep="{dt}"/>
   <default>
@@ -87,9 +87,13 @@ _HEADER = """<mujoco model="{name}">
           size="40 40 40" type="plane"/>
     <body name="{root}" pos="0 0 {z}">
       <camera name="track" mode="trackcom" pos="0 -3 0.3" xyaxes="1 0 0 0 0 1"/>
-      <geom name="{root}_geom" pos="0 0 0" size="{r}" type="sphere"/>
-      <joint armature="0" damping="0" limited="false" margin="0.01" name="root" pos="0 0 0" type="free"/>
 """
+_TORSO = """      <geom name="{root}_geom" pos="0 0 0" size="{r}" type="sphere"/>
+"""
+_FREE_JOINT = (
+    '      <joint armature="0" damping="0" limited="false" margin="0.01" name="root" pos="0 0 0" type="free"/>\n'
+)
+_HEADER = _OPEN + _TORSO + _FREE_JOINT
 
 _LEG = """{i}<body name="{leg}" pos="0 0 0">
 {i}  <geom fromto="0 0 0 {sx} {sy} 0" name="{leg}_hip_geom" size="{r}" type="capsule"/>

@@ -50,7 +50,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from morph_core.env.swimmer_env import DIVERGENCE_WARNING
 from morph_core.env.urdf import model_name
 from morph_core.policy.tree import KinematicTree, TreeError
 
@@ -59,6 +58,8 @@ CONTROL_PERIOD = 0.04
 MAX_MJCF_BYTES = 50_000_000
 """largest MJCF file read; meshes it names are MuJoCo's to load"""
 RESET_NOISE_SCALE = 0.1
+DIVERGENCE_WARNING = mujoco.mjtWarning.mjWARN_BADQACC
+"""the MuJoCo warning whose count rises when a swimmer's physics diverges (MuJoCo then resets its state)"""
 DIVERGENCE_WARNINGS = (DIVERGENCE_WARNING, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQPOS)
 """MuJoCo's warnings whose count rises when it has reset a state that blew up"""
 

@@ -163,20 +163,23 @@ class Take:
     ):
         import mujoco
 
-        from morph_core.env.bodies import Centipede, tree_depth
+        from morph_core.env.bodies import Centipede, is_walker, tree_depth
         from morph_core.env.centipede import MorphCentipedeEnv
+        from morph_core.env.mjcf_body import MjcfBody
         from morph_core.env.swimmer_env import MorphSwimmerEnv
 
-        centipede = isinstance(body, Centipede)
+        centipede = is_walker(body)
         tree = not isinstance(body, numbers.Integral)
         self.num_joints = body.num_joints if tree else check_num_joints(body)
         self._controller = controller
         if centipede:
-            self.env = MorphCentipedeEnv(leg_pairs=body.leg_pairs)
+            self.env = (MorphCentipedeEnv(leg_pairs=body.leg_pairs) if isinstance(body, Centipede)
+                        else MorphCentipedeEnv(body=body))  # fmt: skip
             self._obs, _ = self.env.reset(seed=reset_seed)
         else:
             self.env = MorphSwimmerEnv(num_joints=self.num_joints)
-            self._obs, _ = self.env.reset(seed=reset_seed, options={"tree": body} if tree else None)
+            options = {"body": body} if isinstance(body, MjcfBody) else {"tree": body} if tree else None
+            self._obs, _ = self.env.reset(seed=reset_seed, options=options)
         self.tree, self.label = self.env.tree, self.env.body_label
         self._parents = None if self.tree.is_chain else self.env.parents
         model = self.env.model
@@ -189,7 +192,8 @@ class Take:
         self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
         self.camera.trackbodyid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, self.tree.root_link)
         if centipede:  # the body's length along x: its segments, framed like a chain of that length
-            length = body.leg_pairs * SEGMENT_SPACING + 1.0  # and a leg's reach at each end
+            # a legged body: framed as a 3-pair centipede (its torso and legs span about as much)
+            length = getattr(body, "leg_pairs", 3) * SEGMENT_SPACING + 1.0  # and a leg's reach at each end
             extent = max((length + 2 * view.pad) / (width / height), view.min_extent)
             self.camera.distance = extent / (2 * math.tan(math.radians(model.vis.global_.fovy) / 2))
         else:

@@ -20,14 +20,14 @@ from gymnasium import spaces
 
 import morph_core.env.registration  # noqa: F401  (using an env registers the ids)
 from morph_core.env.bodies import BodyMix, body_label, parse_bodies, swimmers_only
+from morph_core.env.mjcf_body import MjcfBody
+from morph_core.env.mjcf_robot import DIVERGENCE_WARNING
 from morph_core.env.model import body_parents, check_num_joints, swimmer_model
 from morph_core.env.reward import CTRL_COST_WEIGHT, FORWARD_REWARD_WEIGHT, control_cost
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 
 OBSERVATION_MODES = ("graph", "flat")
 GLOBAL_FEATURES = ("yaw", "yaw_rate", "vx", "vy")
-DIVERGENCE_WARNING = mujoco.mjtWarning.mjWARN_BADQACC
-"""the MuJoCo warning whose count rises when a swimmer's physics diverges (MuJoCo then resets its state)"""
 
 
 def write_graph_observation(qpos, qvel, num_joints: int, joint_pos, joint_vel, global_feats) -> None:
@@ -111,21 +111,30 @@ class MorphSwimmerEnv(gymnasium.Env):
         self._build(self.joint_range[0] if self.bodies is None else self.bodies.first())
 
     # -- body ----------------------------------------------------------------
-    def _build(self, body: int | KinematicTree) -> None:
+    def _build(self, body: int | KinematicTree | MjcfBody) -> None:
         """Switch to a body: a chain length or a tree (a ``KinematicTree`` or a parent array; the compiled
-        model is cached per shape)."""
-        parents = body_parents(body)
+        model is cached per shape), or a user's MJCF of a planar root (``env.mjcf_body``)."""
+        mjcf = body if isinstance(body, MjcfBody) else None
+        parents = ("mjcf", mjcf.path) if mjcf is not None else body_parents(body)
         if parents == self._shape:
             mujoco.mj_resetData(self.model, self.data)
             return
-        num_joints = len(parents)
+        if mjcf is not None:
+            if mjcf.task != "swimmer":
+                raise ValueError(f"{mjcf.path!r} has a free root: a walker (MorphCentipedeEnv runs it)")
+            self.tree, self.body_label, self.model = mjcf.tree, mjcf.label, mjcf.model()
+            self._ctrl_map = mjcf.ctrl_map()
+        else:
+            self.tree = KinematicTree(swimmer_joint_names(len(parents)), np.array(parents, dtype=np.int64), "torso")
+            self.body_label = body_label(self.tree)
+            self.model = swimmer_model(parents)
+            self._ctrl_map = None
+        self.mjcf = mjcf
+        num_joints = self.tree.num_joints
         self.num_joints = num_joints
-        self.tree = KinematicTree(swimmer_joint_names(num_joints), np.array(parents, dtype=np.int64), "torso")
         self.parents = self.tree.parents  # read-only int64 [N]
-        self.body_label = body_label(self.tree)
         self.topology_hash = self.tree.topology_hash
         self._shape = parents
-        self.model = swimmer_model(parents)
         self.data = mujoco.MjData(self.model)
         # Views into this MjData, taken once: each attribute read builds a new array (~0.1 µs, and the
         # step reads them for every swimmer at every step).
@@ -153,7 +162,7 @@ class MorphSwimmerEnv(gymnasium.Env):
         chain, ``{"tree": KinematicTree}`` or ``{"parents": [...]}`` a tree (parents in pre-order, see
         ``model.check_parents``; a tree's own joint names are not kept, the swimmer's are)."""
         super().reset(seed=seed)
-        forced = [key for key in ("num_joints", "tree", "parents") if options and key in options]
+        forced = [key for key in ("num_joints", "tree", "parents", "body") if options and key in options]
         if len(forced) > 1:
             raise ValueError(f"reset options force the body twice: {forced}")
         if forced == ["num_joints"]:
@@ -164,6 +173,8 @@ class MorphSwimmerEnv(gymnasium.Env):
             body = options["tree"]
         elif forced == ["parents"]:
             body = options["parents"]
+        elif forced == ["body"]:  # a user's MJCF (``env.mjcf_body.MjcfBody``)
+            body = options["body"]
         elif self.bodies is not None:
             body = self.bodies.draw(self.np_random)
         else:
@@ -208,7 +219,10 @@ class MorphSwimmerEnv(gymnasium.Env):
             raise ValueError(f"action contains NaN or inf: {a}")
         qpos, badqacc = self._qpos, self._badqacc
         x_before, y_before = qpos[0], qpos[1]  # scalars: this runs for every swimmer at every step
-        self._ctrl[:] = a
+        if self._ctrl_map is None:
+            self._ctrl[:] = a
+        else:  # a user's MJCF: its actuators' order and ctrl ranges
+            self._ctrl[:] = a[self._ctrl_map[0]] * self._ctrl_map[1]
         unstable_before = badqacc.number
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         # MuJoCo resets the state itself when it diverges (seen on chains of

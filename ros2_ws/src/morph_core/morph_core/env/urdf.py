@@ -19,7 +19,7 @@ body's moved to its last hinge's anchor (the body's origin for the swimmer's
 hinges).
 Limits are the hinges' ranges in radians and the motors' peak torque
 (sum over the joint's actuators of gear x the ctrl range's far end, capped by
-a force range; ``NO_EFFORT_LIMIT`` when neither bounds it). Each link carries
+a force range; ``joint_description.NO_EFFORT_LIMIT`` when neither bounds it). Each link carries
 its spheres, boxes, cylinders and capsules (a capsule as a cylinder of its
 straight length: URDF has no capsule; ellipsoids, meshes, planes and height
 fields are left out, a URDF would need files or shapes it does not have),
@@ -42,12 +42,11 @@ import mujoco
 import numpy as np
 
 from morph_core.env.model import body_parents, swimmer_model
+from morph_core.policy.joint_description import peak_effort
 from morph_core.policy.tree import KinematicTree, TreeError
 
 NO_VELOCITY_LIMIT = 1000.0
 """rad/s written as every joint's velocity limit: the MJCF sets none"""
-NO_EFFORT_LIMIT = 1e9
-"""written as the effort limit of a joint whose actuators neither ctrl nor force range bounds"""
 
 _INERTIA_ENTRIES = {"ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2), "izz": (2, 2)}
 
@@ -235,18 +234,6 @@ def _fixed(name: str, parent: str, child: str, xyz, rpy) -> str:
     )
 
 
-def _peak_effort(m, j: int) -> float:
-    total = 0.0
-    for a in np.flatnonzero(m.actuator_trnid[:, 0] == j):
-        peak = np.inf
-        if m.actuator_ctrllimited[a]:
-            peak = abs(m.actuator_gear[a, 0]) * np.abs(m.actuator_ctrlrange[a]).max()
-        if m.actuator_forcelimited[a]:
-            peak = min(peak, np.abs(m.actuator_forcerange[a]).max())
-        total += peak
-    return total if np.isfinite(total) else NO_EFFORT_LIMIT
-
-
 def _joint(m, j: int, prefix: str, parent: str, child: str, xyz, rpy) -> str:
     limited = bool(m.jnt_limited[j])
     lo, hi = m.jnt_range[j]
@@ -257,7 +244,7 @@ def _joint(m, j: int, prefix: str, parent: str, child: str, xyz, rpy) -> str:
         f"<child link={quoteattr(child)}/>\n"
         f'    <origin xyz="{_vec(xyz)}" rpy="{_vec(rpy)}"/>'
         f'<axis xyz="{_vec(m.jnt_axis[j])}"/>\n'
-        f'    <limit {bounds}effort="{_num(_peak_effort(m, j))}" '
+        f'    <limit {bounds}effort="{_num(peak_effort(m, j))}" '
         f'velocity="{_num(NO_VELOCITY_LIMIT)}"/>\n'
         "  </joint>\n"
     )

@@ -26,10 +26,13 @@ import mujoco
 import numpy as np
 from gymnasium.utils import seeding
 
-from morph_core.env.bodies import BodyMix, Centipede, parse_bodies, swimmer_tree
+from morph_core.env.bodies import BodyMix, Centipede, is_walker, parse_bodies, swimmer_tree
 from morph_core.env.centipede import MorphCentipedeEnv
+from morph_core.env.legged_model import LeggedBody
+from morph_core.env.mjcf_body import MjcfBody
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES, mujoco_descriptions
 
 MAX_EPISODE_STEPS = 1000
 R = TypeVar("R")
@@ -86,9 +89,9 @@ class BodyEnv:
         self._reset_body(bodies.first())
 
     def _use(self, body) -> MorphSwimmerEnv | MorphCentipedeEnv:
-        if isinstance(body, Centipede):
+        if is_walker(body):  # Ant-v5's task
             if self._centipede is None:
-                self._centipede = MorphCentipedeEnv(leg_pairs=body.leg_pairs)
+                self._centipede = MorphCentipedeEnv(leg_pairs=body.leg_pairs if isinstance(body, Centipede) else 2)
             self.env = self._centipede
         else:
             if self._swimmer is None:
@@ -99,7 +102,10 @@ class BodyEnv:
 
     def _reset_body(self, body) -> None:
         env = self._use(body)
-        env.reset(options={"leg_pairs": body.leg_pairs} if isinstance(body, Centipede) else {"tree": body})
+        if isinstance(body, LeggedBody | MjcfBody):
+            env.reset(options={"body": body})
+        else:
+            env.reset(options={"leg_pairs": body.leg_pairs} if isinstance(body, Centipede) else {"tree": body})
 
     def reset(self, *, seed: int | None = None) -> None:
         if seed is not None:
@@ -112,7 +118,9 @@ class BodyEnv:
 
     @property
     def body(self) -> Centipede | object:
-        return Centipede(self.env.leg_pairs) if self.is_centipede else self.env.tree
+        if self.is_centipede:
+            return self.env.walker if self.env.walker is not None else Centipede(self.env.leg_pairs)
+        return self.env.tree
 
     def __getattr__(self, name):  # num_joints, parents, tree, body_label, model, data, dt
         if name == "env":
@@ -134,6 +142,12 @@ class BodyEnv:
 
     # -- state: the body, the generator, and what MuJoCo's integration state leaves out ---------
     def state_meta(self) -> dict:
+        mjcf = self.env.walker if self.is_centipede else self.env.mjcf
+        if isinstance(mjcf, MjcfBody):
+            return {"mjcf": mjcf.path, "rng": self.np_random.bit_generator.state}
+        if self.is_centipede and isinstance(self.env.walker, LeggedBody):
+            w = self.env.walker
+            return {"legged": [w.legs, w.joints_per_leg, w.torso, w.seed], "rng": self.np_random.bit_generator.state}
         if self.is_centipede:
             return {"leg_pairs": int(self.env.leg_pairs), "rng": self.np_random.bit_generator.state}
         body = {"num_joints": self.env.num_joints}
@@ -145,7 +159,10 @@ class BodyEnv:
         return {"root_xpos": self.env.data.xpos[self.env._root].copy()} if self.is_centipede else {}
 
     def restore_body(self, meta: dict) -> None:
-        if "leg_pairs" in meta:
+        if "legged" in meta or "mjcf" in meta:
+            body = LeggedBody(*meta["legged"]) if "legged" in meta else MjcfBody(meta["mjcf"])
+            self._use(body)._build(body)
+        elif "leg_pairs" in meta:
             env = self._use(Centipede(int(meta["leg_pairs"])))
             env._build(int(meta["leg_pairs"]))
         else:
@@ -169,6 +186,9 @@ class PaddedObs:
     global_feats: np.ndarray
     num_joints: np.ndarray
     parents: np.ndarray
+    joint_desc: np.ndarray | None = None
+    """[E, J, D] each joint's description (``policy.joint_description``, zero at padding), when the vector env
+    was asked for them (``joint_descriptions``); else None"""
 
     def arrays(self) -> tuple[np.ndarray, ...]:
         """(joint_pos, joint_vel, global_feats, num_joints, parents): the policy's arguments, in order."""
@@ -207,6 +227,7 @@ class SwimmerVecEnv:
         seed: int,
         max_episode_steps: int = MAX_EPISODE_STEPS,
         num_threads: int = 1,
+        joint_descriptions: bool = False,
     ):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
@@ -226,6 +247,8 @@ class SwimmerVecEnv:
             np.zeros((num_envs, J), np.float32), np.zeros((num_envs, J), np.float32),
             np.zeros((num_envs, G), np.float32), np.zeros(num_envs, np.int64), np.full((num_envs, J), -1, np.int64),
         )  # fmt: skip
+        if joint_descriptions:  # written per body at each reset (``_write_body``)
+            self._padded.joint_desc = np.zeros((num_envs, J, NUM_DESCRIPTION_FEATURES), np.float32)
         for i, env in enumerate(self.envs):
             env.reset(seed=seed + i)
             self._write_body(i)
@@ -235,7 +258,8 @@ class SwimmerVecEnv:
         self._threads = EnvThreads(min(num_threads, num_envs))
 
     def observations(self) -> PaddedObs:
-        return PaddedObs(*(x.copy() for x in self._padded.arrays()))
+        desc = self._padded.joint_desc
+        return PaddedObs(*(x.copy() for x in self._padded.arrays()), None if desc is None else desc.copy())
 
     def _write(self, i: int) -> None:
         """Swimmer i's observation into row i."""
@@ -248,6 +272,9 @@ class SwimmerVecEnv:
         p.num_joints[i] = env.num_joints
         p.parents[i] = -1
         p.parents[i, : env.num_joints] = env.parents
+        if p.joint_desc is not None:
+            p.joint_desc[i] = 0.0
+            p.joint_desc[i, : env.num_joints] = model_descriptions(env.model)
 
     def live_observations(self) -> PaddedObs:
         """The rows the bodies write their observations into (views, not copies): what ``observations()``
@@ -273,6 +300,8 @@ class SwimmerVecEnv:
             for i in np.flatnonzero(terminated | truncated).tolist():
                 env = self.envs[i]
                 result.final_obs[i] = env._observation()
+                if self._padded.joint_desc is not None:
+                    result.final_obs[i]["joint_desc"] = self._padded.joint_desc[i, : env.num_joints].copy()
                 ret, length = float(self.episode_returns[i]), int(self.episode_steps[i])
                 result.episodes.append(Episode(env.num_joints, ret, length, env.body_label))
                 self.episode_steps[i], self.episode_returns[i] = 0, 0.0
@@ -307,6 +336,8 @@ class SwimmerVecEnv:
                 arrays |= {f"env{i}.{k}": v for k, v in env.extra_arrays().items()}
                 continue
             body = {"num_joints": env.num_joints} | ({} if env.tree.is_chain else {"parents": env.parents.tolist()})
+            if env.mjcf is not None:
+                body = {"mjcf": env.mjcf.path}
             meta["envs"].append(body | {"rng": env.np_random.bit_generator.state})
         arrays["episode_steps"] = self.episode_steps.copy()
         arrays["episode_returns"] = self.episode_returns.copy()
@@ -319,8 +350,11 @@ class SwimmerVecEnv:
         for i, (env, m) in enumerate(zip(self.envs, meta["envs"], strict=True)):
             if isinstance(env, BodyEnv):
                 env.restore_body(m)
-            elif "leg_pairs" in m:
+            elif "leg_pairs" in m or "legged" in m:
                 raise ValueError("checkpoint holds a centipede; this run's bodies are swimmers")
+            elif "mjcf" in m:
+                env._build(MjcfBody(m["mjcf"]))
+                env.np_random.bit_generator.state = m["rng"]
             else:
                 n = int(m["num_joints"])
                 env._build(n if "parents" not in m else swimmer_tree(m["parents"]))
@@ -334,6 +368,20 @@ class SwimmerVecEnv:
             self._write(i)
         self.episode_steps[:] = arrays["episode_steps"]
         self.episode_returns[:] = arrays["episode_returns"]
+
+
+_DESCRIPTIONS: dict[int, tuple[object, np.ndarray]] = {}
+
+
+def model_descriptions(model) -> np.ndarray:
+    """``joint_description.mujoco_descriptions`` of a compiled body, computed once per model (the envs' models
+    are cached and shared; each entry keeps its model alive, so its id is not reused)."""
+    hit = _DESCRIPTIONS.get(id(model))
+    if hit is None:
+        if len(_DESCRIPTIONS) >= 4096:
+            _DESCRIPTIONS.clear()
+        hit = _DESCRIPTIONS[id(model)] = (model, mujoco_descriptions(model).astype(np.float32))
+    return hit[1]
 
 
 def merge_env_states(parts: list[tuple[dict, dict[str, np.ndarray]]]) -> tuple[dict, dict[str, np.ndarray]]:

@@ -79,9 +79,9 @@ class GraphFeatureExtractor(nn.Module):
     def __init__(self, config: PolicyConfig, backend: str = "dense"):
         super().__init__()
         self.config = config
-        bi = config.bidirectional
-        self.conv1 = ChainConv(1, config.conv1_channels, bi, backend)
-        self.conv2 = ChainConv(config.conv1_channels, config.embed_channels, bi, backend)
+        bi, e = config.bidirectional, config.edge_features
+        self.conv1 = ChainConv(1, config.conv1_channels, bi, backend, e)
+        self.conv2 = ChainConv(config.conv1_channels, config.embed_channels, bi, backend, e)
         self.global_mlp = _mlp([config.global_features, config.global_hidden, config.embed_channels], nn.ReLU, True)
 
     def forward(self, batch: ChainBatch) -> torch.Tensor:
@@ -92,6 +92,11 @@ class GraphFeatureExtractor(nn.Module):
                 f"{batch.global_feats.shape[1]}"
             )
         chains = batch.packed
+        if chains.edge_attr.shape[1] != self.config.edge_features:  # else a matmul's shape error
+            raise ValueError(
+                f"this policy reads {self.config.joint_features} joint description features per joint, the batch "
+                f"has {chains.edge_attr.shape[1] - 2} (ChainBatch joint_desc)"
+            )
         e, m, s = chains.edge_attr, chains.slot_mask, chains.sender
         x = e.new_ones(chains.num_links, 1)  # links carry no state of their own
         x = torch.relu(self.conv1(x, e, m, s))

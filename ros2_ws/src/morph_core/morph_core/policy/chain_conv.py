@@ -24,6 +24,16 @@ compiled update (``bench/bench_policy.py --trees``).
 parameters with ``backend="dense"``; ``backend="pyg"`` runs PyG itself on the
 joints as an explicit edge list and stays the reference.
 
+Joint descriptions (``PolicyConfig.joint_features``, ``policy.joint_description``) are more edge attributes,
+after the state: e = [angle, velocity, description]. They enter where the joint's state enters because a
+message across a joint is what a joint does to the link beyond it, and the description says what the joint
+is (where, about which axis, how strong, how far it reaches): the linear edge network makes each message a
+bilinear function of the sender's features and [state, description], so the same network can send
+different messages across a hip and a knee. Each joint's own head reads its child link (the actor head's
+input), which receives the message across that joint in the first layer, so the joint's description
+reaches its own action from the first layer on; the link embeddings (initially 1) need no other input.
+With ``joint_features`` 0 the edge is [angle, velocity], the layer is exactly the one without descriptions.
+
 Direction: the edge network sees only the joint state, so with one network
 for both directions a link could not tell the joint ahead from the joint
 behind, and the policy could not express which way a travelling wave runs
@@ -47,8 +57,8 @@ from morph_core.policy.chains import NUM_EDGE_FEATURES
 from morph_core.policy.config import BACKENDS
 
 
-def _nnconv(in_channels: int, out_channels: int, root: bool) -> NNConv:
-    edge_net = nn.Linear(NUM_EDGE_FEATURES, in_channels * out_channels)
+def _nnconv(in_channels: int, out_channels: int, root: bool, edge_features: int = NUM_EDGE_FEATURES) -> NNConv:
+    edge_net = nn.Linear(edge_features, in_channels * out_channels)
     conv = NNConv(in_channels, out_channels, nn=edge_net, aggr="add", root_weight=root, bias=root)
     _remove_generated_source(NNConv)
     return conv
@@ -68,15 +78,23 @@ def _remove_generated_source(cls: type) -> None:
 
 class ChainConv(nn.Module):
     """NNConv along cut chains or trees: x [L, C_in] links, edge_attr [L-1, E] slots, slot_mask [L-1],
-    sender [L-1] (trees; None: chains) -> [L, C_out]."""
+    sender [L-1] (trees; None: chains) -> [L, C_out]. E = ``edge_features``: a joint's angle and velocity,
+    then its description when the policy reads them (``PolicyConfig.joint_features``)."""
 
-    def __init__(self, in_channels: int, out_channels: int, bidirectional: bool, backend: str = "dense"):
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        bidirectional: bool,
+        backend: str = "dense",
+        edge_features: int = NUM_EDGE_FEATURES,
+    ):
         super().__init__()
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.backend = backend
-        self.fwd = _nnconv(in_channels, out_channels, root=True)  # torso-to-tail, with root weight and bias
-        self.bwd = _nnconv(in_channels, out_channels, root=False) if bidirectional else None
+        self.fwd = _nnconv(in_channels, out_channels, True, edge_features)  # torso-to-tail, root weight and bias
+        self.bwd = _nnconv(in_channels, out_channels, False, edge_features) if bidirectional else None
 
     def forward(
         self, x: torch.Tensor, edge_attr: torch.Tensor, slot_mask: torch.Tensor, sender: torch.Tensor | None = None

@@ -40,6 +40,9 @@ class ChainBatch:
     parents: [B, J] int64 parent joint of each joint (-1: the torso; -1 at padding), checked
         (``index_plan.check_parents``); None when every sample is a chain, however it was given, so that
         a batch of chains is one thing (and the network takes its chain path).
+    joint_desc: [B, J, D] float32 each joint's description (``policy.joint_description``; zero at padding), for
+        a policy that reads them (``PolicyConfig.joint_features`` = D); None: no descriptions (the edges carry
+        the joint states alone, as before descriptions existed).
     """
 
     joint_pos: torch.Tensor
@@ -48,12 +51,13 @@ class ChainBatch:
     num_joints: torch.Tensor
     mask: torch.Tensor
     parents: torch.Tensor | None = None
+    joint_desc: torch.Tensor | None = None
     packed: PackedChains = field(init=False, repr=False, compare=False)
     """the batch as one cut chain, which the network runs on (no gradients flow through it)"""
 
     def __post_init__(self):
         # Built here, outside any compiled region: its sizes depend on the data.
-        packed = PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask, self.parents)
+        packed = PackedChains.from_mask(self.joint_pos, self.joint_vel, self.mask, self.parents, self.joint_desc)
         object.__setattr__(self, "packed", packed)
 
     @property
@@ -65,9 +69,12 @@ class ChainBatch:
         return self.joint_pos.shape[1]
 
     @classmethod
-    def from_padded(cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True, parents=None) -> ChainBatch:
+    def from_padded(
+        cls, joint_pos, joint_vel, global_feats, num_joints, trim: bool = True, parents=None, joint_desc=None
+    ) -> ChainBatch:
         """Build from padded arrays or tensors; ``trim`` drops padding beyond the longest chain. ``parents``
-        [B, J] integers (padding ignored) makes the samples trees; None: chains. ValueError if invalid."""
+        [B, J] integers (padding ignored) makes the samples trees; None: chains. ``joint_desc`` [B, J, D] the
+        joints' descriptions (padding ignored; finite), or None. ValueError if invalid."""
         pos = torch.as_tensor(joint_pos, dtype=torch.float32)
         vel = torch.as_tensor(joint_vel, dtype=torch.float32)
         glob = torch.as_tensor(global_feats, dtype=torch.float32)
@@ -89,31 +96,36 @@ class ChainBatch:
         tree = _tree_parents(parents, mask, width=joint_pos.shape[1])
         # Zero the padding so nothing beyond a chain's end can leak into sums.
         pos, vel = (torch.from_numpy(x.detach().numpy() * mask) for x in (pos, vel))
-        return cls(pos, vel, glob, n, torch.from_numpy(mask), tree)
+        desc = _descriptions(joint_desc, mask, width=joint_pos.shape[1])
+        return cls(pos, vel, glob, n, torch.from_numpy(mask), tree, desc)
 
     @classmethod
-    def from_zero_padded(cls, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> ChainBatch:
+    def from_zero_padded(
+        cls, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None
+    ) -> ChainBatch:
         """Build from NumPy arrays as ``from_padded`` leaves them (float32 and int64, trimmed to the longest
         chain, zero beyond each chain's end), without its checks and copies: for batches whose padding this
         code wrote itself (a rollout's minibatches, gathered before every update step). ``parents`` [B, J]
         (trees) is still checked: its cost is the trees' alone."""
         mask = _joint_mask(num_joints, joint_pos.shape[1])
         tree = _tree_parents(parents, mask, width=joint_pos.shape[1])
-        return cls(*(torch.from_numpy(x) for x in (joint_pos, joint_vel, global_feats, num_joints, mask)), tree)
+        desc = None if joint_desc is None else torch.from_numpy(joint_desc)  # [B, J, D], zero padded by its writer
+        return cls(*(torch.from_numpy(x) for x in (joint_pos, joint_vel, global_feats, num_joints, mask)), tree, desc)
 
     @classmethod
     def from_observations(cls, observations: Sequence[dict]) -> ChainBatch:
         """Batch graph-mode observations of ``MorphSwimmer-v0`` (dicts with joint_pos, joint_vel, global, and
-        for a tree "parents"; without it a chain)."""
+        for a tree "parents"; without it a chain; "joint_desc" [N, D] when every observation has one)."""
         *arrays, parents = pad_observations(observations, with_parents=True)
-        return cls.from_padded(*arrays, parents=parents)
+        return cls.from_padded(*arrays, parents=parents, joint_desc=pad_descriptions(observations, arrays[0].shape[1]))
 
     def select(self, index: torch.Tensor) -> ChainBatch:
         """The sub-batch at ``index`` (e.g. a minibatch), trimmed to its own longest chain."""
         parents = None if self.parents is None else self.parents[index]
+        desc = None if self.joint_desc is None else self.joint_desc[index]
         return ChainBatch.from_padded(
             self.joint_pos[index], self.joint_vel[index], self.global_feats[index], self.num_joints[index],
-            parents=parents,
+            parents=parents, joint_desc=desc,
         )  # fmt: skip
 
 
@@ -131,6 +143,36 @@ def _tree_parents(parents, mask: np.ndarray, width: int) -> torch.Tensor | None:
         raise ValueError(f"parents must be [B, J] like joint_pos, {[mask.shape[0], width]}, got {list(p.shape)}")
     p = check_parents(p[:, : mask.shape[1]], mask)
     return None if is_chain(p, mask) else torch.from_numpy(p)
+
+
+def _descriptions(joint_desc, mask: np.ndarray, width: int) -> torch.Tensor | None:
+    """``joint_desc`` [B, width, D] as float32 cut to ``mask``'s width, zero at padding; None stays None."""
+    if joint_desc is None:
+        return None
+    d = joint_desc.detach().numpy() if isinstance(joint_desc, torch.Tensor) else np.asarray(joint_desc)
+    if d.ndim != 3 or d.shape[:2] != (mask.shape[0], width):
+        raise ValueError(f"joint_desc must be [B, J, D] like joint_pos, {[mask.shape[0], width]}, got {list(d.shape)}")
+    d = d[:, : mask.shape[1]].astype(np.float32) * mask[:, :, None]
+    if not np.isfinite(d).all():
+        raise ValueError("joint_desc holds NaN or inf")
+    return torch.from_numpy(np.ascontiguousarray(d))
+
+
+def pad_descriptions(observations: Sequence[dict], width: int) -> np.ndarray | None:
+    """The observations' "joint_desc" ([N, D] each) as [B, width, D] float32, zero padded; None when none has one
+    (ValueError when some have and some have not, or their widths differ)."""
+    have = ["joint_desc" in o for o in observations]
+    if not any(have):
+        return None
+    if not all(have):
+        raise ValueError("some observations carry joint descriptions and some do not")
+    widths = {np.shape(o["joint_desc"])[1] for o in observations}
+    if len(widths) != 1:
+        raise ValueError(f"observations' joint descriptions differ in width: {sorted(widths)}")
+    out = np.zeros((len(observations), width, widths.pop()), np.float32)
+    for i, o in enumerate(observations):
+        out[i, : len(o["joint_desc"])] = o["joint_desc"]
+    return out
 
 
 def pad_observations(observations: Sequence[dict], width: int | None = None, with_parents: bool = False):
@@ -174,7 +216,7 @@ class PackedChains:
     samples before b), its child link the next link; its parent link is that
     slot's index in a chain, ``sender[slot]`` in a tree (``index_plan``).
 
-    edge_attr: [L-1, 2] joint states per slot, zero at cuts.
+    edge_attr: [L-1, 2 + D] joint states per slot, then (with descriptions) the joint's description, zero at cuts.
     slot_mask: [L-1] bool, True where the slot holds a joint.
     joint_link: [V] the link behind each joint (its child), in the padded batch's row-major order.
     joint_chain: [V] sample (batch row) of each joint.
@@ -192,9 +234,15 @@ class PackedChains:
 
     @classmethod
     def from_mask(
-        cls, joint_pos: torch.Tensor, joint_vel: torch.Tensor, mask: torch.Tensor, parents: torch.Tensor | None = None
+        cls,
+        joint_pos: torch.Tensor,
+        joint_vel: torch.Tensor,
+        mask: torch.Tensor,
+        parents: torch.Tensor | None = None,
+        joint_desc: torch.Tensor | None = None,
     ) -> PackedChains:
-        """The packed batch of samples ``mask`` [B, J] with ``parents`` [B, J] (checked; None: chains)."""
+        """The packed batch of samples ``mask`` [B, J] with ``parents`` [B, J] (checked; None: chains) and the
+        joints' descriptions ``joint_desc`` [B, J, D] (None: none)."""
         # In NumPy: a dozen index operations on a few thousand numbers, each ~10x cheaper than torch's
         # (built once per minibatch step, outside the compiled region); the same values.
         b, _ = mask.shape
@@ -202,9 +250,13 @@ class PackedChains:
         joint_padded, joint_slot = plan.joint_padded, plan.joint_slot
         num_slots = max(joint_padded.size + b - 1, 0)
         pos, vel = joint_pos.detach().numpy(), joint_vel.detach().numpy()
-        edge_attr = np.zeros((num_slots, NUM_EDGE_FEATURES), pos.dtype)
+        width = NUM_EDGE_FEATURES if joint_desc is None else NUM_EDGE_FEATURES + joint_desc.shape[2]
+        edge_attr = np.zeros((num_slots, width), pos.dtype)
         edge_attr[joint_slot, 0] = pos.reshape(-1)[joint_padded]
         edge_attr[joint_slot, 1] = vel.reshape(-1)[joint_padded]
+        if joint_desc is not None:
+            desc = joint_desc.detach().numpy()
+            edge_attr[joint_slot, NUM_EDGE_FEATURES:] = desc.reshape(-1, desc.shape[2])[joint_padded]
         slot_mask = np.zeros(num_slots, dtype=bool)
         slot_mask[joint_slot] = True
         t = torch.from_numpy

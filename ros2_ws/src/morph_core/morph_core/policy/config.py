@@ -9,8 +9,11 @@ from __future__ import annotations
 import numbers
 from dataclasses import dataclass, fields
 
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES
+
 NUM_EDGE_FEATURES = 2
-"""per joint: angle, angular velocity (the same as ``chains.NUM_EDGE_FEATURES``, which needs torch)"""
+"""per joint: angle, angular velocity (the same as ``chains.NUM_EDGE_FEATURES``, which needs torch); a policy
+with joint descriptions reads ``PolicyConfig.edge_features`` = 2 + ``joint_features``"""
 NUM_GLOBAL_FEATURES = 4
 """the swimmer's global input: the torso's yaw, yaw rate, vx, vy (the same as ``chains.NUM_GLOBAL_FEATURES``);
 the default of ``PolicyConfig.global_features``"""
@@ -44,6 +47,16 @@ class PolicyConfig:
     """width of the global input (the global MLP's first layer): 4 for swimmers (yaw, yaw rate, vx, vy), the
     default, so checkpoints written before the field existed load as they were; a body in 3-D has more
     (``env.centipede.GLOBAL_FEATURES``)"""
+    joint_features: int = 0
+    """width of each joint's description (``policy.joint_description``, ``NUM_DESCRIPTION_FEATURES``) the policy
+    reads beside the joint's state, as more edge attributes of every edge-conditioned convolution (``chain_conv``);
+    0, the default, is the policy without descriptions, so every checkpoint written before the field existed
+    loads and answers as it did"""
+
+    @property
+    def edge_features(self) -> int:
+        """what each joint's edge carries: its angle and angular velocity, then its description"""
+        return NUM_EDGE_FEATURES + self.joint_features
 
     def __post_init__(self):
         for f in ("conv1_channels", "embed_channels", "global_hidden", "head_hidden"):
@@ -54,6 +67,9 @@ class PolicyConfig:
         g = self.global_features
         if not isinstance(g, numbers.Integral) or isinstance(g, bool) or not 1 <= g <= MAX_GLOBAL_FEATURES:
             raise ValueError(f"global_features must be an integer in 1..{MAX_GLOBAL_FEATURES}, got {g!r}")
+        d = self.joint_features
+        if isinstance(d, bool) or d not in (0, NUM_DESCRIPTION_FEATURES):
+            raise ValueError(f"joint_features must be 0 (none) or {NUM_DESCRIPTION_FEATURES} (descriptions), got {d!r}")
         for f in ("bidirectional", "ortho_init"):
             if not isinstance(getattr(self, f), bool):
                 raise ValueError(f"{f} must be true or false, got {getattr(self, f)!r}")

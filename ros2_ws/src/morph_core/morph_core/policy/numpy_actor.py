@@ -70,8 +70,8 @@ class _Layout(NamedTuple):
     link: np.ndarray
     """[V] the link behind each joint (``slot + 1``)"""
     coef: np.ndarray
-    """[L - 1, 3] the messages' coefficients before the joint states are written: 1 in the third column at
-    joints, 0 at cuts"""
+    """[L - 1, 3 + D] the messages' coefficients before the joint states (and D description features) are
+    written: 1 in the last column at joints, 0 at cuts"""
     first: np.ndarray
     """[B] each chain's first joint"""
     count: np.ndarray
@@ -80,12 +80,12 @@ class _Layout(NamedTuple):
     """[L - 1] the parent link of each slot's joint (trees, ``index_plan.IndexPlan.slot_sender``); None: chains"""
 
     @classmethod
-    def of(cls, num_joints: np.ndarray, width: int, parents: np.ndarray | None = None) -> _Layout:
+    def of(cls, num_joints: np.ndarray, width: int, parents: np.ndarray | None = None, described: int = 0) -> _Layout:
         mask = np.arange(width) < num_joints[:, None]
         plan = IndexPlan.of(mask, parents)  # the chains back to back, one cut between neighbours
         slot = plan.joint_slot
-        coef = np.zeros((plan.joint_padded.size + num_joints.shape[0] - 1, 3), dtype=np.float32)
-        coef[slot, 2] = 1.0
+        coef = np.zeros((plan.joint_padded.size + num_joints.shape[0] - 1, 3 + described), dtype=np.float32)
+        coef[slot, 2 + described] = 1.0
         first = np.cumsum(num_joints) - num_joints  # joints of a chain are contiguous
         count = num_joints[:, None].astype(np.float32)
         return cls(mask, plan.joint_padded, plan.joint_sample, slot, slot + 1, coef, first, count, plan.slot_sender)
@@ -115,16 +115,41 @@ class NumpyPolicy:
         self.log_std = float(state["log_std"])
         self.global_features = self.global_mlp[0][0].shape[0]
         """how many global features the policy reads (``PolicyConfig.global_features``: 4 planar, 12 legged)"""
+        self.joint_features = int(state["features.conv1.fwd.nn.weight"].shape[1]) - 2
+        """description features per joint the policy reads (``PolicyConfig.joint_features``)"""
         self._layouts: dict[tuple[int, str, bytes], _Layout] = {}
 
+    def _check_desc(self, joint_desc, joints: tuple[int, ...]) -> np.ndarray | None:
+        """``joint_desc`` as float32 [*joints, D], checked against the policy's D (None when D is 0)."""
+        if self.joint_features == 0:
+            if joint_desc is not None:
+                raise ValueError("this policy reads no joint descriptions (joint_features 0), but some were given")
+            return None
+        if joint_desc is None:
+            raise ValueError(f"this policy reads {self.joint_features} joint description features per joint: pass "
+                             "joint_desc")  # fmt: skip
+        d = np.asarray(joint_desc, dtype=np.float32)
+        if d.shape != (*joints, self.joint_features):
+            raise ValueError(f"joint_desc must be {[*joints, self.joint_features]}, got {list(d.shape)}")
+        return d
+
     def mean(
-        self, joint_pos: np.ndarray, joint_vel: np.ndarray, global_feats: np.ndarray, parents: np.ndarray | None = None
+        self,
+        joint_pos: np.ndarray,
+        joint_vel: np.ndarray,
+        global_feats: np.ndarray,
+        parents: np.ndarray | None = None,
+        joint_desc: np.ndarray | None = None,
     ) -> np.ndarray:
         """[N] mean action of one chain of N joints (torso to tail), or of a tree with ``parents`` [N]
-        (joint j's parent joint, -1 for the torso; ValueError if not in -1..j-1)."""
+        (joint j's parent joint, -1 for the torso; ValueError if not in -1..j-1); ``joint_desc`` [N, D] the
+        joints' descriptions, for a policy that reads them."""
         n = joint_pos.shape[0]
-        coef = np.ones((n, 3), dtype=np.float32)
+        desc = self._check_desc(joint_desc, (n,))
+        coef = np.ones((n, 3 + self.joint_features), dtype=np.float32)
         coef[:, 0], coef[:, 1] = joint_pos, joint_vel
+        if desc is not None:
+            coef[:, 2:-1] = desc
         sender = None
         if parents is not None:
             p = check_parents(parents, np.ones(n, dtype=bool))
@@ -139,31 +164,37 @@ class NumpyPolicy:
         global_feats: np.ndarray,
         rng: np.random.Generator,
         parents: np.ndarray | None = None,
+        joint_desc: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One chain's (or tree's) Gaussian sample: (action [N], mean [N]) as float64, a = mean + sigma * z,
         z ~ N(0, I)."""
-        mean = self.mean(joint_pos, joint_vel, global_feats, parents).astype(np.float64)
+        mean = self.mean(joint_pos, joint_vel, global_feats, parents, joint_desc).astype(np.float64)
         return mean + math.exp(self.log_std) * rng.standard_normal(mean.shape[0]), mean
 
-    def forward(self, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> tuple[np.ndarray, np.ndarray]:
-        """Padded batch [B, J] (zero padding beyond each chain; trees with ``parents`` [B, J]) -> mean [B, J]
-        (zero at padding), value [B]."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
+    def forward(
+        self, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Padded batch [B, J] (zero padding beyond each chain; trees with ``parents`` [B, J]; descriptions
+        ``joint_desc`` [B, J, D] for a policy that reads them) -> mean [B, J] (zero at padding), value [B]."""
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
         return self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z)
 
-    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None) -> np.ndarray:
+    def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None) -> np.ndarray:
         """``forward``'s mean [B, J] alone, without the critic: what a deterministic evaluation acts on."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
         return self._padded_mean(chains, z, joint_pos.shape)
 
     def _joint_embeddings(
-        self, joint_pos, joint_vel, global_feats, num_joints, parents=None
+        self, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None
     ) -> tuple[_Layout, np.ndarray]:
         """The chains' layout and the [V, C] embedding of every joint (its link's plus its chain's global one)."""
+        desc = self._check_desc(joint_desc, joint_pos.shape)
         chains = self._layout(num_joints, joint_pos.shape[1], parents)
         coef = chains.coef.copy()
         coef[chains.slot, 0] = joint_pos.reshape(-1)[chains.joint_padded]
         coef[chains.slot, 1] = joint_vel.reshape(-1)[chains.joint_padded]
+        if desc is not None:
+            coef[chains.slot, 2:-1] = desc.reshape(-1, self.joint_features)[chains.joint_padded]
         return chains, self._links(coef, chains.sender)[chains.link] + self._global(global_feats)[chains.chain]
 
     def _padded_mean(self, chains: _Layout, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -175,9 +206,9 @@ class NumpyPolicy:
         """[B] the critic on each chain's mean joint embedding."""
         return _tanh_mlp(np.add.reduceat(z, chains.first, axis=0) / chains.count, self.critic)[:, 0]
 
-    def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray, parents=None):
+    def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray, parents=None, joint_desc=None):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents)
+        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
         mean, value, mask = self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z), chains.mask
         action = (mean + math.exp(self.log_std) * noise) * mask
         log_prob = log_density_from_norm(np.square(noise * mask).sum(1), num_joints, self.log_std)
@@ -201,7 +232,7 @@ class NumpyPolicy:
                     parents = None
             if len(self._layouts) >= 256:
                 self._layouts.clear()
-            layout = self._layouts[key] = _Layout.of(num_joints, width, parents)
+            layout = self._layouts[key] = _Layout.of(num_joints, width, parents, self.joint_features)
         return layout
 
     def _links(self, coef: np.ndarray, sender: np.ndarray | None = None) -> np.ndarray:

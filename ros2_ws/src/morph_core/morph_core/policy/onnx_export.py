@@ -15,6 +15,10 @@ With ``tree=True`` the graph takes a kinematic tree (``index_plan``) instead, on
 and computes its index plan in the graph (each joint's sender, its parent link, is ``parents + 1``:
 one tree has no cuts). The graph does not check ``parents``; a caller must (``index_plan.check_parents``).
 
+A policy that reads joint descriptions (``PolicyConfig.joint_features`` D > 0) takes one more, last input:
+
+    joint_desc  [N, D] float32: each joint's description (``policy.joint_description``)
+
 The graph is torch's own exporter (``torch.onnx.export``, torch.export based) run on
 ``SingleChainPolicy``: the policy's modules applied to one chain laid out as arrays, the form
 ``numpy_actor`` computes, instead of the batched ``PackedChains`` whose index building
@@ -48,6 +52,9 @@ from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
 
 INPUT_NAMES = ("joint_pos", "joint_vel", "global")
+DESC_INPUT = "joint_desc"
+"""the last input of a policy that reads joint descriptions (``PolicyConfig.joint_features`` = D > 0): [N, D]
+float32, each joint's ``policy.joint_description`` vector"""
 TREE_INPUT_NAMES = (*INPUT_NAMES, "parents")
 """the tree graph's inputs (``export_model(tree=True)``): the chain's, then parents [N] int64"""
 ACTION_OUTPUT = "action"
@@ -91,9 +98,11 @@ class SingleChainPolicy(nn.Module):
     def forward(self, joint_pos: torch.Tensor, joint_vel: torch.Tensor, global_feats: torch.Tensor):
         return self._outputs(joint_pos, joint_vel, global_feats, None)
 
-    def _outputs(self, joint_pos, joint_vel, global_feats, sender: torch.Tensor | None):
+    def _outputs(self, joint_pos, joint_vel, global_feats, sender: torch.Tensor | None, joint_desc=None):
         features = self.policy.features
         edge_attr = torch.stack([joint_pos, joint_vel], dim=1)  # slot j holds joint j
+        if joint_desc is not None:  # a policy with descriptions: [angle, velocity, description] per joint
+            edge_attr = torch.cat([edge_attr, joint_desc], dim=1)
         slot_mask = torch.ones_like(joint_pos, dtype=torch.bool)
         x = joint_pos.new_ones(joint_pos.shape[0] + 1, 1)  # links carry no state of their own
         x = torch.relu(features.conv1(x, edge_attr, slot_mask, sender))
@@ -112,6 +121,20 @@ class SingleTreePolicy(SingleChainPolicy):
 
     def forward(self, joint_pos, joint_vel, global_feats, parents):
         return self._outputs(joint_pos, joint_vel, global_feats, parents + 1)
+
+
+class DescribedChainPolicy(SingleChainPolicy):
+    """``SingleChainPolicy`` of a policy that reads joint descriptions: one more input, joint_desc [N, D]."""
+
+    def forward(self, joint_pos, joint_vel, global_feats, joint_desc):
+        return self._outputs(joint_pos, joint_vel, global_feats, None, joint_desc)
+
+
+class DescribedTreePolicy(SingleChainPolicy):
+    """``SingleTreePolicy`` of a policy that reads joint descriptions: parents, then joint_desc [N, D]."""
+
+    def forward(self, joint_pos, joint_vel, global_feats, parents, joint_desc):
+        return self._outputs(joint_pos, joint_vel, global_feats, parents + 1, joint_desc)
 
 
 @dataclass(frozen=True)
@@ -184,19 +207,25 @@ def export_model(
     with ``tree``, of one kinematic tree (inputs ``TREE_INPUT_NAMES``)."""
     onnx = _require("onnx")
     _require("onnxscript")  # torch's exporter imports it itself; fail here with the install hint
-    module = (SingleTreePolicy if tree else SingleChainPolicy)(policy, with_value).eval()
+    described = policy.config.joint_features
+    kinds = {(False, False): SingleChainPolicy, (True, False): SingleTreePolicy,
+             (False, True): DescribedChainPolicy, (True, True): DescribedTreePolicy}  # fmt: skip
+    module = kinds[tree, bool(described)](policy, with_value).eval()
     example = (torch.zeros(3), torch.zeros(3), torch.zeros(policy.config.global_features))
     n = torch.export.Dim(NUM_JOINTS_AXIS, min=1)
     dynamic: tuple = ({0: n}, {0: n}, None)
     if tree:
         example, dynamic = (*example, torch.tensor([-1, 0, 0])), (*dynamic, {0: n})
+    if described:
+        example, dynamic = (*example, torch.zeros(3, described)), (*dynamic, {0: n})
+    names = input_names(tree, described)
     outputs = [ACTION_OUTPUT, VALUE_OUTPUT] if with_value else [ACTION_OUTPUT]
     try:
         with _quiet_exporter(), torch.no_grad():
             program = torch.onnx.export(
                 module,
                 example,
-                input_names=list(TREE_INPUT_NAMES if tree else INPUT_NAMES),
+                input_names=list(names),
                 output_names=outputs,
                 dynamic_shapes=dynamic,
                 opset_version=OPSET,
@@ -213,12 +242,19 @@ def export_model(
         inputs += "parents [N] int64 (parent joint, -1: the torso)"
     else:
         inputs = f"one chain: joint_pos [N], joint_vel [N] (torso to tail), {glob}"
+    if described:
+        inputs += f", joint_desc [N, {described}] (each joint's description, policy.joint_description)"
     model.doc_string = f"Graph policy, deterministic actor of {inputs} -> action [N] (mean, unclipped)" + (
         ", value [1]" if with_value else ""
     )
     onnx.helper.set_model_props(model, {"format": TREE_FORMAT if tree else FORMAT, **(metadata or {})})
     onnx.checker.check_model(model, full_check=True)
     return model
+
+
+def input_names(tree: bool, joint_features: int) -> tuple[str, ...]:
+    """The graph's inputs, in order: the chain's or the tree's, then ``joint_desc`` when the policy reads it."""
+    return (*(TREE_INPUT_NAMES if tree else INPUT_NAMES), *((DESC_INPUT,) if joint_features else ()))
 
 
 def scaled_difference(got: np.ndarray, want: np.ndarray) -> np.ndarray:
@@ -269,13 +305,21 @@ def check_against_policy(
         vel = rng.normal(0.0, 3.0, n).astype(np.float32)
         glob = random_global(rng, policy.config.global_features)  # the policy's width: 4, or 12 for legs
         inputs = (pos, vel, glob) if shape is None else (pos, vel, glob, random_parents(rng, n, shape))
-        names_in = TREE_INPUT_NAMES if tree else INPUT_NAMES
+        described = policy.config.joint_features
+        desc = rng.uniform(-1, 1, (n, described)).astype(np.float32) if described else None
+        if desc is not None:
+            inputs = (*inputs, desc)
+        names_in = input_names(tree, described)
         got = dict(zip(names, session.run(None, dict(zip(names_in, inputs, strict=True))), strict=True))
         with torch.no_grad():
-            if shape is None:
+            if shape is None and desc is None:
                 batch = chain_batch(pos, vel, glob)
             else:
-                batch = ChainBatch.from_padded(pos[None], vel[None], glob[None], [n], parents=inputs[3][None])
+                parents = None if shape is None else inputs[3][None]
+                batch = ChainBatch.from_padded(
+                    pos[None], vel[None], glob[None], [n], parents=parents,
+                    joint_desc=None if desc is None else desc[None],
+                )  # fmt: skip
             mean, _, value = policy(batch)
         want = {ACTION_OUTPUT: mean[0].numpy(), VALUE_OUTPUT: value.numpy()}
         for name, out in got.items():

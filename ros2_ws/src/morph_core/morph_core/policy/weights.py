@@ -25,7 +25,7 @@ import numpy as np
 import safetensors.numpy
 from safetensors import SafetensorError
 
-from morph_core.policy.config import NUM_EDGE_FEATURES, PolicyConfig
+from morph_core.policy.config import PolicyConfig
 from morph_core.util.atomic import atomic_write_bytes, atomic_writer
 
 SIGNED_KEY = "signed_weights"
@@ -79,7 +79,7 @@ def parameter_shapes(config: PolicyConfig) -> dict[str, tuple[int, ...]]:
         shapes[f"{base}.fwd.bias"] = (c_out,)
         shapes[f"{base}.fwd.lin.weight"] = (c_out, c_in)
         for direction in ("fwd", "bwd") if config.bidirectional else ("fwd",):
-            shapes[f"{base}.{direction}.nn.weight"] = (c_in * c_out, NUM_EDGE_FEATURES)
+            shapes[f"{base}.{direction}.nn.weight"] = (c_in * c_out, config.edge_features)
             shapes[f"{base}.{direction}.nn.bias"] = (c_in * c_out,)
     g = config.global_hidden
     shapes.update(

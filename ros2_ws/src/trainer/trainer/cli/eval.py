@@ -218,7 +218,7 @@ def checkpoint_table(path: Path, cfg: EvalConfig) -> str:
 
 def _has_centipedes(spec: str) -> bool:
     try:
-        return bool(spec) and parse_bodies(spec).has_centipedes
+        return bool(spec) and parse_bodies(spec).has_walkers
     except ValueError:
         return False  # said below, where the spec is read for the bodies
 

@@ -152,7 +152,7 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
     ``choose_gl_backend`` must have run (before MuJoCo was imported)."""
     import numpy as np
 
-    from morph_core.env.bodies import Centipede
+    from morph_core.env.bodies import is_walker
     from morph_core.env.render import Take
     from morph_core.policy.numpy_actor import NumpyPolicy
     from trainer.reports.video import VideoWriter, add_caption, caption_font, tile
@@ -160,8 +160,8 @@ def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4
     cfg.check()
     policy = NumpyPolicy(weights)
     global_width = weights.config.global_features
-    if global_width < 12 and any(isinstance(b, Centipede) for b in cfg.takes()):
-        raise ValueError(f"this policy reads {global_width} global features, a centipede 12: train it on centipedes")
+    if global_width < 12 and any(is_walker(b) for b in cfg.takes()):
+        raise ValueError(f"this policy reads {global_width} global features, a walker 12: train it on walkers")
 
     def mean(pos, vel, glob, **kw):  # a swimmer's 4 globals, zero-padded to a 12-wide policy's input
         return policy.mean(pos, vel, np.pad(glob, (0, global_width - len(glob))), **kw)

@@ -115,7 +115,8 @@ def build_parser() -> CommandLineParser:
         "--init",
         type=Path,
         default=None,
-        help="start a new run from this policy checkpoint (.safetensors, its .json beside it)",
+        help="start a new run from this policy checkpoint (.safetensors, its .json beside it): from bags, or in "
+        "the simulator (fine-tuning on --bodies)",
     )
     bags.add_argument(
         "--iterations",
@@ -347,10 +348,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.namespaces or args.signing_key:
         parser.error("--namespaces, --signing-key: only with --live")
-    given = [opt for opt, v in (("--init", args.init), ("--iterations", args.iterations),
-                                ("--new-data", args.new_data), ("--namespace", args.namespace)) if v]  # fmt: skip
+    given = [opt for opt, v in (("--iterations", args.iterations), ("--new-data", args.new_data),
+                                ("--namespace", args.namespace)) if v]  # fmt: skip
     if given:
         parser.error(f"{', '.join(given)}: only with --from-bags")
+    if args.init is not None:  # fine-tuning in the simulator: the same checks as from bags
+        if args.resume:
+            parser.error("--init starts a new run; --resume continues the run in --out from its own state")
+        try:
+            GraphActorCritic.load(args.init)
+        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
+            parser.error(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})")
     overrides = overrides_from_args(args, TrainConfig)
     resumed = None
     if args.resume:
@@ -398,8 +406,8 @@ def main(argv: list[str] | None = None) -> int:
             if resumed:
                 resumed.write_back()
             with follower:
-                train(cfg, args.out, resume=args.resume, on_row=follower.on_row, rollout_pool=pool)
-    except (TrainingStateError, RolloutWorkerError) as err:
+                train(cfg, args.out, resume=args.resume, on_row=follower.on_row, rollout_pool=pool, init=args.init)
+    except (TrainingStateError, RolloutWorkerError, ValueError) as err:  # ValueError: bodies that refuse --init
         print(f"morph-train: error: {err}", file=sys.stderr)
         return 1
     except OSError as err:  # a full disk: every file is written atomically, so the last checkpoint is intact

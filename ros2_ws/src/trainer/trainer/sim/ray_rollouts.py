@@ -95,7 +95,10 @@ class RayRolloutPool:
         self.workers = [spec.worker(rank, workers) for rank in range(workers)]
         self.bounds = [(w.lo, w.hi) for w in self.workers]
         self.rng_names: list[str | None] = [f"worker{w.rank}" for w in self.workers]
-        self.rollout = Rollout(spec.num_steps, spec.num_envs, spec.max_joints, global_features=spec.global_features)
+        self.rollout = Rollout(
+            spec.num_steps, spec.num_envs, spec.max_joints, global_features=spec.global_features,
+            joint_features=spec.joint_features,
+        )  # fmt: skip
         self.collecting = False
         self.restarts = 0
         """workers restarted so far (each logged)"""
