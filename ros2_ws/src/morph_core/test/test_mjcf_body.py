@@ -115,3 +115,15 @@ def test_mjcf_bodies_step_vectorised_and_restore_exactly(spec):
     act = rng.uniform(-1, 1, (3, env.max_joints)).astype(np.float32)
     a, b = env.step(act), other.step(act)
     assert np.array_equal(a.obs.joint_pos, b.obs.joint_pos) and np.array_equal(a.reward, b.reward)
+
+
+def test_walkers_take_the_legged_ppo_settings_unless_given_and_swimmers_keep_theirs():
+    # The legged family and a free-rooted MJCF learn with the centipede results' settings, as centipedes do;
+    # a planar MJCF is a swimmer and keeps the paper's.
+    from morph_core.algo.ppo_config import LEGGED_DEFAULTS, family_defaults
+
+    for walkers in ("legged:4-6x2", f"mjcf:{ANT}", "centipede:2-3", f"2-4,mjcf:{ANT}"):
+        assert family_defaults(walkers, set()) == LEGGED_DEFAULTS, walkers
+        assert "learning_rate" not in family_defaults(walkers, {"learning_rate"}), walkers
+    for swimmers in ("", "2-10", f"mjcf:{SWIMMER}", "y:2x2"):
+        assert family_defaults(swimmers, set()) == {}, swimmers

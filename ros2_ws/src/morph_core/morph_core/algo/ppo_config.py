@@ -25,15 +25,17 @@ from morph_core.policy.actor_critic import PolicyConfig
 from morph_core.util.config_cli import check_field_types, renamed_fields
 
 LEGGED_DEFAULTS = {"learning_rate": 3e-4, "gamma": 0.99, "gae_lambda": 0.95}
-"""PPO settings of bodies with legs (centipedes), in place of the paper's swimmer ones where a run did not set
-them: the centipede results' (CleanRL's Ant settings; sweeps/centipedes*.yaml, docs/centipedes.md). At the
-swimmer's 0.01 / 0.98 a 12-feature policy's updates reach KL 0.1-0.3."""
+"""PPO settings of bodies with legs (centipedes, the legged family, a user's MJCF with a free root), in place
+of the paper's swimmer ones where a run did not set them: the centipede results' (CleanRL's Ant settings;
+sweeps/centipedes*.yaml, docs/centipedes.md). At the swimmer's 0.01 / 0.98 a 12-feature policy's updates
+reach KL 0.1-0.3."""
 
 
 def family_defaults(bodies: str, given) -> dict:
     """The fields of ``LEGGED_DEFAULTS`` not in ``given`` (field names a user set) when ``bodies`` holds
-    centipedes; {} for swimmers, whose runs keep the dataclass defaults (bit for bit)."""
-    if not bodies or not parse_bodies(bodies).has_centipedes:
+    walkers (centipedes, legged bodies, a free-rooted MJCF); {} for swimmers, whose runs keep the dataclass
+    defaults (bit for bit)."""
+    if not bodies or not parse_bodies(bodies).has_walkers:
         return {}
     return {k: v for k, v in LEGGED_DEFAULTS.items() if k not in given}
 
