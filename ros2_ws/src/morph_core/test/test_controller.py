@@ -37,6 +37,7 @@ from morph_core.protocol.controller import (
     Controller,
     EffortOrderError,
     effort_limit_error,
+    policy_error,
 )
 from morph_core.protocol.joint_map import JointMapError
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController, body_sim
@@ -359,3 +360,11 @@ def test_a_state_the_controller_cannot_read_raises_by_kind():
     with pytest.raises(JointStateError):
         c.odometry(OdometryRecord(0, 1, 0.0, 0.0, (0.0, 0.0, 0.0, 0.0), (0.0, 0.0), 0.0))
     assert c.odom is None
+
+
+def test_a_policy_whose_inputs_no_controller_builds_is_refused_with_its_reason():
+    # A node refuses such a checkpoint (or pushed weights) in one line rather than failing at its first state.
+    assert policy_error(PolicyConfig()) is None and policy_error(PolicyConfig(global_features=12)) is None
+    assert "reads 7 global features; a controller builds 4 or 12" in policy_error(PolicyConfig(global_features=7))
+    described = policy_error(PolicyConfig(global_features=12, joint_features=11))
+    assert described is not None and "joint descriptions (joint_features 11)" in described

@@ -181,7 +181,7 @@ from morph_core.protocol.controller import (
     Ready,
     effort_order,
     effort_units,
-    global_width_error,
+    policy_error,
 )
 from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.input_counts import InputCounts
@@ -227,8 +227,8 @@ def pushed_policy(weights: WeightsMessage) -> tuple[PolicyWeights, NumpyPolicy]:
 
 
 def _drivable(weights: PolicyWeights) -> PolicyWeights:
-    """``weights`` if the controller can build their global features from the topics, else ``CheckpointError``."""
-    error = global_width_error(weights.config.global_features)
+    """``weights`` if the controller can build their inputs from the topics, else ``CheckpointError``."""
+    error = policy_error(weights.config)
     if error is not None:
         raise CheckpointError(weights.source, f"the policy {error}")
     return weights

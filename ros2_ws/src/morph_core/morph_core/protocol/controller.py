@@ -109,6 +109,21 @@ def global_width_error(width: int) -> str | None:
     return f"reads {width} global features; a controller builds {' or '.join(map(str, GLOBAL_FEATURES))}"
 
 
+def policy_error(config) -> str | None:
+    """Why a policy of ``config`` (a ``PolicyConfig``) cannot be driven from the topics, or None: a global width
+    no controller builds, or per-joint descriptions (``joint_features``), which a controller does not yet read
+    off ``robot_description`` (a refusal in one line, not a failure at the first state)."""
+    error = global_width_error(config.global_features)
+    if error is not None:
+        return error
+    if getattr(config, "joint_features", 0):
+        return (
+            f"reads joint descriptions (joint_features {config.joint_features}); a controller does not build them "
+            "from robot_description yet: run it with morph-eval, or train with joint_features 0 for the nodes"
+        )
+    return None
+
+
 def check_odometry(odom: OdometryRecord) -> None:
     """Raise ``JointStateError`` if the odometry gives no features (NaN/inf, a quaternion not of unit length),
     in any width: it is checked when it arrives, and used when a state needs it."""
