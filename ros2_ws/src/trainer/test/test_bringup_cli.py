@@ -82,7 +82,8 @@ def test_the_wrappers_help_names_the_script_and_shows_defaults(tmp_path, script)
     assert done.stdout.startswith(f"usage: bash scripts/{script} [-h]")
     assert "bring-up" not in done.stdout.splitlines()[0] and "(default: 10)" in done.stdout
     text = " ".join(done.stdout.split())  # the epilog wrapped
-    assert "A relative --out or --checkpoint is taken from the folder the command runs in." in text
+    policy = "--init" if script == "live.sh" else "--checkpoint"  # the policy a run starts from / nodes run
+    assert f"A relative --out or {policy} is taken from the folder the command runs in." in text
     if script == "live.sh":
         assert "[-- MORPH-TRAIN OPTIONS]" in done.stdout and "Everything after -- goes to the trainer" in text
     assert list(tmp_path.iterdir()) == []
@@ -169,3 +170,29 @@ def test_live_refuses_a_signing_key_it_cannot_use_in_one_line_before_anything_ru
                           cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 1 and "is not the public half of" in done.stderr and "Traceback" not in done.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_live_init_starts_the_trainer_and_the_nodes_from_one_policy(tmp_path):
+    # --init (or the trainer's -- --init, or the deprecated --checkpoint) is the run's starting policy: the
+    # trainer's first weights and what the nodes run until they arrive. A bad one is refused before anything runs.
+    import argparse
+
+    from trainer.live.bringup import pair_params, split_option, trainer_arguments
+
+    args = argparse.Namespace(out=Path("run"), bodies="", episode_steps=100, max_updates=1, resume=False,
+                              init=Path("/p/start.safetensors"))  # fmt: skip
+    assert trainer_arguments(["/swimmer0"], args, [])[-2:] == ["--init", "/p/start.safetensors"]
+    _, policy = pair_params(0, 2, 10, "/p/start.safetensors")
+    assert policy["checkpoint"] == "/p/start.safetensors" and "allow_untrained" not in policy
+    _, untrained = pair_params(0, 2, 10, "")
+    assert untrained["allow_untrained"] == "true"
+    assert split_option(["--seed", "3", "--init=a/p"], "--init") == (["--seed", "3"], Path("a/p"))
+    for given in (["--init", "none.safetensors"], ["--checkpoint", "none.safetensors"],
+                  ["--", "--init", "none.safetensors"]):  # fmt: skip
+        done = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), *given], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120)  # fmt: skip
+        assert done.returncode == 2 and "--init" in done.stderr and "not a policy checkpoint" in done.stderr, given
+        assert "Traceback" not in done.stderr and not (tmp_path / "run").exists()
+    twice = subprocess.run([*LIVE, "--out", str(tmp_path / "run"), "--init", "a", "--", "--init", "b"],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert twice.returncode == 2 and "--init is given twice" in twice.stderr

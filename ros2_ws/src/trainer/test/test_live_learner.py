@@ -312,3 +312,19 @@ def test_the_learner_learns_on_branched_swimmers_as_the_trainer_assembles_them(t
     assert row["version"] == 1 and row["batch_size"] == 80 and np.isfinite(row["approx_kl"])
     assert row["is_weight_mean"] == pytest.approx(1.0, abs=1e-5)  # each step's log-prob on its own tree
     assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))
+
+
+def test_a_live_run_starts_from_init_as_a_simulator_run_does(tmp_path):
+    # --init fine-tunes live too: the first weights are the checkpoint's, its architecture the run's.
+    torch.manual_seed(8)
+    start = GraphActorCritic(PolicyConfig(bidirectional=False))
+    start.save(tmp_path / "start.safetensors")
+    learner = LiveLearner(SMALL, tmp_path / "run", init=tmp_path / "start.safetensors")
+    assert learner.cfg.policy == start.config and learner.cfg.policy != SMALL.policy
+    mine, theirs = learner.policy.state_dict(), start.state_dict()
+    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
+    assert (tmp_path / "run" / "init.json").exists()
+    with pytest.raises(ValueError, match="init starts a new run"):
+        LiveLearner(SMALL, tmp_path / "run", resume=True, init=tmp_path / "start.safetensors")
+    fresh = LiveLearner(SMALL, tmp_path / "fresh")  # without it: the seed's fresh policy, as before
+    assert fresh.cfg.policy == SMALL.policy and not (tmp_path / "fresh" / "init.json").exists()

@@ -115,8 +115,8 @@ def build_parser() -> CommandLineParser:
         "--init",
         type=Path,
         default=None,
-        help="start a new run from this policy checkpoint (.safetensors, its .json beside it): from bags, or in "
-        "the simulator (fine-tuning on --bodies)",
+        help="start a new run from this policy checkpoint (.safetensors, its .json beside it): from bags, in the "
+        "simulator (fine-tuning on --bodies) or --live",
     )
     bags.add_argument(
         "--iterations",
@@ -266,6 +266,13 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
     if args.from_bags is not None:
         parser.error("--live and --from-bags are two data sources: choose one")
     overrides = overrides_from_args(args, TrainConfig)
+    if args.init is not None:  # fine-tuning live: the same checks as in the simulator and from bags
+        if args.resume:
+            parser.error("--init starts a new run; --resume continues the run in --out from its own state")
+        try:
+            GraphActorCritic.load(args.init)
+        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
+            parser.error(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})")
     try:
         if args.resume:
             if not (args.out / "state.safetensors").exists():
@@ -278,7 +285,7 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
             cfg, resumed = replace_nested(live_train_config(), overrides), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
-                              args.stream_chunks, args.signing_key)  # fmt: skip
+                              args.stream_chunks, args.signing_key, args.init)  # fmt: skip
     except (OSError, TypeError, ValueError) as err:
         parser.error(str(err))
     if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):

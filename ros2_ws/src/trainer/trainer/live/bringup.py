@@ -89,21 +89,26 @@ def user_key_pair(key: Path) -> Path:
     return Path(key).resolve()  # the nodes and the trainer read it whatever their folder
 
 
-def split_signing_key(extra: list[str]) -> tuple[list[str], Path | None]:
-    """The trainer's options without ``--signing-key KEY`` (or ``--signing-key=KEY``), and KEY: a key given to
-    the trainer after ``--`` is the bring-up's ``--signing-key``, so that the nodes trust it too."""
-    out, key, i = [], None, 0
+def split_option(extra: list[str], option: str) -> tuple[list[str], Path | None]:
+    """The trainer's options without ``option VALUE`` (or ``option=VALUE``), and VALUE (None: not given)."""
+    out, value, i = [], None, 0
     while i < len(extra):
         arg = extra[i]
-        if arg == "--signing-key" and i + 1 < len(extra):
-            key, i = Path(extra[i + 1]), i + 2
+        if arg == option and i + 1 < len(extra):
+            value, i = Path(extra[i + 1]), i + 2
             continue
-        if arg.startswith("--signing-key="):
-            key = Path(arg.split("=", 1)[1])
+        if arg.startswith(option + "="):
+            value = Path(arg.split("=", 1)[1])
         else:
             out.append(arg)
         i += 1
-    return out, key
+    return out, value
+
+
+def split_signing_key(extra: list[str]) -> tuple[list[str], Path | None]:
+    """The trainer's options without ``--signing-key KEY`` (or ``--signing-key=KEY``), and KEY: a key given to
+    the trainer after ``--`` is the bring-up's ``--signing-key``, so that the nodes trust it too."""
+    return split_option(extra, "--signing-key")
 
 
 def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key: Path | None = None) -> list[str]:
@@ -116,6 +121,8 @@ def trainer_arguments(namespaces: list[str], args, extra: list[str], signing_key
     cmd += ["--episode-steps", str(args.episode_steps), "--max-updates", str(args.max_updates)]
     if args.resume:
         cmd.append("--resume")
+    if getattr(args, "init", None) is not None:
+        cmd += ["--init", str(args.init)]
     return cmd + extra
 
 
@@ -150,7 +157,8 @@ def run(args, extra: list[str]) -> int:
     interrupted = False
     try:
         for i, ns in enumerate(namespaces):
-            sim, policy = pair_params(i, args.min_joints, args.max_joints, args.checkpoint, args.real_time_factor,
+            nodes_start = "" if args.init is None else str(args.init)  # the trainer's first weights, or untrained
+            sim, policy = pair_params(i, args.min_joints, args.max_joints, nodes_start, args.real_time_factor,
                                       public_key_path(key), args.bodies)  # fmt: skip
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
             procs.append(_start(*specs[-1]))
@@ -206,7 +214,7 @@ def main(argv=None) -> int:
         formatter_class=DefaultsHelpFormatter,
         epilog=textwrap.fill(
             "Everything after -- goes to the trainer, morph-train --live (.venv/bin/morph-train --help lists its "
-            "options), e.g. -- --num-steps 256 --seed 3 --learning-rate 0.003. A relative --out or --checkpoint "
+            "options), e.g. -- --num-steps 256 --seed 3 --learning-rate 0.003. A relative --out or --init "
             "is taken from the folder the command runs in.",
             100,
         ),
@@ -232,8 +240,11 @@ def main(argv=None) -> int:
     ap.add_argument("--max-joints", type=int, default=10, help="longest chain a sim draws at a reset")
     ap.add_argument("--bodies", default="", help="a body spec instead of chains (env.bodies: y:2x2, centipede:2-4, "
                     "...), drawn by the sims at each reset and given to the trainer as its --bodies")  # fmt: skip
-    ap.add_argument("--checkpoint", default="", help="policy the nodes start with ('' untrained; the trainer's "
-                    "weights replace it)")  # fmt: skip
+    ap.add_argument("--init", type=Path, default=None, metavar="POLICY",
+                    help="the policy the run starts from, as morph-train --init: the trainer's first weights and "
+                    "what the nodes run until they arrive (default: a fresh policy from the trainer's --seed, the "
+                    "nodes an untrained one; -- --init POLICY is taken as this option)")  # fmt: skip
+    ap.add_deprecated_alias("--checkpoint", "--init")
     ap.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
                     help="your private key (morph-keys new KEY): the trainer signs with it and the nodes trust "
                     "KEY.pub (default: a key pair made for the run and removed at its end; -- --signing-key KEY "
@@ -242,6 +253,13 @@ def main(argv=None) -> int:
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for each node")
     args = ap.parse_args(argv)
     extra, trainer_key = split_signing_key(extra)
+    extra, trainer_init = split_option(extra, "--init")
+    if trainer_init is not None:
+        if args.init is not None and args.init != trainer_init:
+            ap.error("--init is given twice with two policies (before and after --): give it once")
+        args.init = trainer_init
+    if args.init is not None:
+        args.init = args.init.resolve()  # the nodes and the trainer read it whatever their folder
     if trainer_key is not None:
         if args.signing_key is not None and args.signing_key != trainer_key:
             ap.error("--signing-key is given twice with two keys (before and after --): give it once")

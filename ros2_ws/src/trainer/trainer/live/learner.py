@@ -119,6 +119,9 @@ class LiveOptions:
     signing_key: Path | None = None
     """the private key that signs every weights message and checkpoint (``morph-keys new``); without one the
     weights go out unsigned, and policy nodes take them only with ``accept_unsigned_weights`` (tests)"""
+    init: Path | None = None
+    """a policy checkpoint a new run starts from (fine-tuning; None: a fresh policy from the seed), as
+    ``morph-train --init`` in the simulator and from bags"""
 
     def __post_init__(self):
         if not self.namespaces:
@@ -166,20 +169,28 @@ class LiveLearner:
         max_staleness: int = 2,
         signer=None,
         on_row: RowHook | None = None,
+        init: str | Path | None = None,
     ):
         """``signer``: a ``protocol.trust.Signer`` for the weights and checkpoints (None: unsigned). ``on_row(row,
-        saved)``: the row hook, after each update (its state is always saved)."""
+        saved)``: the row hook, after each update (its state is always saved). ``init``: a policy checkpoint a
+        new run starts from (its architecture the run's), as ``algo.train.train``'s."""
         if cfg.anneal_lr:
             raise ValueError("anneal_lr needs a known run length; live training has none")
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
+        initial = None
+        if init is not None:
+            if resume:
+                raise ValueError("init starts a new run; a resumed run continues from its own state")
+            initial = GraphActorCritic.load(init)
+            cfg = dataclasses.replace(cfg, policy=initial.config)  # the run's config says what it trains
         self.run = Run(run_dir, cfg, resume=resume, on_row=on_row)
         self.run_dir = self.run.dir
         self.max_staleness = max_staleness
         torch.set_num_threads(1)  # before init, as algo.train
         self.cfg = cfg  # on resume: the run's config.json with any overrides (``train.load_run_config``)
         torch.manual_seed(cfg.seed)
-        self.policy = GraphActorCritic(cfg.policy)
+        self.policy = GraphActorCritic(cfg.policy) if initial is None else initial
         self.learner = Learner.create(self.policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.run.counters.update(version=0, env_steps=0)
@@ -195,6 +206,8 @@ class LiveLearner:
             self.epoch = int(live.get("epoch", 0))  # a state written before epochs: before every run
         else:
             self.run.start()
+            if init is not None:
+                self.run.write_json("init.json", {"init": str(Path(init).resolve())})
             self._save_state()  # version 0 is resumable too: policy nodes may already run it
         self.resumed = self.run.resuming
         self.run.open_log(live_log_columns(cfg))

@@ -217,7 +217,7 @@ class LiveTrainer(Node):
         super().__init__("morph_live_trainer")
         self.options = options
         self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness,
-                                   signer=signer, on_row=on_row)  # fmt: skip
+                                   signer=signer, on_row=on_row, init=options.init)  # fmt: skip
         if signer is None:
             self.get_logger().warn(
                 "no --signing-key: the weights go out UNSIGNED, and policy nodes take them only with "
