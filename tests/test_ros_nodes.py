@@ -339,3 +339,17 @@ def test_the_hand_over_between_bodies_is_not_logged_as_a_fault(probe, launch, un
     probe.spin_until(lambda: len({len(e.data) for e in efforts}) >= 5, 120.0, "efforts for 5 chain lengths")
     warnings = [line for line in policy.log().splitlines() if "[WARN]" in line and "UNTRAINED" not in line]
     assert [w for w in warnings if "joint_states" in w or "no state answered" in w] == [], policy.log()[-3000:]
+    # A state that never fits warns from the same place that logged the hand-over as info: the node goes on
+    # (rclpy refuses a call site whose severity changes; one shared call ended the node here).
+    pub = probe.node.create_publisher(JointState, "joint_states", 10)
+    probe.spin_until(lambda: pub.get_subscription_count() > 0, STARTUP, "the policy node subscribed")
+    bad = _state(["motor1_rot", "motor2_rot"], [float("nan"), 0.0], [0.0, 0.0], sec=10**6)
+
+    def rejected_with_a_warning() -> bool:
+        pub.publish(bad)
+        return any("[WARN]" in line and "rejected joint_states" in line for line in policy.log().splitlines())
+
+    probe.spin_until(rejected_with_a_warning, 30.0, "the malformed state rejected with a warning")
+    seen = len(efforts)
+    probe.spin_until(lambda: len(efforts) > seen + 20, 60.0, "efforts after the warning")
+    assert policy.alive() and "Logger severity" not in policy.log(), policy.log()[-3000:]

@@ -454,8 +454,13 @@ class MorphPolicyNode(Node):
     def _reject(self, what: str, err: Exception, reason: str = "invalid", expected: bool = False) -> None:
         self.rejected += 1
         self.counts.rejected(what, reason, str(err))
-        log = self.get_logger().info if expected else self.get_logger().warn  # expected: counted, not a fault
-        log(f"rejected {what} ({self.rejected} so far): {err}", throttle_duration_sec=_LOG_THROTTLE)
+        message = f"rejected {what} ({self.rejected} so far): {err}"
+        # Two call sites, not one with a chosen severity: rclpy refuses a call site whose severity changes
+        # ("Logger severity cannot be changed between calls"), which ended the node at a hand-over.
+        if expected:  # counted, not a fault
+            self.get_logger().info(message, throttle_duration_sec=_LOG_THROTTLE)
+        else:
+            self.get_logger().warn(message, throttle_duration_sec=_LOG_THROTTLE)
 
     def _on_weights(self, msg: UInt8MultiArray) -> None:
         self.counts.received(WEIGHTS)
@@ -570,8 +575,11 @@ class MorphPolicyNode(Node):
         names = self.controller.names  # the robot answered last, in the efforts' order
         if now - self._last_answer > self._input_timeout and names:
             if not self._silent:
-                log = self.get_logger().info if self._handover else self.get_logger().warn
-                log(f"no state answered for {self._input_timeout} s: publishing zero efforts")
+                silence = f"no state answered for {self._input_timeout} s: publishing zero efforts"
+                if self._handover:  # two call sites: rclpy refuses one whose severity changes (see _reject)
+                    self.get_logger().info(silence)
+                else:
+                    self.get_logger().warn(silence)
                 self._silent = True
             self._publish_efforts(np.zeros(len(names)), SILENCE_TAG, names, self.controller.layout)  # answers none
 
