@@ -29,6 +29,7 @@ trainer counts beside them; it is saved with every state and restored with it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ from morph_core.algo.checkpoint import (
 from morph_core.algo.learner import Learner
 from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run_log import RunLog
+from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.util.atomic import atomic_writer
 
 RowHook = Callable[[dict, bool], None]
@@ -159,3 +161,15 @@ class Run:
     def close(self) -> None:
         if self.progress is not None:
             self.progress.close()
+
+
+def initial_policy(cfg, init: str | Path | None, resume: bool):
+    """``(cfg, policy)`` a new run starts from: with ``init`` (a checkpoint, fine-tuning) its policy and ``cfg``
+    with the policy's architecture (the run's config says what it trains); without, ``(cfg, None)`` (a fresh
+    policy from the seed). ``ValueError`` for ``init`` on a resumed run, which continues from its own state."""
+    if init is None:
+        return cfg, None
+    if resume:
+        raise ValueError("init starts a new run; a resumed run continues from its own state")
+    initial = GraphActorCritic.load(init)
+    return dataclasses.replace(cfg, policy=initial.config), initial

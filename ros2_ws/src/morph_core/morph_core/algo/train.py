@@ -26,7 +26,7 @@ from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import compute_gae, explained_variance
 from morph_core.algo.ppo_config import PPOConfig, SimConfig
 from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
-from morph_core.algo.run import RowHook, Run
+from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.update import update
 from morph_core.algo.update_stats import update_columns
 from morph_core.env.bodies import is_chain_label
@@ -100,12 +100,7 @@ def train(
     run starts from (fine-tuning), its architecture the run's (its global width must be the bodies')."""
     if cfg.rollout_workers > 1 and rollout_pool is None:
         raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
-    initial = None
-    if init is not None:
-        if resume:
-            raise ValueError("init starts a new run; a resumed run continues from its own state")
-        initial = GraphActorCritic.load(init)
-        cfg = dataclasses.replace(cfg, policy=initial.config)  # the run's config says what it trains
+    cfg, initial = initial_policy(cfg, init, resume)
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)
     # Threads before init: the orthogonal init's QR differs in its last bits with the thread count.
     torch.set_num_threads(1)

@@ -70,7 +70,7 @@ from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import explained_variance
 from morph_core.algo.ppo_config import PPOConfig
-from morph_core.algo.run import RowHook, Run
+from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
 from morph_core.algo.update import compile_ahead, update
@@ -178,12 +178,7 @@ class LiveLearner:
             raise ValueError("anneal_lr needs a known run length; live training has none")
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
-        initial = None
-        if init is not None:
-            if resume:
-                raise ValueError("init starts a new run; a resumed run continues from its own state")
-            initial = GraphActorCritic.load(init)
-            cfg = dataclasses.replace(cfg, policy=initial.config)  # the run's config says what it trains
+        cfg, initial = initial_policy(cfg, init, resume)
         self.run = Run(run_dir, cfg, resume=resume, on_row=on_row)
         self.run_dir = self.run.dir
         self.max_staleness = max_staleness
