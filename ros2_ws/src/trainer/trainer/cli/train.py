@@ -184,15 +184,23 @@ def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[Tra
     return TransitionBatch.concatenate(batches), warnings, skips
 
 
+def init_error(args) -> str | None:
+    """Why ``--init`` cannot start this run (every data source: bags, the simulator, live), or None."""
+    if args.init is None:
+        return None
+    if args.resume:
+        return "--init starts a new run; --resume continues the run in --out from its own state"
+    try:
+        GraphActorCritic.load(args.init)
+    except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
+        return f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})"
+    return None
+
+
 def _train_from_bags(args) -> None:
     overrides = overrides_from_args(args, TrainConfig)
-    if args.init is not None:
-        if args.resume:
-            raise CliError("--init starts a new run; --resume continues the run in --out from its own state")
-        try:
-            GraphActorCritic.load(args.init)
-        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
-            raise CliError(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})") from None
+    if (error := init_error(args)) is not None:
+        raise CliError(error)
     source = [str(Path(b).resolve()) for b in args.from_bags]
     resumed = None
     if args.resume:
@@ -266,13 +274,8 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
     if args.from_bags is not None:
         parser.error("--live and --from-bags are two data sources: choose one")
     overrides = overrides_from_args(args, TrainConfig)
-    if args.init is not None:  # fine-tuning live: the same checks as in the simulator and from bags
-        if args.resume:
-            parser.error("--init starts a new run; --resume continues the run in --out from its own state")
-        try:
-            GraphActorCritic.load(args.init)
-        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
-            parser.error(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})")
+    if (error := init_error(args)) is not None:  # fine-tuning live: the checks of the other sources
+        parser.error(error)
     try:
         if args.resume:
             if not (args.out / "state.safetensors").exists():
@@ -359,13 +362,8 @@ def main(argv: list[str] | None = None) -> int:
                                 ("--namespace", args.namespace)) if v]  # fmt: skip
     if given:
         parser.error(f"{', '.join(given)}: only with --from-bags")
-    if args.init is not None:  # fine-tuning in the simulator: the same checks as from bags
-        if args.resume:
-            parser.error("--init starts a new run; --resume continues the run in --out from its own state")
-        try:
-            GraphActorCritic.load(args.init)
-        except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
-            parser.error(f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})")
+    if (error := init_error(args)) is not None:  # fine-tuning in the simulator: the checks of bags
+        parser.error(error)
     overrides = overrides_from_args(args, TrainConfig)
     resumed = None
     if args.resume:
