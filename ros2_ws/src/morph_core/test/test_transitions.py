@@ -958,3 +958,4 @@ def test_answers_computed_on_another_tree_are_not_taken_for_the_state_as_read_he
     blind = assemble([r for r in loop.records if not isinstance(r, DescriptionRecord)])
     assert len(blind.batch) == 0
     assert blind.skips.wrong_tree == described.stats.states - 3  # every state but each episode's last
+    assert blind.skips.steps_skipped == blind.skips.wrong_tree  # a skipped step, as morph-bag info lists them

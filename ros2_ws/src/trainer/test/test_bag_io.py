@@ -512,3 +512,22 @@ def test_a_bad_names_dimension_rejects_the_effort_and_a_description_of_another_t
     bag = write_with_rosbags(tmp_path / "wrong", msgs[:1], types=wrong)
     with pytest.raises(BagError, match="topic /robot/robot_description has type std_msgs/msg/Header"):
         read_bag(bag)
+
+
+@pytest.mark.parametrize("sec, nanosec", [(3, 1_500_000_000), (3, 10**9), (-1, 0)])
+def test_a_stamp_that_is_no_time_is_refused_not_read_as_another(tmp_path, sec, nanosec):
+    # (3, 1.5e9) read as ns would be the stamp 4.5 s: another state's. The nodes refuse it; so does the reader.
+    records = record_episodes(GaussianController(seed=2), [(2, 5)])
+    bag = tmp_path / "bag"
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with BagWriter(bag, WriterOptions()) as w:
+        ids = {name: w.add_topic(BagTopic(f"/{name}", ty)) for name, ty in TOPIC_TYPES.items()}
+        for r in records:
+            name, msg = record_message(r)
+            w.write(ids[name], r.log_ns, ts.serialize_cdr(msg, msg.__msgtype__))
+        name, msg = record_message(next(r for r in records if isinstance(r, OdometryRecord)))
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        w.write(ids[name], records[-1].log_ns + 1, ts.serialize_cdr(msg, msg.__msgtype__))
+    back, stats = read_bag(bag)
+    assert len(back) == len(records)
+    assert dict(stats.rejected) == {("odom", "bad stamp"): 1}, stats.rejected

@@ -257,6 +257,7 @@ class SkipCounts:
         "duplicate_stamp",
         "unknown_joint",
         "missing_joint",
+        "wrong_tree",
     )
     MESSAGE_REASONS = (
         "orphan_effort",

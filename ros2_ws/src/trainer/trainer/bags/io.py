@@ -60,7 +60,7 @@ from morph_core.msgs.records import (
     OdometryRecord,
     Record,
 )
-from morph_core.msgs.stamps import parse_answer_tag, to_ns
+from morph_core.msgs.stamps import StampError, check_stamp, parse_answer_tag
 from trainer.bags.messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -127,7 +127,7 @@ def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
         episode = _int_in_text(text, _EPISODE_FIELDS)
     if joints is None:
         joints = _int_in_text(text, _JOINTS_FIELDS)
-    return EpisodeStartRecord(log_ns, to_ns(stamp.sec, stamp.nanosec), episode, joints)
+    return EpisodeStartRecord(log_ns, _checked_ns(stamp), episode, joints)
 
 
 def _int_field(msg, names: Sequence[str]) -> int | None:
@@ -147,8 +147,17 @@ def _int_in_text(text: str, names: Sequence[str]) -> int | None:
 
 
 # -- decoding the other topics ---------------------------------------------------------------
+def _checked_ns(stamp) -> int:
+    """A stamp as ns; one that is no time (nanosec of 10**9 or more, a negative sec) is refused, as the nodes
+    refuse it: read as ns it would land on another message's stamp."""
+    try:
+        return check_stamp(stamp.sec, stamp.nanosec)
+    except StampError as err:
+        raise DecodeError("bad stamp", str(err)) from None
+
+
 def _stamp_ns(msg) -> int:
-    return to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
+    return _checked_ns(msg.header.stamp)
 
 
 def _f64(values) -> np.ndarray:

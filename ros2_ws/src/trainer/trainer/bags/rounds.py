@@ -80,6 +80,17 @@ class RoundsConfig:
     namespace: str = ""
     """ROS namespace of the three nodes ('' = the root)"""
     train_args: tuple[str, ...] = ()
+    bodies: str | None = None
+    """a body spec (env.bodies: ``centipede:2-4``, ``y:2x2``, ...) the sim draws from at each reset, in place
+    of chains of min..max joints"""
+
+    @property
+    def walkers(self) -> bool:
+        """Bodies whose episodes end early at a fall (``env.bodies``' walkers): a round counts the steps its bag
+        holds, not episodes x episode_steps."""
+        from morph_core.env.bodies import parse_bodies
+
+        return bool(self.bodies) and parse_bodies(self.bodies).has_walkers
 
     @property
     def train_dir(self) -> Path:
@@ -180,9 +191,13 @@ def record_round(cfg: RoundsConfig, r: int, checkpoint: Path) -> None:
         )]  # fmt: skip
         up.wait_for("the recorder and the policy node", lambda n: all(_endpoints(n, *w) for w in wanted),
                     cfg.startup_timeout)  # fmt: skip
+        bodies = (
+            {"topology": cfg.bodies}
+            if cfg.bodies
+            else {"num_joints": cfg.min_joints, "min_joints": cfg.min_joints, "max_joints": cfg.max_joints}
+        )
         up.start("sim", "swimmer_sim_node.sim_node", {
-            "num_joints": cfg.min_joints, "min_joints": cfg.min_joints, "max_joints": cfg.max_joints,
-            "episode_steps": cfg.episode_steps, "lockstep": "true", "real_time_factor": 0.0,
+            **bodies, "episode_steps": cfg.episode_steps, "lockstep": "true", "real_time_factor": 0.0,
             "effort_timeout": 2.0, "seed": seed,
         })  # fmt: skip
         recorder = up.procs["recorder"]
@@ -206,7 +221,7 @@ class RoundData:
     steps: int
     digest: str
     episodes: int
-    """complete episodes (episode_steps transitions)"""
+    """complete episodes (episode_steps transitions, or ended by a fall)"""
     returns: dict[int, list[float]]
     """returns of the complete episodes by chain length"""
     reward_rate: float
@@ -217,14 +232,15 @@ class RoundData:
 def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> RoundData:
     from ruamel.yaml import YAML
 
-    from morph_core.algo.train_from_data import EpisodeReturns, data_digest
+    from morph_core.algo.train_from_data import EpisodeReturns, data_digest, episode_spans
     from trainer.cli.train import read_bags
 
     data, _, _ = read_bags([bag], namespace)
     if not len(data):
         raise RoundFailed(f"{bag}: no usable steps (morph-bag info {bag} says why)")
     ep = EpisodeReturns.of(data)
-    complete = ep.lengths == episode_steps
+    starts, lengths = episode_spans(data)
+    complete = (ep.lengths == episode_steps) | data.terminated[starts + lengths - 1]
     returns: dict[int, list[float]] = {}
     for n, ret in zip(ep.num_joints[complete], ep.returns[complete], strict=True):
         returns.setdefault(int(n), []).append(float(ret))
@@ -243,17 +259,22 @@ def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> R
 
 # -- training --------------------------------------------------------------------------------------
 def initial_policy(cfg: RoundsConfig) -> Path:
-    """Round 1's policy: fresh, seeded as the simulator trainer seeds it (``algo.train``)."""
+    """Round 1's policy: fresh, seeded as the simulator trainer seeds it (``algo.train``), reading the bodies'
+    global features."""
     import torch
 
     from morph_core.algo.train import TrainConfig
+    from morph_core.env.bodies import fit_global_features, parse_bodies
     from morph_core.policy.actor_critic import GraphActorCritic
 
     path = cfg.out / "init" / "policy.safetensors"
     if not path.exists():
+        policy = TrainConfig().policy
+        if cfg.bodies:
+            policy = fit_global_features(policy, parse_bodies(cfg.bodies))
         torch.set_num_threads(1)
         torch.manual_seed(cfg.seed)
-        GraphActorCritic(TrainConfig().policy).save(path, metadata={"seed": cfg.seed})
+        GraphActorCritic(policy).save(path, metadata={"seed": cfg.seed})
     return path
 
 
@@ -342,7 +363,9 @@ def run_rounds(cfg: RoundsConfig) -> int:
         train_round(cfg, r, data, init)
         train_s = time.monotonic() - t1
         upd = last_update(cfg)
-        sim_steps = (int(rows[-1]["sim_steps"]) if rows else 0) + data.announced * cfg.episode_steps
+        # A walker's episodes end at falls: how many steps its sim ran is not told by the announcements.
+        ran = data.steps if cfg.walkers else data.announced * cfg.episode_steps
+        sim_steps = (int(rows[-1]["sim_steps"]) if rows else 0) + ran
         env_steps = (int(rows[-1]["env_steps"]) if rows else 0) + data.steps
         flat = [x for v in data.returns.values() for x in v]
         round_s = time.monotonic() - t0
@@ -355,7 +378,7 @@ def run_rounds(cfg: RoundsConfig) -> int:
             "return_mean": float(np.mean(flat)) if flat else math.nan,
             **{f"return_d{d}": float(np.mean(data.returns[d])) if d in data.returns else "" for d in DIMS},
             "reward_rate": data.reward_rate,
-            "lost_steps": data.announced * cfg.episode_steps - data.steps,
+            "lost_steps": ran - data.steps,
             "is_weight_mean": upd["is_weight_mean"],
             "stale_frac": upd["stale_frac"],
             "approx_kl": upd["approx_kl"],
@@ -475,6 +498,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes-per-round", type=int, default=RoundsConfig.episodes_per_round)
     ap.add_argument("--episode-steps", type=int, default=RoundsConfig.episode_steps,
                     help="control steps per episode (Swimmer-v5's time limit: 1000)")  # fmt: skip
+    ap.add_argument("--bodies", default=None,
+                    help="a body spec (env.bodies: centipede:2-4, y:2x2, ...) instead of chains of min..max joints; "
+                         "walkers take the centipede results' PPO settings, as morph-train does")  # fmt: skip
     ap.add_argument("--min-joints", type=int, default=RoundsConfig.min_joints)
     ap.add_argument("--max-joints", type=int, default=RoundsConfig.max_joints)
     ap.add_argument("--seed", type=int, default=RoundsConfig.seed,
@@ -495,12 +521,24 @@ def main(argv: list[str] | None = None) -> int:
             ap.error("--rounds, --episodes-per-round and --episode-steps must be >= 1")
         if not 1 <= args.min_joints <= args.max_joints <= 64:
             ap.error("need 1 <= --min-joints <= --max-joints <= 64")
+        if args.bodies is not None:
+            from morph_core.env.bodies import parse_bodies
+
+            try:
+                parse_bodies(args.bodies)
+            except ValueError as err:
+                ap.error(f"--bodies: {err}")
+        bodies = (
+            ("--bodies", args.bodies)
+            if args.bodies
+            else ("--min-joints", str(args.min_joints), "--max-joints", str(args.max_joints))
+        )
         cfg = RoundsConfig(
             out=args.out, rounds=args.rounds, episodes_per_round=args.episodes_per_round,
             episode_steps=args.episode_steps, min_joints=args.min_joints, max_joints=args.max_joints,
             seed=args.seed, storage=args.storage, record_timeout=args.record_timeout,
-            deadline_minutes=args.deadline_minutes, namespace=args.namespace,
-            train_args=(*train_args, "--min-joints", str(args.min_joints), "--max-joints", str(args.max_joints)),
+            deadline_minutes=args.deadline_minutes, namespace=args.namespace, train_args=(*train_args, *bodies),
+            bodies=args.bodies,
         )  # fmt: skip
         if cfg.out.exists() and (cfg.out / "rounds.csv").exists():
             print(f"bag_rounds: continuing {cfg.out} ({len(read_rows(cfg.out / 'rounds.csv'))} rounds done)")

@@ -87,6 +87,7 @@ from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.msgs.stream_chunk import StreamChunkError, StreamEntry, unpack_stream_chunk
+from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.transitions import (
     SkipCounts,
     StreamStats,
@@ -96,6 +97,7 @@ from morph_core.protocol.transitions import (
     task_of,
 )
 from morph_core.protocol.trust import Signer
+from morph_ros_util.diagnostics import InputDiagnostics
 from trainer.bags.io import (
     DecodeError,
     description_record,
@@ -189,6 +191,8 @@ class _Pair:
     active: bool = False
     configure: bool = False
     """episode_steps and a reset still to send (the sim's services may not be discovered yet)"""
+    messages: int = 0
+    """messages taken off the pair's topics or chunks, decodable or not"""
     decode_errors: Counter = field(default_factory=Counter)
     dropped_partial: int = 0
     drops: int = 0
@@ -203,6 +207,24 @@ class _Pair:
 def _nonzero(skips: SkipCounts) -> str:
     """The reasons that counted, e.g. 'not_applied 12, late_message 3'."""
     return ", ".join(f"{k} {v}" for k, v in skips.as_dict().items() if v) or "none"
+
+
+def input_counts(pairs) -> InputCounts:
+    """The trainer's inputs on ``/diagnostics``, summed over its pairs (the report line gives them per pair):
+    ``messages`` received, rejected by the decoder's reason (a stream chunk or a message that is not its type),
+    ignored by the assembler's message reasons (orphans, late, a description that is no robot); ``steps``
+    received (transitions made and steps skipped), rejected by skip reason (``protocol.transitions.SkipCounts``:
+    e.g. ``malformed`` for an odometry whose quaternion is no rotation, ``non_finite`` for NaN in it)."""
+    counts = InputCounts(["messages", "steps"])
+    messages, steps = counts.inputs["messages"], counts.inputs["steps"]
+    for p in pairs:
+        messages.received += p.messages
+        messages.rejected.update(p.decode_errors)
+        skips = p.assembler.skips
+        messages.ignored.update({r: getattr(skips, r) for r in SkipCounts.MESSAGE_REASONS if getattr(skips, r)})
+        steps.received += p.assembler.stats.transitions + skips.steps_skipped
+        steps.rejected.update({r: getattr(skips, r) for r in SkipCounts.STEP_REASONS if getattr(skips, r)})
+    return counts
 
 
 def _losses(pair: _Pair) -> str:
@@ -261,6 +283,7 @@ class LiveTrainer(Node):
         self.create_timer(0.05, self._on_timer)
         self._reported = (0, 0)  # (stamp gaps from lost messages, transitions) at the last report
         self.create_timer(REPORT_PERIOD, self._report)
+        self._diagnostics = InputDiagnostics(self, self.input_counts)
         # Policy nodes read the weights best effort (immune to the Fast DDS wedge, docs/design.md), so they get
         # no history: the latest weights go out again periodically for nodes that start late or lost a sample.
         self.create_timer(options.weights_period, self._republish_weights)
@@ -281,6 +304,7 @@ class LiveTrainer(Node):
             try:
                 sequence, entries = unpack_stream_chunk(chunk.data)
             except StreamChunkError:
+                pair.messages += 1
                 pair.decode_errors["stream_chunk"] += 1
                 return
             if pair.chunk_sequence is not None and sequence > pair.chunk_sequence + 1:
@@ -288,11 +312,13 @@ class LiveTrainer(Node):
             pair.chunk_sequence = sequence  # lower: a restarted policy node counts from 0 again
             for entry in entries:
                 if entry.topic not in decoders:  # a topic of a newer chunk layout, which this trainer does not read
+                    pair.messages += 1
                     pair.decode_errors[f"unread_{entry.topic}"] += 1
                     continue
                 try:
                     msg = chunk_message(entry)
                 except Exception:  # noqa: BLE001 - rosbags raises several types for bytes that are not the type's CDR
+                    pair.messages += 1
                     pair.decode_errors[f"cdr_{entry.topic}"] += 1
                     continue
                 self._take(pair, decoders[entry.topic], msg, entry.log_ns)
@@ -301,6 +327,7 @@ class LiveTrainer(Node):
 
     def _take(self, pair: _Pair, decode, msg, log_ns: int) -> None:
         """One message of a pair's stream: decoded into a record (or counted) and pushed to its assembler."""
+        pair.messages += 1
         try:
             record = decode(msg, log_ns)
         except DecodeError as err:
@@ -431,6 +458,10 @@ class LiveTrainer(Node):
             skips.merge(p.assembler.skips)
             stats.merge(p.assembler.stats)
         return skips, stats
+
+    def input_counts(self) -> InputCounts:
+        with self._lock:
+            return input_counts(self.pairs.values())
 
     def _report(self) -> None:
         skips, stats = self.skips()
