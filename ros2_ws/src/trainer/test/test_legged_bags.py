@@ -163,3 +163,25 @@ def test_fuzzed_3d_odometry_is_refused_by_reason_with_flat_memory():
     skips = asm.skips
     assert skips.non_finite > 0 and skips.malformed > 0 and made > 0, skips
     assert after - before < 20_000, f"RSS grew by {after - before} kB"
+
+
+@pytest.mark.parametrize("given", [(), ("--learning-rate", "0.001")])
+def test_walkers_learn_at_the_same_settings_from_bags_live_and_the_simulator(centipede_bag, tmp_path, given):
+    # The centipede results' PPO settings (LEGGED_DEFAULTS) where no option sets them, in every source: a bag
+    # run and a live run of centipedes start as a simulator run does (before, they took the swimmer's 0.01 and
+    # the live trainer's 0.003, at which a 12-feature policy's updates run away).
+    from morph_core.algo.ppo_config import LEGGED_DEFAULTS
+    from trainer.cli.train import _live_config, build_parser, main
+
+    path, _ = centipede_bag
+    bags = tmp_path / "bags"
+    assert main(["--from-bags", str(path), "--out", str(bags), "--bodies", "centipede:2-3", "--iterations", "1",
+                 "--compile", "false", "--progress-bar", "false", "--tensorboard", "false", *given]) == 0  # fmt: skip
+    parser = build_parser()
+    args = parser.parse_args(["--live", "--namespaces", "/a", "--out", str(tmp_path / "live"), "--bodies",
+                              "centipede:2-4", *given])  # fmt: skip
+    live, _, _ = _live_config(args, parser)
+    from_bags = json.loads((bags / "config.json").read_text())
+    want = {**LEGGED_DEFAULTS, **({"learning_rate": 0.001} if given else {})}
+    for key, value in want.items():
+        assert from_bags[key] == getattr(live, key) == value, key

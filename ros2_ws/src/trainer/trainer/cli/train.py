@@ -3,8 +3,8 @@ of the table.
 
 Bodies: chains of ``--min-joints``..``--max-joints`` joints by default, or ``--bodies SPEC`` (docs/bodies.md,
 e.g. ``2-10,random:3-10``, ``centipede:2-4``). Bodies with legs (centipedes) take the centipede results' PPO
-settings where no option sets them: ``--learning-rate 0.0003 --gamma 0.99 --gae-lambda 0.95``
-(docs/centipedes.md); swimmers the paper's (0.01, 0.98, 0.98).
+settings where no option sets them, from the simulator, from bags and live: ``--learning-rate 0.0003 --gamma
+0.99 --gae-lambda 0.95`` (docs/centipedes.md); swimmers the paper's (0.01, 0.98, 0.98; live 0.003).
 
 Every TrainConfig field is an option (``--rule``, ``--total-timesteps``,
 ``--policy-bidirectional`` ...; ``--clip-mode`` is the deprecated name of
@@ -197,6 +197,20 @@ def init_error(args) -> str | None:
     return None
 
 
+def new_run_config(base: TrainConfig, overrides: dict) -> TrainConfig:
+    """A new run's config: ``base`` (the simulator's and the bags' ``TrainConfig()``, the live trainer's own),
+    then, for bodies with legs, the centipede results' PPO settings where no option sets them (said in one
+    line), then the options given. Every source takes them, so a centipede learns at one learning rate from
+    the simulator, from bags and live."""
+    legged = family_defaults(overrides.get("bodies", ""), overrides)
+    cfg = replace_nested(base, {**legged, **overrides})
+    if legged:
+        given = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in legged.items())
+        print(f"morph-train: bodies with legs: {given} (the centipede results' settings; give an option to "
+              "set it otherwise)", flush=True)  # fmt: skip
+    return cfg
+
+
 def _train_from_bags(args) -> None:
     overrides = overrides_from_args(args, TrainConfig)
     if (error := init_error(args)) is not None:
@@ -214,7 +228,7 @@ def _train_from_bags(args) -> None:
     else:
         if (args.out / "state.safetensors").exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-        cfg = replace_nested(TrainConfig(), overrides)
+        cfg = new_run_config(TrainConfig(), overrides)
     data, warnings, skips = read_bags(args.from_bags, args.namespace)
     for w in warnings:
         print(f"morph-train: warning: {w}", file=sys.stderr)
@@ -285,7 +299,7 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
         else:
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg, resumed = replace_nested(live_train_config(), overrides), None
+            cfg, resumed = new_run_config(live_train_config(), overrides), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key, args.init)  # fmt: skip
@@ -384,14 +398,9 @@ def main(argv: list[str] | None = None) -> int:
         if (args.out / "state.safetensors").exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         try:
-            legged = family_defaults(overrides.get("bodies", ""), overrides)
-            cfg = replace_nested(TrainConfig(), {**legged, **overrides})
+            cfg = new_run_config(TrainConfig(), overrides)
         except (TypeError, ValueError) as err:
             parser.error(str(err))
-        if legged:
-            given = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in legged.items())
-            print(f"morph-train: bodies with legs: {given} (the centipede results' settings; give an option to "
-                  "set it otherwise)", flush=True)  # fmt: skip
     pool = None
     if cfg.rollout_workers > 1:
         try:
