@@ -20,7 +20,9 @@ the envs draw them), a ratio that does not depend on the machine.
 of a tree mix or of centipedes measured in the same run as the chains. Each row's share of raw physics is
 against the raw physics of its own bodies (``raw_mix_rate``: MuJoCo alone, one core, frame skip 4 for
 swimmers and 5 for centipedes, averaged over bodies drawn as the envs draw them); its ratio to the
-reference is against the paper's code on its chains, the only bodies it trains.
+reference is against the paper's code on its chains, the only bodies it trains. ``--joint-features 11``
+runs each of those settings again with a policy that reads the joint descriptions (the legged family's
+generalist, issue 51): what they cost, side by side (``--bodies legged:4-8x2-3 --joint-features 11``).
 
 Every row's rate is the steady state: the first iteration (start-up, the compile of the update step and
 its first call) is left out, and reported on its own as the warm-up (seconds from the start of the run
@@ -40,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import os
 import shutil
 import statistics
@@ -54,7 +57,7 @@ import numpy as np
 from bench_env import rate, raw_step_rate
 
 from morph_core.algo.train import TrainConfig, train
-from morph_core.env.bodies import Centipede, parse_bodies
+from morph_core.env.bodies import Centipede, body_label, is_walker, parse_bodies
 from morph_core.env.centipede import MorphCentipedeEnv
 from morph_core.env.model import body_parents, swimmer_model
 
@@ -90,7 +93,8 @@ def reference_rate(ref_dir: Path, python: str, iterations: int) -> float:
     return (s1 - s0) / (t1 - t0)
 
 
-def run(iterations: int, torch_threads: int, env_threads: int, processes: int, bodies: str = "") -> dict[str, float]:
+def run(iterations: int, torch_threads: int, env_threads: int, processes: int, bodies: str = "",
+        joint_features: int = 0) -> dict[str, float]:  # fmt: skip
     cfg = TrainConfig(
         bodies=bodies,
         total_timesteps=(1 + iterations) * BATCH,
@@ -100,6 +104,7 @@ def run(iterations: int, torch_threads: int, env_threads: int, processes: int, b
         tensorboard=False,
         progress_bar=False,
     )
+    cfg = dataclasses.replace(cfg, policy=dataclasses.replace(cfg.policy, joint_features=joint_features))
     with tempfile.TemporaryDirectory() as d:
         start = time.time()  # the wall clock progress.csv's wall_time is taken by
         train(cfg, Path(d) / "run")
@@ -130,7 +135,7 @@ def raw_mix_rate(spec: str, seconds: float = 0.6, draws: int = 200, seed: int = 
     per_step: dict = {}  # seconds per control step of each distinct body
 
     def key(body) -> tuple:
-        return ("centipede", body.leg_pairs) if isinstance(body, Centipede) else body_parents(body)
+        return ("walker", body_label(body)) if is_walker(body) else body_parents(body)
 
     # Each distinct body timed for a share of ~9 x ``seconds`` (a chain range's nine lengths' time), at least
     # 0.05 s: a random tree family draws many shapes.
@@ -138,8 +143,8 @@ def raw_mix_rate(spec: str, seconds: float = 0.6, draws: int = 200, seed: int = 
     for body in bodies:
         if key(body) in per_step:
             continue
-        if isinstance(body, Centipede):
-            per_step[key(body)] = 1.0 / centipede_step_rate(body.leg_pairs, each)
+        if is_walker(body):
+            per_step[key(body)] = 1.0 / walker_step_rate(body, each)
         elif isinstance(body, int):
             per_step[key(body)] = 4.0 / raw_step_rate(body, each)
         else:
@@ -155,11 +160,12 @@ def tree_step_rate(parents: tuple[int, ...], seconds: float) -> float:
     return rate(lambda: mujoco.mj_step(model, data), seconds)
 
 
-def centipede_step_rate(leg_pairs: int, seconds: float, chunk: int = 200) -> float:
-    """Control steps/s of a centipede's raw physics (``mj_step`` x 5, no contact forces, reward or
-    observation): chunks of ``chunk`` steps from the env's reset state under gentle random controls (so that
-    it stays up, as bench_centipede.py), best of the chunks run in ``seconds``."""
-    env = MorphCentipedeEnv(leg_pairs=leg_pairs)
+def walker_step_rate(body, seconds: float, chunk: int = 200) -> float:
+    """Control steps/s of a walker's raw physics (a centipede, a generated legged body, a user's MJCF:
+    ``mj_step`` x 5, no contact forces, reward or observation): chunks of ``chunk`` steps from the env's reset
+    state under gentle random controls (so that it stays up, as bench_centipede.py), best of the chunks run in
+    ``seconds``."""
+    env = MorphCentipedeEnv(leg_pairs=body.leg_pairs) if isinstance(body, Centipede) else MorphCentipedeEnv(body=body)
     env.reset(seed=0)
     model, data = env.model, mujoco.MjData(env.model)
     qpos, qvel = env.data.qpos.copy(), env.data.qvel.copy()
@@ -192,6 +198,10 @@ def main() -> None:
     parser.add_argument("--bodies", default=None, metavar="SPEC", nargs="+",
                         help="also train on these bodies (e.g. 2-10,random:3-10 centipede:2-4), data-parallel, "
                              "last, one setting each")  # fmt: skip
+    parser.add_argument("--joint-features", type=int, default=0, metavar="N",
+                        help="run each --bodies setting again with a policy reading N joint description "
+                             "features (11: policy.joint_description): their cost, beside the same bodies "
+                             "without")  # fmt: skip
     args = parser.parse_args()
     if args.reference is not None:
         if not (args.reference / "train.py").is_file():
@@ -217,10 +227,14 @@ def main() -> None:
         ("2 cores, 2 processes (data-parallel)", 1, 1, 2),
     ]
     chosen = [settings[k - 1] + ("",) for k in args.settings or range(1, len(settings) + 1)]
+    chosen = [c + (0,) for c in chosen]
     for spec in args.bodies or []:
-        chosen.append((f"2 cores, 2 processes, bodies {spec}", 1, 1, 2, spec))
-    for label, tt, et, processes, bodies in chosen:
-        r = run(iterations, tt, et, processes, bodies)
+        chosen.append((f"2 cores, 2 processes, bodies {spec}", 1, 1, 2, spec, 0))
+        if args.joint_features:
+            chosen.append((f"2 cores, 2 processes, bodies {spec}, joint descriptions ({args.joint_features})", 1, 1, 2,
+                           spec, args.joint_features))  # fmt: skip
+    for label, tt, et, processes, bodies, joint_features in chosen:
+        r = run(iterations, tt, et, processes, bodies, joint_features)
         ratio = f"{r['sps'] / reference:.1f}x" if reference else "not run"
         print(f"| {label} | {r['sps']:,.0f} | {r['rollout_s']:.2f} | {r['update_s']:.2f} | "
               f"{r['sps'] / raw[bodies or '2-10']:.2f} | {ratio} | {r['warmup_s']:.1f} |", flush=True)  # fmt: skip
