@@ -60,3 +60,30 @@ def test_rounds_record_with_the_trained_checkpoint_and_continue_after_a_failure(
     assert all(int(t["simulator_runs"]) >= 1 and t["simulator_return_mean"] != "" for t in table)
     assert (out / "comparison.png").stat().st_size > 0
     assert "| 2 | 120 |" in done.stdout
+
+
+@pytest.mark.timeout(900)
+def test_rounds_of_centipedes_learn_from_whole_bags_at_the_walkers_settings(tmp_path, namespace):
+    """``--bodies centipede:2``: the sim draws centipedes, the first policy reads their 12 global features, each
+    round trains one pass over its whole bag (its short, fallen episodes may fill more than a batch) at the
+    walkers' PPO settings, and counts the steps its bag holds (a walker's episodes end at falls)."""
+    import json
+
+    out = tmp_path / "rounds"
+    cmd = [sys.executable, "-m", "trainer.bags.rounds", "--out", str(out), "--namespace", namespace, "--rounds", "2",
+           "--bodies", "centipede:2", "--episodes-per-round", "8", "--episode-steps", "200", "--record-timeout", "300",
+           "--compare-with", str(tmp_path / "none*"), "--",
+           "--compile", "false", "--update-epochs", "1", "--tensorboard", "false", "--num-steps", "64"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=800)
+    assert done.returncode == 0, done.stdout + done.stderr
+    rows = _rows(out / "rounds.csv")
+    assert [r["round"] for r in rows] == ["1", "2"]
+    for r in rows:
+        assert int(r["lost_steps"]) == 0 and int(r["episodes"]) >= 7  # every episode counted, fallen or not
+    assert [int(r["sim_steps"]) for r in rows] == [int(rows[0]["steps"]), int(rows[1]["env_steps"])]
+    # One pass: every step of round 1's bag was learned from (6 envs x 64 steps a batch: several updates).
+    assert int(rows[0]["steps"]) > 384
+    assert rows[1]["checkpoint"] == f"train/checkpoints/policy_{int(rows[0]['steps']):08d}.safetensors"
+    config = json.loads((out / "train" / "config.json").read_text())
+    assert (config["learning_rate"], config["gamma"], config["gae_lambda"]) == (0.0003, 0.99, 0.95)
+    assert config["policy"]["global_features"] == 12

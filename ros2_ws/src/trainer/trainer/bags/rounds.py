@@ -6,11 +6,12 @@
 Each round
 1. records ``--episodes-per-round`` episodes with the three ROS 2 nodes as
    separate processes (sim: lockstep, as fast as possible, ``episode_steps``
-   per episode, chain length redrawn from min..max joints at each reset,
+   per episode, chain length redrawn from min..max joints at each reset, or
+   a body drawn from ``--bodies`` (``centipede:2-4``: episodes end at a fall),
    seeded per round; policy node: ``deterministic:=false`` with the latest
    checkpoint; ``morph-record``) into ``bags/round_NNN``;
-2. trains on that bag alone, ``morph-train --from-bags`` (one update: the
-   round's steps fit one batch), resuming the run in ``train/`` across rounds
+2. trains on that bag alone, ``morph-train --from-bags`` (one pass over it:
+   one update when the round's steps fit one batch, as a swimmer's do), resuming the run in ``train/`` across rounds
    (``--resume --new-data``) so the optimizer's state carries over; options
    after ``--`` go to morph-train (e.g. ``-- --compile false``);
 3. appends a row to ``rounds.csv``: simulator steps so far (episodes x
@@ -294,7 +295,9 @@ def train_round(cfg: RoundsConfig, r: int, data: RoundData, init: Path) -> None:
     else:
         mode = ["--resume", "--new-data"]
     cmd = [sys.executable, "-m", "trainer.cli.train", "--from-bags", str(cfg.bag(r)), "--out", str(cfg.train_dir)]
-    cmd += [*mode, "--iterations", "1", "--seed", str(cfg.seed), "--checkpoint-interval", "1"]
+    # One pass over the round's bag (morph-train's default): one update when its steps fit a batch, as a swimmer's
+    # six 1,000-step episodes do; a centipede's 30 short episodes may fill two (one would leave half unused).
+    cmd += [*mode, "--seed", str(cfg.seed), "--checkpoint-interval", "1"]
     cmd += ["--progress-bar", "false", *cfg.train_args]
     log = cfg.log(r, "train")
     with log.open("ab") as f:
