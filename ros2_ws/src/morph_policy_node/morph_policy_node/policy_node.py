@@ -509,8 +509,8 @@ class MorphPolicyNode(Node):
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
         try:
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
-            odom = OdometryRecord(
-                0, stamp_ns, p.x, p.y, (q.x, q.y, q.z, q.w), (lin.x, lin.y), ang.z, p.z, lin.z, (ang.x, ang.y)
+            odom = OdometryRecord.of(
+                0, stamp_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), (lin.x, lin.y, lin.z), (ang.x, ang.y, ang.z)
             )
             ready = self.controller.odometry(odom)  # checked in every width: unwrapped when a state uses it
         except (JointStateError, StampError) as err:

@@ -298,8 +298,7 @@ class LoopbackRecording:
             odometry = OdometryRecord(self._log(), stamp, t.x, t.y, quaternion_from_yaw(t.yaw), body, t.yaw_rate)
             return odometry, np.array([t.yaw, t.yaw_rate, t.vx, t.vy])
         root = self.sim.odometry()
-        (x, y, z), lin, ang = root.position, root.linear, root.angular
-        odometry = OdometryRecord(self._log(), stamp, x, y, root.orientation, lin[:2], ang[2], z, lin[2], ang[:2])
+        odometry = OdometryRecord.of(self._log(), stamp, root.position, root.orientation, root.linear, root.angular)
         glob = None
         if hasattr(robot, "write_observation"):  # the centipede env's own features, for comparison
             glob, n = np.empty(LEGGED_GLOBAL_FEATURES), self.sim.num_joints
