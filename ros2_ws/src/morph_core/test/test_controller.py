@@ -44,6 +44,7 @@ from morph_core.protocol.controller import (
     NO_EFFORT_LIMITS,
     Controller,
     EffortOrderError,
+    PolicyOutputError,
     effort_limit_error,
     policy_error,
 )
@@ -529,3 +530,32 @@ def test_joint_descriptions_under_fuzzed_descriptions_and_states():
     assert counts["adopted"] > 100 and counts["rejected"] > FUZZ_COUNT // 4 and counts["answered"] > FUZZ_COUNT
     assert c.descriptions.rejected == counts["rejected"]
     assert after - before < 20_000, (before, after)
+
+
+def test_weights_that_begin_to_read_descriptions_build_them_from_the_description_in_force():
+    """A node's policy replaced (a checkpoint parameter, pushed weights) by one that reads descriptions: the current
+    description's vectors are built then; if they cannot be, its states are refused (``JOINT_DESCRIPTION``) until a
+    good description comes; a state read for the other policy is not answered with the wrong inputs."""
+    good, tiny = _legged_urdf(), _legged_urdf(1e-4)
+    names = KinematicTree.from_urdf(good).names
+    c = Controller(NumpyPolicy(LEGGED))
+    assert c.description(good).outcome == "adopted"
+    c.odometry(legged_odometry(1))
+    (pending,) = c.state(_legged_state(1, names), 0.0)  # read for a policy without descriptions
+    c.policy = NumpyPolicy(DESCRIBED)
+    with pytest.raises(PolicyOutputError):
+        c.answer(pending)
+    c.odometry(legged_odometry(2))
+    answer = c.answer(*c.state(_legged_state(2, names), 0.0))
+    assert bits(answer.observation.joint_desc) == bits(urdf_descriptions(good))
+
+    c = Controller(NumpyPolicy(LEGGED))
+    assert c.description(tiny).outcome == "adopted"  # nothing reads descriptions yet
+    c.policy = NumpyPolicy(DESCRIBED)
+    c.odometry(legged_odometry(1))
+    with pytest.raises(JointMapError) as refused:
+        c.state(_legged_state(1, names), 0.0)
+    assert refused.value.code == JOINT_DESCRIPTION and "outside 0.001..1000 m" in str(refused.value)
+    assert c.description(good).outcome == "adopted"
+    c.odometry(legged_odometry(2))
+    assert c.answer(*c.state(_legged_state(2, names), 0.0)).observation.joint_desc is not None
