@@ -9,7 +9,9 @@ bit for bit: the node and the loopback are one ``protocol.controller.Controller`
 
 from __future__ import annotations
 
+import re
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +22,9 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.env.bodies import swimmer_tree, y_parents
+from morph_core.env.centipede_model import centipede_model
 from morph_core.env.sim import SwimmerSim
-from morph_core.env.urdf import swimmer_urdf
+from morph_core.env.urdf import robot_urdf, swimmer_urdf
 from morph_core.msgs.effort_names import effort_names, effort_tree
 from morph_core.msgs.records import (
     DescriptionRecord,
@@ -32,12 +35,16 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.msgs.stamps import answer_tag, from_ns
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import load_checkpoint
+from morph_core.protocol.controller import Controller
 from morph_core.protocol.episode_start import LABEL
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 
 STARTUP = 60.0
+Y = swimmer_tree(y_parents(1, 2))
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -132,23 +139,43 @@ def _bits(values) -> bytes:
     return np.asarray(values, dtype=np.float64).tobytes()
 
 
+def described_checkpoint(tmp_path) -> Path:
+    """A fresh legged policy that reads joint descriptions (joint_features 11), saved as a checkpoint."""
+    import torch
+
+    from morph_core.policy.actor_critic import GraphActorCritic
+    from morph_core.policy.config import PolicyConfig
+
+    torch.manual_seed(5)
+    path = tmp_path / "described.safetensors"
+    GraphActorCritic(PolicyConfig(global_features=12, joint_features=NUM_DESCRIPTION_FEATURES)).save(path)
+    return path
+
+
 @pytest.mark.timeout(300)
+@pytest.mark.parametrize("case", ["swimmers", "legged, described"])
 def test_the_node_answers_recorded_messages_as_the_loopback_recorded_them(
-    probe, launch, diagnostics, namespace, untrained_checkpoint
+    probe, launch, diagnostics, namespace, untrained_checkpoint, tmp_path, case
 ):
-    weights = load_checkpoint(untrained_checkpoint)
+    """Swimmers (a chain, then trees), and generated legged bodies under a policy that reads joint descriptions,
+    which the node builds from each robot_description as the loopback's controller did."""
+    if case == "swimmers":
+        checkpoint, sim, bodies = untrained_checkpoint, SwimmerSim(3, seed=4, effort_timeout=None), (None, Y, 4)
+    else:
+        checkpoint = described_checkpoint(tmp_path)
+        sim, bodies = SwimmerSim(bodies="legged:4-6x2-3", seed=4, effort_timeout=None), (None, None, None)
+    weights = load_checkpoint(checkpoint)
     loop = LoopbackRecording(
-        SwimmerSim(3, seed=4, effort_timeout=None), SamplingController(weights, seed=11), describe=True,
-        shuffle_seed=2, name_efforts=True,
-    )  # fmt: skip
-    for i, body in enumerate((None, swimmer_tree(y_parents(1, 2)), 4)):
+        sim, SamplingController(weights, seed=11), describe=True, shuffle_seed=2, name_efforts=True
+    )
+    for i, body in enumerate(bodies):
         if i:
             loop.new_episode(body)
         loop.run(12)
     loop.finish()
 
     peer = Peer(probe, diagnostics, namespace)
-    proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), deterministic=False, seed=11)
+    proc = launch("morph_policy_node", checkpoint=str(checkpoint), deterministic=False, seed=11)
     peer.wait_up(proc)
     recorded_efforts = {r.answers_ns: r for r in loop.records if isinstance(r, EffortRecord)}
     recorded_infos = {r.stamp_ns: r for r in loop.records if isinstance(r, PolicyInfoRecord)}
@@ -176,6 +203,8 @@ def test_the_node_answers_recorded_messages_as_the_loopback_recorded_them(
             answered += 1
     assert answered == len(loop.truth) > 35
     assert "no robot_description yet" not in proc.log()
+    if case != "swimmers":  # each body's own descriptions reached the policy: they differ between bodies
+        assert len({t.observation["joint_desc"].tobytes() for t in loop.truth}) > 1
 
 
 def limited_urdf(limits) -> str:
@@ -257,18 +286,53 @@ def test_an_unknown_effort_units_stops_the_node_with_one_line(launch, untrained_
     assert len(lines) == 1 and "effort_units must be one of normalized, urdf; got 'newton_metres'" in lines[0], log
 
 
-@pytest.mark.timeout(120)
-def test_a_policy_reading_joint_descriptions_stops_the_node_with_one_line(launch, tmp_path):
-    # The node does not build joint descriptions from robot_description yet: such a checkpoint is refused at
-    # start in one line, not at its first state with a traceback.
-    import torch
+@pytest.mark.timeout(240)
+def test_a_policy_reading_joint_descriptions_waits_for_robot_description_and_says_so_once(
+    probe, launch, diagnostics, namespace, tmp_path
+):
+    """No chain fallback: states before a description are counted (ignored, ``no_description``) and not answered,
+    the wait is logged once; a description whose joint descriptions cannot be built (a body of 0.1 mm) is a
+    counted rejection (``joint_description``) and the wait goes on; a good one is answered on, as the in-process
+    controller answers."""
+    checkpoint = described_checkpoint(tmp_path)
+    peer = Peer(probe, diagnostics, namespace)
+    proc = launch("morph_policy_node", checkpoint=str(checkpoint))
+    peer.wait_up(proc)
+    text = robot_urdf(centipede_model(2))
+    names = KinematicTree.from_urdf(text).names
+    pos, vel = np.linspace(-0.3, 0.3, len(names)), np.full(len(names), 0.2)
 
-    from morph_core.policy.actor_critic import GraphActorCritic
-    from morph_core.policy.config import PolicyConfig
+    def state(sec: int) -> JointState:
+        msg = JointState(name=list(names), position=list(pos), velocity=list(vel))
+        msg.header.stamp.sec = sec
+        return msg
 
-    torch.manual_seed(5)
-    path = tmp_path / "described.safetensors"
-    GraphActorCritic(PolicyConfig(global_features=12, joint_features=11)).save(path)
-    proc = launch("morph_policy_node", checkpoint=str(path), allow_untrained="true")
-    lines, log = _refused_at_start(proc)
-    assert len(lines) == 1 and "joint descriptions (joint_features 11)" in lines[0], log
+    def waited(sec: int, at_least: int) -> None:
+        for _ in range(20):
+            peer.pub["joint_states"].publish(state(sec))
+            try:
+                peer.wait_count("joint_states", at_least, "ignored", "no_description")
+                return
+            except AssertionError:
+                continue
+        raise AssertionError("no state counted as waiting for a description")
+
+    for sec in (1, 2, 3):
+        waited(sec, sec)
+    tiny = text
+    for xyz in {m for m in re.findall(r'xyz="([^"]*)"', text)}:
+        tiny = tiny.replace(f'xyz="{xyz}"', 'xyz="{}"'.format(" ".join(repr(float(v) * 1e-4) for v in xyz.split())))
+    peer.describe(tiny)
+    assert peer.count("robot_description", "rejected", "joint_description") == 1
+    waited(4, 4)
+    assert not peer.efforts  # nothing answered, no chain fallback
+    log = proc.log()
+    assert log.count("waiting for robot_description") == 1 and "still waiting for one" in log, log
+    assert "no robot_description yet" not in log
+
+    peer.describe(text)
+    efforts, _ = peer.answer(state(5), sampling=False)
+    c = Controller(NumpyPolicy(load_checkpoint(checkpoint)))
+    assert c.description(text).outcome == "adopted"
+    want = c.answer(*c.state(JointStateRecord(0, 5, names, pos, vel, np.empty(0)), 0.0))  # no odometry: at rest
+    assert _bits(efforts.data) == _bits(want.efforts)

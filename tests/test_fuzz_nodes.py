@@ -508,6 +508,145 @@ def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespac
     assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
 
 
+DESCRIBED_FUZZ = int(os.environ.get("DESCRIBED_FUZZ", "1000"))
+"""garbled descriptions fed to a node running a policy that reads joint descriptions"""
+_NUMERIC = ("xyz", "rpy", "value", "lower", "upper", "effort")
+_GARBAGE = ("nan", "inf", "-inf", "1e400", "0", "-1", "", "abc", "1e-300", "1 2", "0 0 0", "1e12")
+
+
+def _garbled_numbers(text: str, rng: random.Random) -> str:
+    """A description with one to three of its numbers (origins, axes, limits, masses) garbled or scaled wildly:
+    the same joints, so the states keep fitting whatever the node makes of it."""
+    import xml.etree.ElementTree as ET
+
+    robot = ET.fromstring(text)
+    numbers = [(e, a) for e in robot.iter() for a in _NUMERIC if a in e.attrib]
+    for _ in range(rng.randrange(1, 4)):
+        e, attribute = rng.choice(numbers)
+        if rng.random() < 0.6:
+            e.set(attribute, rng.choice(_GARBAGE))
+        else:
+            factor = 10.0 ** rng.choice([-9, -6, -4, 4, 6, 9])
+            try:
+                e.set(attribute, " ".join(repr(float(v) * factor) for v in e.get(attribute).split()))
+            except ValueError:
+                e.set(attribute, "nan")
+    return ET.tostring(robot, encoding="unicode")
+
+
+@pytest.mark.timeout(1800)
+def test_policy_node_reading_joint_descriptions_under_garbled_descriptions(
+    probe, launch, namespace, diagnostics, tmp_path
+):
+    """A policy of joint_features 11 on a two-pair centipede's URDF (``env.urdf.robot_urdf``), fed
+    ``DESCRIBED_FUZZ`` garbled descriptions (NaN, inf, huge, tiny, garbage numbers) while states flow, one answered
+    after each: no crash; each garbled description the node refuses is counted on /diagnostics (``description``
+    when it is no robot, ``joint_description`` when its vectors cannot be built); every answer is the in-process
+    controller's on a description it adopted (mostly the last good one), never NaN."""
+    import torch
+
+    from morph_core.env.centipede_model import centipede_model
+    from morph_core.env.urdf import robot_urdf
+    from morph_core.msgs.records import JointStateRecord, OdometryRecord
+    from morph_core.policy.actor_critic import GraphActorCritic
+    from morph_core.policy.config import PolicyConfig
+    from morph_core.policy.tree import KinematicTree
+    from morph_core.protocol.controller import Controller
+
+    torch.manual_seed(51)
+    checkpoint = tmp_path / "described.safetensors"
+    GraphActorCritic(PolicyConfig(global_features=12, joint_features=11)).save(checkpoint)
+    policy = NumpyPolicy(load_checkpoint(checkpoint))
+    good = robot_urdf(centipede_model(2))
+    names = KinematicTree.from_urdf(good).names
+    n = len(names)
+    pos, vel = np.linspace(-0.4, 0.4, n), np.linspace(0.2, -0.2, n)
+    quat, lin, z = (0.0, 0.0, 0.0998, 0.995), (0.3, -0.1), 0.6
+    rng = random.Random(51)
+    answers: dict[int, np.ndarray] = {}
+
+    def on_efforts(msg):
+        tag = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
+        if tag is not None:
+            answers[tag] = np.array(msg.data)
+
+    probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
+    diag = diagnostics(f"{namespace}/morph_policy")
+    pubs = {"joint_states": probe.node.create_publisher(JointState, "joint_states", 10),
+            "odom": probe.node.create_publisher(Odometry, "odom", 10),
+            "robot_description": probe.node.create_publisher(String, "robot_description", LATCHED)}  # fmt: skip
+    pubs["robot_description"].publish(String(data=good))  # latched, before the node starts
+    proc = launch("morph_policy_node", checkpoint=str(checkpoint), input_timeout=60.0)
+    probe.spin_until(
+        lambda: all(p.get_subscription_count() > 0 for p in pubs.values()) and diag.latest is not None,
+        STARTUP, "the policy node's subscriptions and diagnostics",
+    )  # fmt: skip
+    probe.spin_until(lambda: diag.latest["robot_description"].received == 1, 20.0, "the latched description")
+
+    def expected(text: str) -> bytes | None:
+        """The efforts the node's controller gives the fixed state on ``text`` (None: it refuses ``text``)."""
+        c = Controller(policy)
+        if c.description(text).outcome != "adopted":
+            return None
+        quaternion = (quat[0], quat[1], quat[2], quat[3])
+        c.odometry(OdometryRecord.of(0, 1, (0.0, 0.0, z), quaternion, (*lin, 0.0), (0.0, 0.0, 0.0)))
+        (ready,) = c.state(JointStateRecord(0, 1, names, pos, vel, np.empty(0)), 0.0)
+        return np.asarray(c.answer(ready).efforts, dtype=np.float64).tobytes()
+
+    adopted = [expected(good)]  # the efforts of each description the node may have in force, in order sent
+    sent, refused, latest = Counter({"robot_description": 1}), Counter(), Counter()
+    next_sec = [10]
+
+    def fuzz(count: int) -> None:
+        for i in range(count):
+            text = good if i % 20 == 0 else _garbled_numbers(good, rng)  # the good one now and then
+            want = expected(text)
+            if want is None:
+                refused["robot_description"] += 1
+            elif want != adopted[-1]:
+                adopted.append(want)
+            pubs["robot_description"].publish(String(data=text))
+            sent["robot_description"] += 1
+            next_sec[0] += 1
+            stamp = to_ns(next_sec[0], 0)
+            pubs["odom"].publish(_odom(next_sec[0], 0, quat=quat, lin=lin, z=z))
+            pubs["joint_states"].publish(_state(next_sec[0], 0, names=names, pos=pos, vel=vel))
+            sent["odom"] += 1
+            sent["joint_states"] += 1
+            probe.spin_until(lambda stamp=stamp: stamp in answers, ANSWER_TIMEOUT, f"the answer to {stamp}")
+            got = answers[stamp]
+            assert np.isfinite(got).all() and got.shape == (n,)
+            assert got.tobytes() in adopted, "efforts of no description the node could have adopted"
+            latest[got.tobytes() == adopted[-1]] += 1
+
+    fuzz(100)  # warm-up: every kind met, allocator pools grown
+    probe.spin_for(1.0)
+    rss_before, t0 = proc.rss_kb(), time.monotonic()
+    fuzz(DESCRIBED_FUZZ)
+    elapsed = time.monotonic() - t0
+    probe.spin_for(1.0)
+    rss_after = proc.rss_kb()
+    assert proc.alive(), proc.log()[-3000:]
+    counts = _wait_counts(probe, diag, dict(sent), {"robot_description": sent["robot_description"]})
+    described = counts["robot_description"]
+    lost = sent["robot_description"] - described.received  # keep last 1: replaced before the node took it
+    assert set(described.rejected) <= {"description", "joint_description"}, described
+    assert "joint_description" in described.rejected, described  # garbled numbers the tree reader lets through
+    assert refused["robot_description"] - lost <= described.rejected_total <= refused["robot_description"]
+    assert counts["joint_states"].rejected_total == 0 and counts["joint_states"].received == sent["joint_states"]
+    log = proc.log()
+    assert "Traceback" not in log
+    assert _warning_lines(log) <= 2 * (elapsed / 1.0 + 2) + 2, "warnings not throttled"
+    growth = rss_after - rss_before
+    print(
+        f"\npolicy node, joint_features 11: {sent['robot_description']} descriptions ({refused['robot_description']} "
+        f"refused in process; the node counted {dict(described.rejected)}, {lost} replaced in transport), "
+        f"{sent['joint_states']} states answered in {elapsed:.1f} s ({latest[True]} on the latest description "
+        f"adopted, {latest[False]} on an earlier one); RSS {rss_before} -> {rss_after} kB ({growth:+d})"
+    )
+    assert growth < RSS_GROWTH_LIMIT_KB, f"RSS grew by {growth} kB"
+
+
 # -- sim node --------------------------------------------------------------------------------------------------
 def _efforts(values, label: str | None = None) -> Float64MultiArray:
     msg = Float64MultiArray(data=_doubles(values))

@@ -7,18 +7,22 @@ feed it (the node over DDS: ``tests/test_controller_node.py``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import random
 import time
+import types
+import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
 
 from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
+from morph_core.env.centipede_model import centipede_model
 from morph_core.env.sim import SwimmerSim
-from morph_core.env.urdf import swimmer_urdf
+from morph_core.env.urdf import robot_urdf, swimmer_urdf
 from morph_core.msgs.joint_state import JointStateError, quaternion_from_yaw
 from morph_core.msgs.records import (
     DescriptionRecord,
@@ -29,23 +33,30 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.policy.config import PolicyConfig
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES, urdf_descriptions
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import untrained_weights
 from morph_core.protocol.controller import (
     EFFORT_LIMIT,
+    JOINT_DESCRIPTION,
+    NO_DESCRIPTION,
     NO_EFFORT_LIMITS,
     Controller,
     EffortOrderError,
+    PolicyOutputError,
     effort_limit_error,
     policy_error,
 )
 from morph_core.protocol.joint_map import JointMapError
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController, body_sim
+from morph_core.protocol.robot_description import DESCRIPTION, PREVIOUS_DESCRIPTION
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig, assemble
 
 SEED = 5
 SWIMMER = untrained_weights(seed=1)
 LEGGED = untrained_weights(PolicyConfig(global_features=12), seed=1)
+DESCRIBED = untrained_weights(PolicyConfig(global_features=12, joint_features=NUM_DESCRIPTION_FEATURES), seed=1)
 
 
 def chains():
@@ -62,7 +73,17 @@ def centipedes():
     return sim, (None, None, None), dict(describe=True, shuffle_seed=6, name_efforts=True)
 
 
-CASES = {"chains": (chains, SWIMMER), "trees": (trees, SWIMMER), "centipedes": (centipedes, LEGGED)}
+def legged():
+    sim = SwimmerSim(bodies="legged:4-6x2-3", seed=SEED, effort_timeout=None)
+    return sim, (None, None, None), dict(describe=True, shuffle_seed=8, name_efforts=True)
+
+
+CASES = {
+    "chains": (chains, SWIMMER),
+    "trees": (trees, SWIMMER),
+    "centipedes": (centipedes, LEGGED),
+    "legged, described": (legged, DESCRIBED),  # a policy that reads joint descriptions, on generated bodies
+}
 
 
 def recorded(case: str, steps: int = 25) -> tuple[LoopbackRecording, object]:
@@ -101,7 +122,7 @@ def test_the_node_the_loopback_and_the_transitions_agree_to_the_bit(case):
     loop, weights = recorded(case)
     records = loop.records
     width = NumpyPolicy(weights).global_features
-    assert width == (12 if case == "centipedes" else 4)
+    assert width == (4 if case in ("chains", "trees") else 12)
 
     # The node's answers to the recorded messages are the loopback's recorded answers, bit for bit.
     answers = as_the_node(records, SamplingController(weights, seed=7))
@@ -136,9 +157,17 @@ def test_the_node_the_loopback_and_the_transitions_agree_to_the_bit(case):
         assert t.log_prob == info_of[t.stamp_ns].log_prob
         assert bits(t.next_global) == bits(by_stamp[_next(t, answers)].observation.global_feats)
 
-    # And what the controller built is what the env had (rebuilt from odometry: to rounding).
+    # And what the controller built is what the env had (rebuilt from odometry: to rounding); the joint
+    # descriptions it read off each robot_description are the compiled body's (env and sim node's).
     for truth, answer in zip(loop.truth, answers, strict=True):
         np.testing.assert_allclose(answer.observation.global_feats, truth.observation["global"], rtol=0, atol=1e-9)
+        if weights is DESCRIBED:
+            expected = truth.observation["joint_desc"]  # the compiled model's (mujoco_descriptions)
+            np.testing.assert_allclose(answer.observation.joint_desc, expected, rtol=0, atol=1e-9)
+        else:
+            assert answer.observation.joint_desc is None
+    if weights is DESCRIBED:  # bodies of different descriptions, each read off its own robot_description
+        assert len({t.observation["joint_desc"].tobytes() for t in loop.truth}) > 1
 
 
 def _next(t, answers) -> int:
@@ -366,5 +395,167 @@ def test_a_policy_whose_inputs_no_controller_builds_is_refused_with_its_reason()
     # A node refuses such a checkpoint (or pushed weights) in one line rather than failing at its first state.
     assert policy_error(PolicyConfig()) is None and policy_error(PolicyConfig(global_features=12)) is None
     assert "reads 7 global features; a controller builds 4 or 12" in policy_error(PolicyConfig(global_features=7))
-    described = policy_error(PolicyConfig(global_features=12, joint_features=11))
-    assert described is not None and "joint descriptions (joint_features 11)" in described
+    assert policy_error(PolicyConfig(global_features=12, joint_features=11)) is None  # built off robot_description
+    other = policy_error(types.SimpleNamespace(global_features=12, joint_features=5))  # a config from elsewhere
+    assert other == (
+        "reads 5 description features per joint; a controller builds 11 from robot_description "
+        "(policy.joint_description) or none"
+    )
+
+
+# -- joint descriptions read off robot_description -------------------------------------------------------------
+def _legged_urdf(scale: float = 1.0) -> str:
+    """A two-pair centipede's URDF (``env.urdf.robot_urdf``, the sim node's), every length times ``scale``."""
+    robot = ET.fromstring(robot_urdf(centipede_model(2)))
+    if scale != 1.0:
+        for origin in robot.iter("origin"):
+            origin.set("xyz", " ".join(repr(float(v) * scale) for v in origin.get("xyz", "0 0 0").split()))
+    return ET.tostring(robot, encoding="unicode")
+
+
+def _legged_state(stamp: int, names: tuple[str, ...]) -> JointStateRecord:
+    n = len(names)
+    return JointStateRecord(0, stamp, names, np.linspace(-0.3, 0.3, n), np.full(n, 0.2), np.empty(0))
+
+
+def legged_odometry(stamp: int) -> OdometryRecord:
+    return OdometryRecord(0, stamp, 0.1, 0.0, (0.0, 0.0, 0.0, 1.0), (0.2, 0.0), 0.0, 0.55, 0.0, (0.0, 0.0))
+
+
+def test_a_policy_reading_descriptions_waits_for_one_and_keeps_the_last_good_one():
+    """No chain fallback: a state before any description is refused (``NO_DESCRIPTION``); a description whose joint
+    descriptions cannot be built (a body of 0.1 mm) is a counted refusal (``JOINT_DESCRIPTION``), waiting goes on,
+    and once one is adopted a bad one leaves it in force; the answers read its vectors (``urdf_descriptions``)."""
+    good, tiny = _legged_urdf(), _legged_urdf(1e-4)
+    names = KinematicTree.from_urdf(good).names
+    policy = NumpyPolicy(DESCRIBED)
+    c = Controller(policy)
+    assert c.joint_features == NUM_DESCRIPTION_FEATURES
+    c.odometry(legged_odometry(1))
+    with pytest.raises(JointMapError) as refused:
+        c.state(_legged_state(1, names), 0.0)
+    assert refused.value.code == NO_DESCRIPTION
+    offer = c.description(tiny)
+    assert (offer.outcome, offer.code) == ("rejected", JOINT_DESCRIPTION) and "outside 0.001..1000 m" in offer.reason
+    assert c.descriptions.rejected == 1 and c.descriptions.is_fallback
+    with pytest.raises(JointMapError, match="waiting for one"):
+        c.state(_legged_state(1, names), 0.0)
+
+    assert c.description(good).outcome == "adopted"
+    first = c.answer(*c.state(_legged_state(1, names), 0.0))
+    want = urdf_descriptions(good)
+    assert bits(first.observation.joint_desc) == bits(want)
+    s = _legged_state(1, names)
+    direct = policy.mean(s.position, s.velocity, first.observation.global_feats, first.observation.parents, want)
+    assert bits(first.action) == bits(direct.astype(np.float64))  # the vectors reach the policy, in tree order
+
+    assert c.description(tiny).code == JOINT_DESCRIPTION and c.descriptions.rejected == 2
+    c.odometry(legged_odometry(2))
+    again = c.answer(*c.state(_legged_state(2, names), 0.0))
+    assert bits(again.observation.joint_desc) == bits(want)  # the last good description still answers
+
+    # A policy that reads none: the same body description is adopted as before, and no vector is built.
+    plain = Controller(NumpyPolicy(LEGGED))
+    assert plain.joint_features == 0 and plain.description(tiny).outcome == "adopted"
+    plain.odometry(legged_odometry(1))
+    assert plain.answer(*plain.state(_legged_state(1, names), 0.0)).observation.joint_desc is None
+
+
+_GARBAGE = ("nan", "inf", "-inf", "1e400", "0", "-1", "", "abc", "1e-300", "1 2", "1e12")
+
+
+def _garbled(text: str, rng: random.Random) -> str:
+    """A description with one to three numbers replaced by garbage, scaled wildly, or an element taken out."""
+    robot = ET.fromstring(text)
+    for _ in range(rng.randrange(1, 4)):
+        e = rng.choice([e for e in robot.iter() if e.attrib])
+        attribute = rng.choice(sorted(e.attrib))
+        op = rng.randrange(4)
+        if op == 0:
+            e.set(attribute, rng.choice(_GARBAGE))
+        elif op == 1:
+            with contextlib.suppress(ValueError):
+                e.set(
+                    attribute, " ".join(repr(float(v) * 10.0 ** rng.uniform(-9, 9)) for v in e.get(attribute).split())
+                )
+        elif op == 2:
+            del e.attrib[attribute]
+        else:
+            parent = rng.choice([p for p in robot.iter() if len(p)])
+            parent.remove(rng.choice(list(parent)))
+    return ET.tostring(robot, encoding="unicode")
+
+
+def test_joint_descriptions_under_fuzzed_descriptions_and_states():
+    """``FUZZ_COUNT`` garbled descriptions, each with states: every one adopted, unchanged or refused with a code,
+    every answer finite and read on the vectors of the description in force, no other exception, RSS flat."""
+    rng = random.Random(51)
+    good = _legged_urdf()
+    names = KinematicTree.from_urdf(good).names
+    c = Controller(NumpyPolicy(DESCRIBED), deterministic=False)
+    counts = {"adopted": 0, "rejected": 0, "unchanged": 0, "answered": 0, "refused": 0}
+    current = None
+
+    def fuzz(count: int, stamp: int) -> int:
+        nonlocal current
+        for i in range(count):
+            text = good if i % 10 == 0 else _garbled(good, rng)  # the good one now and then: back to a robot
+            offer = c.description(text)
+            counts[offer.outcome] += 1
+            if offer.outcome == "rejected":
+                assert offer.code in (DESCRIPTION, JOINT_DESCRIPTION) and offer.reason and "\n" not in offer.reason
+            elif offer.outcome == "adopted":
+                current = text
+            for _ in range(2):
+                stamp += 1
+                c.odometry(legged_odometry(stamp))
+                try:
+                    (ready,) = c.state(_legged_state(stamp, names), 0.0)
+                except JointMapError as err:
+                    assert err.code in ("unknown_joint", "missing_joint", PREVIOUS_DESCRIPTION, NO_DESCRIPTION)
+                    counts["refused"] += 1
+                    continue
+                answer = c.answer(ready)
+                assert np.isfinite(answer.efforts).all() and np.isfinite(answer.observation.joint_desc).all()
+                assert bits(answer.observation.joint_desc) == bits(urdf_descriptions(current))
+                counts["answered"] += 1
+        return stamp
+
+    stamp = fuzz(300, 0)  # warm-up: caches and allocator pools grown
+    before, t0 = _rss_kb(), time.monotonic()
+    fuzz(FUZZ_COUNT, stamp)
+    after, elapsed = _rss_kb(), time.monotonic() - t0
+    print(f"joint descriptions fuzz: {FUZZ_COUNT} descriptions (+300 warm-up), {counts}, {elapsed:.1f} s, "
+          f"RSS {before / 1024:.1f} -> {after / 1024:.1f} MB")  # fmt: skip
+    assert counts["adopted"] > 100 and counts["rejected"] > FUZZ_COUNT // 4 and counts["answered"] > FUZZ_COUNT
+    assert c.descriptions.rejected == counts["rejected"]
+    assert after - before < 20_000, (before, after)
+
+
+def test_weights_that_begin_to_read_descriptions_build_them_from_the_description_in_force():
+    """A node's policy replaced (a checkpoint parameter, pushed weights) by one that reads descriptions: the current
+    description's vectors are built then; if they cannot be, its states are refused (``JOINT_DESCRIPTION``) until a
+    good description comes; a state read for the other policy is not answered with the wrong inputs."""
+    good, tiny = _legged_urdf(), _legged_urdf(1e-4)
+    names = KinematicTree.from_urdf(good).names
+    c = Controller(NumpyPolicy(LEGGED))
+    assert c.description(good).outcome == "adopted"
+    c.odometry(legged_odometry(1))
+    (pending,) = c.state(_legged_state(1, names), 0.0)  # read for a policy without descriptions
+    c.policy = NumpyPolicy(DESCRIBED)
+    with pytest.raises(PolicyOutputError):
+        c.answer(pending)
+    c.odometry(legged_odometry(2))
+    answer = c.answer(*c.state(_legged_state(2, names), 0.0))
+    assert bits(answer.observation.joint_desc) == bits(urdf_descriptions(good))
+
+    c = Controller(NumpyPolicy(LEGGED))
+    assert c.description(tiny).outcome == "adopted"  # nothing reads descriptions yet
+    c.policy = NumpyPolicy(DESCRIBED)
+    c.odometry(legged_odometry(1))
+    with pytest.raises(JointMapError) as refused:
+        c.state(_legged_state(1, names), 0.0)
+    assert refused.value.code == JOINT_DESCRIPTION and "outside 0.001..1000 m" in str(refused.value)
+    assert c.description(good).outcome == "adopted"
+    c.odometry(legged_odometry(2))
+    assert c.answer(*c.state(_legged_state(2, names), 0.0)).observation.joint_desc is not None

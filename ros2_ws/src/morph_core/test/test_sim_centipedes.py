@@ -59,7 +59,7 @@ def test_its_urdf_is_the_compiled_models_tree():
 
 
 def test_mixed_families_and_bad_odometry_are_refused():
-    with pytest.raises(ValueError, match="mixes swimmers and centipedes"):
+    with pytest.raises(ValueError, match="mixes swimmers and walkers"):
         SwimmerSim(bodies="2,centipede:2")
     with pytest.raises(JointStateError, match="unit quaternion"):
         legged_global_features((0, 0, 0, 2), (0, 0, 0.5), (0, 0, 0), (0, 0, 0))

@@ -175,6 +175,7 @@ from morph_core.msgs.stream_chunk import ChunkWriter
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, PolicyWeights, weights_from_arrays
 from morph_core.protocol.controller import (
+    NO_DESCRIPTION,
     Controller,
     EffortOrderError,
     PolicyOutputError,
@@ -200,6 +201,10 @@ _WEIGHTS_LOG_THROTTLE = 1.0
 STATES, ODOM, EPISODES, WEIGHTS = "joint_states", "odom", "episode_start", WEIGHTS_TOPIC  # inputs, as counted
 DESCRIPTION = "robot_description"  # an input too
 _DESCRIPTION_LOG_THROTTLE = 1.0  # a bad description is rare and says why the robot is not driven: show each
+_WAITING = (
+    f"the policy reads joint descriptions: waiting for {DESCRIPTION} (no chain fallback); states are not answered "
+    "until one is adopted"
+)  # said once
 KEYS = "trusted_keys"  # the key files, counted as an input: each loaded or rejected with its reason
 # Live announcements only (volatile), best effort: matches the sim's latched reliable publisher and
 # no publisher can make this reader wait on repairs.
@@ -368,6 +373,7 @@ class MorphPolicyNode(Node):
         self.rejected = 0
         self._diagnostics = InputDiagnostics(self, self.counts)
         self._said_fallback = False
+        self._said_waiting = False
         self._last_answer = time.monotonic()  # the watchdog's zero efforts follow silence from here
         self._silent = False
         self._handover = False  # the last rejected state was of a body whose description had not arrived
@@ -503,8 +509,8 @@ class MorphPolicyNode(Node):
         lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
         try:
             stamp_ns = check_stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
-            odom = OdometryRecord(
-                0, stamp_ns, p.x, p.y, (q.x, q.y, q.z, q.w), (lin.x, lin.y), ang.z, p.z, lin.z, (ang.x, ang.y)
+            odom = OdometryRecord.of(
+                0, stamp_ns, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), (lin.x, lin.y, lin.z), (ang.x, ang.y, ang.z)
             )
             ready = self.controller.odometry(odom)  # checked in every width: unwrapped when a state uses it
         except (JointStateError, StampError) as err:
@@ -524,7 +530,9 @@ class MorphPolicyNode(Node):
         elif offer.outcome == "rejected":
             self.rejected += 1
             self.counts.rejected(DESCRIPTION, offer.code, offer.reason)
-            kept = "the chain fallback kept" if descriptions.is_fallback else "the current graph kept"
+            kept = "the current graph kept"
+            if descriptions.is_fallback:
+                kept = "still waiting for one" if self.controller.joint_features else "the chain fallback kept"
             self.get_logger().warn(
                 f"rejected robot_description ({descriptions.rejected} so far), {kept}: {offer.reason}",
                 throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE,
@@ -551,6 +559,12 @@ class MorphPolicyNode(Node):
             self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
         except JointMapError as err:
+            if err.code == NO_DESCRIPTION:  # a policy that reads joint descriptions waits for one: not a fault
+                self.counts.ignored(STATES, err.code)
+                if not self._said_waiting:
+                    self._said_waiting = True
+                    self.get_logger().info(_WAITING)
+                return
             if err.code != PREVIOUS_DESCRIPTION:
                 # The next body's states before its description (a sim's hand-over between bodies): info, and so
                 # is the silence it causes; states that never fit (nothing answered, or silent since) warn.

@@ -60,19 +60,22 @@ class ChainViz:
     def __init__(self, node: Node):
         self._description_pub = node.create_publisher(String, "robot_description", DESCRIPTION_QOS)
         self._marker_pub = node.create_publisher(MarkerArray, "markers", MARKER_QOS)
-        self._described: tuple[KinematicTree, str] | None = None
+        self._described: tuple[KinematicTree, str, object] | None = None
         self._marked: KinematicTree | None = None  # the body of the last marker array published
 
     def describe(self, sim: SwimmerSim, prefix: str) -> None:
         """Publish the URDF of the sim's body unless it is the one already published."""
         tree = sim.tree  # the same object while the body stays the same: the common case costs no comparison
+        # A robot's compiled model as well: two generated legged bodies of one tree differ in their sizes, which a
+        # policy reading joint descriptions reads off this URDF.
+        model = None if sim.robot is None else getattr(sim.robot, "model", None)
         if self._described is None or not (self._described[0] is tree or self._described[0] == tree):
             changed = True
         else:
-            changed = self._described[1] != prefix
+            changed = self._described[1] != prefix or self._described[2] is not model
         if changed:
             self._description_pub.publish(String(data=sim.urdf(prefix)))
-            self._described = (tree, prefix)
+            self._described = (tree, prefix, model)
 
     def markers(self, sim: SwimmerSim, prefix: str, stamp) -> None:
         """The current state's segments, if anyone listens (a swimmer's: a robot model has none)."""

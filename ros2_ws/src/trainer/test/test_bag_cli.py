@@ -25,6 +25,7 @@ from morph_core.msgs.records import (
     OdometryRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.config import PolicyConfig
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
@@ -317,3 +318,24 @@ def test_info_says_why_a_bag_gave_no_step_when_none_was_skipped(tmp_path, sample
     only_odometry = write_bag(tmp_path / "odom", [r for r in sampled_records if isinstance(r, OdometryRecord)])
     assert main(["info", str(only_odometry)]) == 0
     assert "no joint_states of the robot's topics were read" in capsys.readouterr().out
+
+
+def test_training_a_policy_that_reads_joint_descriptions_from_the_topics_is_refused_in_one_line(
+    tmp_path, sampled_records, capsys
+):
+    """The transitions rebuilt from bags or a live stream do not carry joint descriptions: morph-train says so at
+    once, for a fresh policy of joint_features 11 and for an --init checkpoint that reads them."""
+    from trainer.cli.train import check_live
+    from trainer.cli.train import main as train_main
+
+    bag = write_bag(tmp_path / "bag", sampled_records)
+    init = tmp_path / "described.safetensors"
+    GraphActorCritic(PolicyConfig(global_features=12, joint_features=11)).save(init)
+    for extra in (["--policy-joint-features", "11"], ["--init", str(init)]):
+        assert train_main(["--from-bags", str(bag), "--out", str(tmp_path / "run"), "--compile", "false", *extra]) == 1
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and "reads joint descriptions (joint_features 11)" in err, err
+        assert not (tmp_path / "run" / "state.safetensors").exists()
+        with pytest.raises(SystemExit):
+            check_live(["--live", "--namespaces", "a", "--out", str(tmp_path / "live"), *extra])
+        assert "training from the topics (--from-bags, --live) does not carry them yet" in capsys.readouterr().err

@@ -170,10 +170,15 @@ class MjcfRobot:
     def advance(self, efforts: np.ndarray) -> bool:
         """One control period under ``efforts`` (one per joint, tree order, in [-1, 1]); True if MuJoCo had
         to reset a state that blew up (the state now is its reset state, not one to show)."""
-        self.data.ctrl[:] = efforts[self._actuator_joint] * self._actuator_scale
+        self.data.ctrl[:] = self.ctrl(efforts)
         before = [w.number for w in self._warnings]
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         return any(w.number > b for w, b in zip(self._warnings, before, strict=True))
+
+    def ctrl(self, efforts: np.ndarray) -> np.ndarray:
+        """The actuators' controls for ``efforts`` (one per joint, tree order): each actuator its joint's effort
+        scaled to its ctrl range (the module's rule; an env stepped with its own ``step`` takes these)."""
+        return efforts[self._actuator_joint] * self._actuator_scale
 
     # -- state ------------------------------------------------------------------------
     @property

@@ -30,7 +30,8 @@ across episodes: every state is one control period after the one before, the
 first state of an episode included (a diverged state, never shown, is
 replaced by the next episode's first).
 
-Centipedes (``bodies`` of the centipede family alone, e.g. ``centipede:3``): a ``MorphCentipedeEnv`` per
+Centipedes and generated legged bodies (``bodies`` of those families alone, e.g. ``centipede:3``,
+``legged:4x2``): a ``MorphCentipedeEnv`` per
 episode (the size drawn from the spec at every reset, Ant-v5's reset noise, its 0.05 s control period), the
 joints in its tree order, the root's pose and twist in 3-D (``odometry``), its URDF from the compiled model.
 A fall ends the episode as it ends in training (``MorphCentipedeEnv``'s health rule, Ant-v5's: the root's z out
@@ -54,7 +55,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from morph_core.env.bodies import BodyMix, parse_bodies
+from morph_core.env.bodies import WALKER_FAMILIES, BodyMix, parse_bodies
 from morph_core.env.mjcf_robot import MjcfRobot, RootState
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
@@ -92,8 +93,8 @@ class CentipedeBodies:
     def __init__(self, bodies: BodyMix):
         from morph_core.env.vec_env import BodyEnv  # the env stack, only for a sim of centipedes
 
-        if not bodies.has_centipedes or not all(str(item).startswith("centipede:") for item in bodies.items):
-            raise ValueError(f"{str(bodies)!r} mixes swimmers and centipedes: a sim runs one family (one period)")
+        if not all(isinstance(item, WALKER_FAMILIES) for item in bodies.items):
+            raise ValueError(f"{str(bodies)!r} mixes swimmers and walkers: a sim runs one task (one period)")
         self.bodies = bodies
         self._env = BodyEnv(bodies)
         self.joint_range = bodies.joint_range
@@ -168,7 +169,8 @@ class SwimmerSim:
     ):
         if bodies is not None and robot is not None:
             raise ValueError("a sim runs swimmers of a body spec or a robot model, not both")
-        if bodies is not None and (parse_bodies(bodies) if isinstance(bodies, str) else bodies).has_centipedes:
+        mix = None if bodies is None else parse_bodies(bodies) if isinstance(bodies, str) else bodies
+        if mix is not None and any(isinstance(item, WALKER_FAMILIES) for item in mix.items):
             robot = CentipedeBodies(parse_bodies(bodies) if isinstance(bodies, str) else bodies)
             bodies = None
         self.robot = robot

@@ -45,6 +45,13 @@ class OdometryRecord:
     body_linear_z: float = 0.0
     angular_xy: tuple[float, float] = (0.0, 0.0)
 
+    @classmethod
+    def of(cls, log_ns: int, stamp_ns: int, position, orientation_xyzw, body_linear, body_angular) -> OdometryRecord:
+        """The record of an odometry message's 3-D pose (world frame) and twist (body frame), each as the message
+        lists it (x, y, z; x, y, z, w): the one place its fields are laid out."""
+        (x, y, z), (vx, vy, vz), (wx, wy, wz) = position, body_linear, body_angular
+        return cls(log_ns, stamp_ns, x, y, tuple(orientation_xyzw), (vx, vy), wz, z, vz, (wx, wy))
+
     @property
     def position(self) -> tuple[float, float, float]:
         return self.x, self.y, self.z

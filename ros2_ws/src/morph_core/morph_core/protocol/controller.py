@@ -24,8 +24,18 @@ The global features are chosen by the policy's width
 (``NumpyPolicy.global_features``, or ``global_features`` without a policy), in
 the table ``GLOBAL_FEATURES``: 4, a swimmer's planar (yaw unwrapped, yaw rate,
 world-frame velocity; ``msgs.joint_state.global_features``), 12, a legged
-body's in 3-D (``msgs.joint_state.legged_global_features``). A new kind of
-input (per-joint descriptions) is a new entry and a field of ``Observation``.
+body's in 3-D (``msgs.joint_state.legged_global_features``).
+
+Joint descriptions. A policy that reads them (``joint_features`` 11,
+``policy.joint_description``) gets each joint's vector built from the
+``robot_description`` adopted (``urdf_descriptions``, in the tree's order: the
+order the state is laid out in), in ``Observation.joint_desc``. Such a
+controller has no chain fallback: until a description is adopted a state is
+refused (``JointMapError`` code ``NO_DESCRIPTION``), and a description whose
+vectors cannot be built (non-finite numbers, a zero axis, an absurd size) is
+rejected (code ``JOINT_DESCRIPTION``) with the last good one kept, so no NaN
+ever reaches the policy. A policy that reads none costs nothing here: no
+vector is built and nothing else changes.
 
 The yaw unwrapping's reset rule, one for all three (``observe``). The
 unwrapping restarts at a state when (a) it is read on another robot than the
@@ -79,7 +89,8 @@ from morph_core.msgs.joint_state import (
 from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.records import JointStateRecord, OdometryRecord
 from morph_core.policy.config import NUM_GLOBAL_FEATURES
-from morph_core.policy.tree import UrdfRobot
+from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES, urdf_descriptions
+from morph_core.policy.tree import TreeError, UrdfRobot
 from morph_core.protocol.episode_tracker import EpisodeTracker
 from morph_core.protocol.joint_map import JointMapError, JointOrder
 from morph_core.protocol.pairing import ODOMETRY_WAIT, StatePairing
@@ -111,15 +122,16 @@ def global_width_error(width: int) -> str | None:
 
 def policy_error(config) -> str | None:
     """Why a policy of ``config`` (a ``PolicyConfig``) cannot be driven from the topics, or None: a global width
-    no controller builds, or per-joint descriptions (``joint_features``), which a controller does not yet read
-    off ``robot_description`` (a refusal in one line, not a failure at the first state)."""
+    no controller builds, or a number of description features per joint other than the descriptions'
+    (``NUM_DESCRIPTION_FEATURES``; a refusal in one line, not a failure at the first state)."""
     error = global_width_error(config.global_features)
     if error is not None:
         return error
-    if getattr(config, "joint_features", 0):
+    width = getattr(config, "joint_features", 0)
+    if width not in (0, NUM_DESCRIPTION_FEATURES):
         return (
-            f"reads joint descriptions (joint_features {config.joint_features}); a controller does not build them "
-            "from robot_description yet: run it with morph-eval, or train with joint_features 0 for the nodes"
+            f"reads {width} description features per joint; a controller builds {NUM_DESCRIPTION_FEATURES} "
+            "from robot_description (policy.joint_description) or none"
         )
     return None
 
@@ -141,6 +153,10 @@ EFFORT_LIMIT = "effort_limit"
 """reason code of a description refused under ``urdf`` units: an actuated joint without a usable limit"""
 NO_EFFORT_LIMITS = "no_effort_limits"
 """``JointMapError.code`` of a state refused under ``urdf`` units while no description has been adopted"""
+JOINT_DESCRIPTION = "joint_description"
+"""reason code of a description refused for a policy that reads joint descriptions: they cannot be built"""
+NO_DESCRIPTION = "no_description"
+"""``JointMapError.code`` of a state refused while a policy that reads joint descriptions has no description"""
 
 
 class EffortOrderError(ValueError):
@@ -175,13 +191,17 @@ def effort_limit_error(robot: UrdfRobot) -> str | None:
 
 # -- the policy's answer ---------------------------------------------------------------------------
 class Actor(Protocol):
-    """What a controller drives: ``policy.numpy_actor.NumpyPolicy``, or a stand-in with its two methods."""
+    """What a controller drives: ``policy.numpy_actor.NumpyPolicy``, or a stand-in with its two methods
+    (``joint_desc`` is passed only to a policy whose ``joint_features`` is not 0; a stand-in without the attribute
+    reads none)."""
 
     log_std: float
 
-    def mean(self, joint_pos, joint_vel, global_feats, parents=None) -> np.ndarray: ...
+    def mean(self, joint_pos, joint_vel, global_feats, parents=None, joint_desc=None) -> np.ndarray: ...
 
-    def sample(self, joint_pos, joint_vel, global_feats, rng, parents=None) -> tuple[np.ndarray, np.ndarray]: ...
+    def sample(
+        self, joint_pos, joint_vel, global_feats, rng, parents=None, joint_desc=None
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class PolicyOutputError(ValueError):
@@ -205,16 +225,18 @@ def act(
     glob: np.ndarray,
     rng: np.random.Generator | None,
     parents: np.ndarray | None = None,
+    joint_desc: np.ndarray | None = None,
 ) -> Action:
     """Efforts for one robot: the mean (``rng`` None) or a sample (the policy's NumPy sampler on ``rng``), its
-    joints in tree order (``parents``, the tree's; None: a chain). Raises ``PolicyOutputError`` if the policy's
-    output is NaN or inf (finite weights can still overflow float32): a clip would turn inf into a full-scale
-    command."""
+    joints in tree order (``parents``, the tree's; None: a chain; ``joint_desc`` [N, D] their descriptions, for a
+    policy that reads them). Raises ``PolicyOutputError`` if the policy's output is NaN or inf (finite weights can
+    still overflow float32): a clip would turn inf into a full-scale command."""
+    extra = {} if joint_desc is None else {"joint_desc": joint_desc}  # a stand-in that reads none needs no keyword
     with np.errstate(over="ignore", invalid="ignore"):  # reported below as one rejection, not a warning
         if rng is None:
-            action, mean = policy.mean(pos, vel, glob, parents).astype(np.float64), None
+            action, mean = policy.mean(pos, vel, glob, parents, **extra).astype(np.float64), None
         else:
-            action, mean = policy.sample(pos, vel, glob, rng, parents)
+            action, mean = policy.sample(pos, vel, glob, rng, parents, **extra)
     if not np.isfinite(action).all() or (mean is not None and not np.isfinite(mean).all()):
         raise PolicyOutputError("the policy's output for this state is not finite")
     return Action(np.clip(action, -1.0, 1.0), action, mean)
@@ -234,6 +256,8 @@ class Ready:
     joint_vel: np.ndarray
     limits: np.ndarray | None
     """each joint's effort limit in the tree's order (``urdf`` units), None in normalized units"""
+    joint_desc: np.ndarray | None = None
+    """float64 [N, D] the joints' descriptions in the tree's order, for a policy that reads them (else None)"""
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,6 +271,8 @@ class Observation:
     """the tree's parent array (-1: the torso)"""
     names: tuple[str, ...]
     """the tree's joints, in its order"""
+    joint_desc: np.ndarray | None = None
+    """float64 [N, D] their descriptions (``policy.joint_description``), for a policy that reads them"""
 
 
 @dataclass(frozen=True, eq=False)
@@ -272,9 +298,9 @@ class Controller:
     """A policy node between messages and efforts; see the module docstring.
 
     ``policy``: what answers (``NumpyPolicy``; None for a controller that only ``observe``s, as the transition
-    assembler's). ``global_features``: the width without a policy. ``deterministic``: the mean; else a sample
-    from the generator seeded by ``seed``, with its ``policy_info``. Both ``policy`` and ``deterministic`` may
-    be changed between two answers (a node's parameters and pushed weights).
+    assembler's). ``global_features``, ``joint_features``: the widths without a policy. ``deterministic``: the
+    mean; else a sample from the generator seeded by ``seed``, with its ``policy_info``. Both ``policy`` and
+    ``deterministic`` may be changed between two answers (a node's parameters and pushed weights).
     """
 
     def __init__(
@@ -286,6 +312,7 @@ class Controller:
         effort_order: str = "state",
         effort_units: str = "normalized",
         global_features: int = NUM_GLOBAL_FEATURES,
+        joint_features: int = 0,
         odometry_wait: float = ODOMETRY_WAIT,
     ):
         self.policy = policy
@@ -293,9 +320,11 @@ class Controller:
         self.rng = np.random.default_rng(seed)
         self.effort_order = _effort_order(effort_order)
         self.effort_units = _effort_units(effort_units)
-        self._width = global_features
+        self._width, self._joint_width = global_features, joint_features
         urdf = self.effort_units == "urdf"
-        self.descriptions = RobotDescriptions(effort_limit_error if urdf else None, refusal_code=EFFORT_LIMIT)
+        self.descriptions = RobotDescriptions(
+            effort_limit_error if urdf else None, EFFORT_LIMIT, self._describe, JOINT_DESCRIPTION
+        )
         self.pairing: StatePairing[Ready] = StatePairing(odometry_wait)
         self.odom: OdometryRecord | None = None
         """the latest odometry (checked)"""
@@ -312,10 +341,20 @@ class Controller:
         """The global features the policy reads (without one: ``global_features``)."""
         return self._width if self.policy is None else int(getattr(self.policy, "global_features", self._width))
 
+    @property
+    def joint_features(self) -> int:
+        """The description features per joint the policy reads (0: none; without a policy: ``joint_features``)."""
+        return self._joint_width if self.policy is None else int(getattr(self.policy, "joint_features", 0))
+
+    def _describe(self, text: object) -> np.ndarray | None:
+        """A description's joint descriptions when the policy reads them (``TreeError`` if they cannot be built)."""
+        return urdf_descriptions(text) if self.joint_features else None
+
     # -- inputs, in the order they are received ---------------------------------------------------
     def description(self, text: object) -> DescriptionOffer:
         """A ``robot_description``: adopted, unchanged or rejected (``RobotDescriptions.offer``; under ``urdf``
-        units also rejected, code ``EFFORT_LIMIT``, for a joint without a usable effort limit)."""
+        units also rejected, code ``EFFORT_LIMIT``, for a joint without a usable effort limit; for a policy that
+        reads joint descriptions, code ``JOINT_DESCRIPTION``, for one whose descriptions cannot be built)."""
         return self.descriptions.offer(text)
 
     def episode_start(self, stamp_ns: int) -> None:
@@ -336,8 +375,20 @@ class Controller:
 
         Raises ``JointStateError`` for a malformed one, ``JointMapError`` for one that does not fit the
         description (its ``code``: ``unknown_joint``, ``missing_joint``, ``previous_description`` for a state of
-        the robot before a swap, or ``NO_EFFORT_LIMITS``)."""
+        the robot before a swap, ``NO_EFFORT_LIMITS``, ``NO_DESCRIPTION``, or ``JOINT_DESCRIPTION`` when the
+        policy began to read descriptions after the current one was adopted and its own cannot be built)."""
         pos, vel = validate_joint_state(state.names, state.position, state.velocity)
+        desc = None
+        if self.joint_features:
+            if self.descriptions.is_fallback:
+                raise JointMapError(
+                    NO_DESCRIPTION, "the policy reads joint descriptions and no robot_description has been adopted: "
+                    "waiting for one (no chain fallback)",
+                )  # fmt: skip
+            try:
+                desc = self.descriptions.joint_descriptions()
+            except TreeError as err:
+                raise JointMapError(JOINT_DESCRIPTION, f"the robot_description's joint descriptions: {err}") from None
         order = self.descriptions.order(tuple(state.names))
         limits = None
         if self.effort_units == "urdf":
@@ -349,7 +400,7 @@ class Controller:
                 )  # fmt: skip
             limits = np.array([robot.effort_limits[name] for name in order.tree.names], dtype=np.float64)
         ready = Ready(
-            state.stamp_ns, self.descriptions.generation, order, order.to_tree(pos), order.to_tree(vel), limits
+            state.stamp_ns, self.descriptions.generation, order, order.to_tree(pos), order.to_tree(vel), limits, desc
         )
         return self.pairing.state(state.stamp_ns, ready, now)
 
@@ -385,14 +436,16 @@ class Controller:
         names = tree.names if by_tree else order.message_names
         self.names, self.layout = names, tree.layout_hash
         rng = None if self.deterministic else self.rng
-        out = act(self.policy, ready.joint_pos, ready.joint_vel, glob, rng, tree.parents)
+        if bool(self.joint_features) != (ready.joint_desc is not None):  # weights that read otherwise, pushed since
+            raise PolicyOutputError("the state was read for a policy that reads joint descriptions otherwise")
+        out = act(self.policy, ready.joint_pos, ready.joint_vel, glob, rng, tree.parents, ready.joint_desc)
         efforts = out.efforts if ready.limits is None else out.efforts * ready.limits
         info = None
         if out.mean is not None:
             info = pack_policy_info(
                 self._ordered(order, by_tree, out.action), self._ordered(order, by_tree, out.mean), self.policy.log_std
             )
-        observation = Observation(ready.joint_pos, ready.joint_vel, glob, tree.parents, tree.names)
+        observation = Observation(ready.joint_pos, ready.joint_vel, glob, tree.parents, tree.names, ready.joint_desc)
         return Answer(
             ready.stamp_ns, names, tree.layout_hash, self._ordered(order, by_tree, efforts),
             self._ordered(order, by_tree, out.action), info, observation, ready.generation > 0,

@@ -62,6 +62,7 @@ from morph_core.msgs.records import (
 )
 from morph_core.msgs.stamps import seconds_to_ns
 from morph_core.policy.config import NUM_GLOBAL_FEATURES
+from morph_core.policy.joint_description import mujoco_descriptions
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 from morph_core.protocol.controller import Answer, Controller
@@ -155,7 +156,8 @@ class LoopbackRecording:
         self._log_ns = 0
         self._ticks = 0  # control periods elapsed, resets included: stamps never repeat
         self._episode = 0
-        self._described: tuple[int, ...] | None = None  # the parents of the body last described
+        self._described: tuple | None = None  # the body last described: its parents (and a robot's model)
+        self._joint_desc: np.ndarray | None = None  # that robot's joint descriptions, read off its compiled model
         self._latest: Answer | None = None  # the controller's answer to the state published last
         self._announce_next = True
         self._cause: str | None = None  # the next announcement's, when it says more than start/steps
@@ -258,11 +260,15 @@ class LoopbackRecording:
     def _state_records(self) -> list[Record]:
         stamp = self.stamp_ns
         out: list[Record] = []
-        if self.describe and body_parents(self._body()) != self._described:
+        robot = self._robot()
+        # a robot's model too: two generated legged bodies of one tree differ in their joint descriptions
+        body = (body_parents(self._body()), None if robot is None else getattr(robot, "model", None))
+        if self.describe and body != self._described:
             # as the sim node publishes it
-            text = swimmer_urdf(self._body(), self.prefix) if self._robot() is None else self.sim.urdf(self.prefix)
+            text = swimmer_urdf(self._body(), self.prefix) if robot is None else self.sim.urdf(self.prefix)
             out.append(DescriptionRecord(self._log(), text))
-            self._described = body_parents(self._body())
+            self._described = body
+            self._joint_desc = None if body[1] is None else mujoco_descriptions(body[1])
         if self._announce_next:
             out.append(EpisodeStartRecord(self._log(), stamp, self._episode, self.sim.num_joints, self._cause))
             self._announce_next, self._cause = False, None
@@ -277,6 +283,8 @@ class LoopbackRecording:
             out.append(JointStateRecord(self._log(), stamp, tuple(names[i] for i in k), pos[k], vel[k], applied[k]))
         self._latest = self._answered(out)
         observation = {"joint_pos": pos, "joint_vel": vel, "global": glob}
+        if self._joint_desc is not None:  # the compiled model's, to compare with what a controller read off the URDF
+            observation["joint_desc"] = self._joint_desc
         self.truth.append(StepTruth(stamp, self._episode, observation, None))
         return out
 
@@ -290,8 +298,7 @@ class LoopbackRecording:
             odometry = OdometryRecord(self._log(), stamp, t.x, t.y, quaternion_from_yaw(t.yaw), body, t.yaw_rate)
             return odometry, np.array([t.yaw, t.yaw_rate, t.vx, t.vy])
         root = self.sim.odometry()
-        (x, y, z), lin, ang = root.position, root.linear, root.angular
-        odometry = OdometryRecord(self._log(), stamp, x, y, root.orientation, lin[:2], ang[2], z, lin[2], ang[:2])
+        odometry = OdometryRecord.of(self._log(), stamp, root.position, root.orientation, root.linear, root.angular)
         glob = None
         if hasattr(robot, "write_observation"):  # the centipede env's own features, for comparison
             glob, n = np.empty(LEGGED_GLOBAL_FEATURES), self.sim.num_joints

@@ -25,12 +25,22 @@ how they hang together. ``RobotDescriptions`` holds the one a node acts on:
 
 The two latest descriptions are kept, text and map, so a description
 alternating between two robots costs a comparison, not a parse.
+
+Joint descriptions (``policy.joint_description``): with ``describe`` (a
+controller whose policy reads them) each new description's per-joint vectors
+are built when it is offered, in its tree's order; one whose vectors cannot be
+built (``TreeError``: NaN origins, a zero axis, an absurd size, ...) is
+rejected like a malformed one, with ``describe_code``, and the current graph
+is kept. ``joint_descriptions()`` gives the current one's (built then, if the
+policy began to read them after it was adopted).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+
+import numpy as np
 
 from morph_core.policy.tree import TreeError, UrdfRobot
 from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder
@@ -55,19 +65,29 @@ class DescriptionOffer:
     """``DESCRIPTION`` or the check's code (rejected), ``UNCHANGED`` (unchanged), '' (adopted)"""
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class _Described:
     text: str
     map: JointMap
+    joint_desc: np.ndarray | None = None
+    """its joint descriptions, once built (``describe``)"""
 
 
 class RobotDescriptions:
     """The description a node acts on, the one before it, and what became of each offered."""
 
-    def __init__(self, check: Callable[[UrdfRobot], str | None] | None = None, refusal_code: str = "") -> None:
+    def __init__(
+        self,
+        check: Callable[[UrdfRobot], str | None] | None = None,
+        refusal_code: str = "",
+        describe: Callable[[object], np.ndarray | None] | None = None,
+        describe_code: str = "",
+    ) -> None:
         """``check``: a further condition on a robot (its reason, or None), whose refusal counts as
-        ``refusal_code`` (a controller's effort units: ``protocol.controller``)."""
+        ``refusal_code`` (a controller's effort units: ``protocol.controller``). ``describe``: a description's
+        text -> its joint descriptions (None: not wanted now; ``TreeError``: rejected as ``describe_code``)."""
         self._check, self._refusal_code = check, refusal_code
+        self._describe, self._describe_code = describe, describe_code
         self._fallback = JointMap()
         self._current: _Described | None = None
         self._previous: _Described | None = None
@@ -109,10 +129,26 @@ class RobotDescriptions:
                 self.rejected += 1
                 self.last_error = reason
                 return DescriptionOffer("rejected", reason=reason, code=self._refusal_code)
+            if self._describe is not None:
+                try:
+                    described.joint_desc = self._describe(text)
+                except TreeError as err:
+                    self.rejected += 1
+                    self.last_error = reason = f"its joint descriptions cannot be built: {err}"
+                    return DescriptionOffer("rejected", reason=reason, code=self._describe_code)
         self._previous, self._current = self._current, described
         self.generation += 1
         self.adopted += 1
         return DescriptionOffer("adopted")
+
+    def joint_descriptions(self) -> np.ndarray | None:
+        """The current description's joint descriptions, in its tree's order (None on the fallback, or when
+        ``describe`` wants none); built now if they were not when it was adopted (``TreeError`` if they cannot)."""
+        if self._current is None or self._describe is None:
+            return None
+        if self._current.joint_desc is None:
+            self._current.joint_desc = self._describe(self._current.text)
+        return self._current.joint_desc
 
     def order(self, names: tuple[str, ...]) -> JointOrder:
         """Where each of the current tree's joints is among a state's ``names`` (distinct, valid joint names).

@@ -211,6 +211,19 @@ def new_run_config(base: TrainConfig, overrides: dict) -> TrainConfig:
     return cfg
 
 
+def descriptions_error(cfg, init) -> str | None:
+    """Why a run from the topics (bags, live) cannot train the policy ``cfg`` or ``init`` describes, or None: one
+    that reads joint descriptions (``joint_features``), which the transitions rebuilt from the topics do not carry
+    yet (the policy node reads them off robot_description; the simulator trainer carries them)."""
+    width = (GraphActorCritic.load(init).config if init is not None else cfg.policy).joint_features
+    if not width:
+        return None
+    return (
+        f"the policy reads joint descriptions (joint_features {width}) and training from the topics (--from-bags, "
+        "--live) does not carry them yet: train it in the simulator (--bodies), or with joint_features 0"
+    )
+
+
 def _train_from_bags(args) -> None:
     overrides = overrides_from_args(args, TrainConfig)
     if (error := init_error(args)) is not None:
@@ -229,6 +242,8 @@ def _train_from_bags(args) -> None:
         if (args.out / "state.safetensors").exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         cfg = new_run_config(TrainConfig(), overrides)
+    if (error := descriptions_error(cfg, args.init)) is not None:
+        raise CliError(error)
     data, warnings, skips = read_bags(args.from_bags, args.namespace)
     for w in warnings:
         print(f"morph-train: warning: {w}", file=sys.stderr)
@@ -305,6 +320,8 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
                               args.stream_chunks, args.signing_key, args.init)  # fmt: skip
     except (OSError, TypeError, ValueError) as err:
         parser.error(str(err))
+    if (error := descriptions_error(cfg, args.init)) is not None:
+        parser.error(error)
     if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):
         print(f"morph-train: {done}")
         parser.exit(0)
