@@ -197,14 +197,14 @@ def init_error(args) -> str | None:
     return None
 
 
-def new_run_config(base: TrainConfig, overrides: dict) -> TrainConfig:
+def new_run_config(base: TrainConfig, overrides: dict, say: bool = True) -> TrainConfig:
     """A new run's config: ``base`` (the simulator's and the bags' ``TrainConfig()``, the live trainer's own),
     then, for bodies with legs, the centipede results' PPO settings where no option sets them (said in one
     line), then the options given. Every source takes them, so a centipede learns at one learning rate from
     the simulator, from bags and live."""
     legged = family_defaults(overrides.get("bodies", ""), overrides)
     cfg = replace_nested(base, {**legged, **overrides})
-    if legged:
+    if legged and say:
         given = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in legged.items())
         print(f"morph-train: bodies with legs: {given} (the centipede results' settings; give an option to "
               "set it otherwise)", flush=True)  # fmt: skip
@@ -295,7 +295,7 @@ def _train_from_bags(args) -> None:
     print("\n".join(follower.summary(args.out, data=True)), flush=True)
 
 
-def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
+def _live_config(args, parser, say: bool = True) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
     """The live run's config, options and (on ``--resume``) what changes in its config.json; ``parser.error``
     for what the trainer refuses before it starts ROS, and a finished run resumed is said and exits 0."""
     if not args.namespaces:
@@ -314,7 +314,7 @@ def _live_config(args, parser) -> tuple[TrainConfig, LiveOptions, ResumedConfig 
         else:
             if (args.out / "state.safetensors").exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg, resumed = new_run_config(live_train_config(), overrides), None
+            cfg, resumed = new_run_config(live_train_config(), overrides, say), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
                               args.silence_timeout, args.max_updates, args.weights_period, args.nice,
                               args.stream_chunks, args.signing_key, args.init)  # fmt: skip
@@ -335,7 +335,7 @@ def check_live(argv: list[str]) -> None:
     args = parser.parse_args(argv)
     if not args.live:
         parser.error("check_live: a command without --live")
-    _live_config(args, parser)
+    _live_config(args, parser, say=False)  # the trainer says it when it starts
 
 
 def _train_live(args, parser) -> int:
