@@ -23,6 +23,7 @@ from morph_core.env.bodies import swimmer_tree, y_parents
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.effort_names import effort_names, effort_tree
+from morph_core.msgs.episode_start import LABEL
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -34,7 +35,6 @@ from morph_core.msgs.records import (
 from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint
-from morph_core.protocol.episode_start import LABEL
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 
 STARTUP = 60.0

@@ -24,10 +24,10 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train import TrainConfig
+from morph_core.msgs.episode_start import unpack_episode_start
 from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
-from morph_core.protocol.episode_start import unpack_episode_start
 from morph_core.protocol.transitions import TransitionAssembler
 from trainer.live.learner import LIVE_LEARNING_RATE
 from trainer.live.trainer_node import (

@@ -332,7 +332,7 @@ def test_episode_announcement_of_a_custom_type(tmp_path):
 
 
 def test_the_sims_episode_announcement(tmp_path):
-    """std_msgs/Int64MultiArray with the fields named in layout.dim[0].label (protocol.episode_start)."""
+    """std_msgs/Int64MultiArray with the fields named in layout.dim[0].label (msgs.episode_start)."""
 
     def announcement(label, data):
         dim = T["std_msgs/msg/MultiArrayDimension"](label=label, size=len(data), stride=len(data))

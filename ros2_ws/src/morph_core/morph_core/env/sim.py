@@ -59,10 +59,11 @@ from morph_core.env.mjcf_robot import MjcfRobot, RootState
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.urdf import robot_urdf, swimmer_urdf
+from morph_core.env.vec_env import BodyEnv
+from morph_core.msgs.episode_start import EpisodeCause
 from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 from morph_core.msgs.stamps import seconds_to_ns
 from morph_core.policy.tree import KinematicTree
-from morph_core.protocol.episode_start import EpisodeCause
 
 
 class EffortError(ValueError):
@@ -90,8 +91,6 @@ class CentipedeBodies:
     ``vec_env.BodyEnv`` (the spec's draw, then Ant-v5's reset noise, from one generator)."""
 
     def __init__(self, bodies: BodyMix):
-        from morph_core.env.vec_env import BodyEnv  # the env stack, only for a sim of centipedes
-
         if not bodies.has_centipedes or not all(str(item).startswith("centipede:") for item in bodies.items):
             raise ValueError(f"{str(bodies)!r} mixes swimmers and centipedes: a sim runs one family (one period)")
         self.bodies = bodies

@@ -17,7 +17,7 @@ Topics are found relative to a namespace (given, or taken from the one
     odom             nav_msgs/msg/Odometry               -> OdometryRecord
     effort_commands  std_msgs/msg/Float64MultiArray      -> EffortRecord (answers_ns from the answer tag)
     policy_info      trajectory_msgs/msg/JointTrajectory -> PolicyInfoRecord (msgs.policy_info layout)
-    episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``protocol.episode_start``)
+    episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``msgs.episode_start``)
                      or any stamped type                 -> EpisodeStartRecord (``episode_start_record``)
     robot_description std_msgs/msg/String               -> DescriptionRecord (the URDF, read by the assembler)
 
@@ -90,7 +90,7 @@ def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
 
     The sim's announcement (``std_msgs/Int64MultiArray``, fields named by
     ``layout.dim[0].label``, e.g. "episode,stamp_ns,num_joints,cause") is
-    decoded by ``morph_core.protocol.episode_start.unpack_episode_start``.
+    decoded by ``morph_core.msgs.episode_start.unpack_episode_start``.
 
     Any other type needs a stamp (the first state of the episode):
     ``header.stamp`` or a ``stamp`` field (builtin_interfaces/Time). The
@@ -104,7 +104,7 @@ def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
     """
     layout = getattr(msg, "layout", None)
     if layout is not None and hasattr(msg, "data"):
-        from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
+        from morph_core.msgs.episode_start import EpisodeStartError, unpack_episode_start
 
         if not len(layout.dim):
             raise DecodeError("bad layout", "a multi-array announcement without layout.dim[0] naming its fields")

@@ -10,6 +10,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from morph_core.msgs.effort_names import names_label, tree_label
+from morph_core.msgs.episode_start import EpisodeCause, pack_episode_start
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -20,7 +21,6 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import answer_tag, from_ns
-from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
