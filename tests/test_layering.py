@@ -19,7 +19,9 @@ The checks:
   (``tests/test_policy_weights.py`` checks the nodes' imports at run time, beyond the workspace's modules.)
 - the core's layers, the numbered list of docs/design.md's "The core, module by module": a module of
   ``morph_core`` imports no module of a layer above its own, at any level (inside functions too), and every
-  subpackage of the core is in one layer.
+  subpackage of the core is in one layer;
+- the trainer's library modules never import its command-line modules (``trainer.cli.*``, a room's ``cli``,
+  a ``__main__``): the commands import the library, not the reverse.
 """
 
 from __future__ import annotations
@@ -253,6 +255,20 @@ def upward_imports(imports: list[Import], layers: dict[str, int]) -> list[str]:
     return found
 
 
+def is_command_line(module: str) -> bool:
+    """A command-line module of the trainer: ``trainer.cli`` and its modules, a room's ``cli``, a ``__main__``."""
+    parts = module.split(".")
+    return parts[0] == "trainer" and (parts[1:2] == ["cli"] or parts[-1] in ("cli", "__main__"))
+
+
+def library_imports_of_command_lines(imports: list[Import]) -> list[str]:
+    return [
+        f"{i.source} imports {i.target} (line {i.line})"
+        for i in imports
+        if package_of(i.source) == "trainer" and not is_command_line(i.source) and is_command_line(i.target)
+    ]
+
+
 def forbidden(name: str, never: set[str]) -> bool:
     return name in never or ("ROS" in never and is_ros(name))
 
@@ -364,3 +380,20 @@ def test_the_cores_layers_point_down_as_the_design_page_says():
     assert upward == [], "imports from a layer above (docs/design.md, The core, module by module):\n" + "\n".join(
         upward
     )
+
+
+def test_the_trainer_s_library_never_imports_its_command_lines():
+    modules = workspace_modules()
+    commands = sorted(m for m in modules if is_command_line(m))
+    assert {
+        "trainer.cli.train",
+        "trainer.cli.eval",
+        "trainer.bags.cli",
+        "trainer.sweep.cli",
+        "trainer.sweep.__main__",
+    } <= set(commands)
+    assert not is_command_line("trainer.live.bringup") and not is_command_line("trainer.client")
+    planted = Import("trainer.live.bringup", "trainer.cli.train", 7, at_import_time=False)  # inside a function
+    assert library_imports_of_command_lines([planted]) == ["trainer.live.bringup imports trainer.cli.train (line 7)"]
+    offenders = library_imports_of_command_lines(all_imports(modules))
+    assert offenders == [], "library modules that import a command line:\n" + "\n".join(offenders)

@@ -520,7 +520,7 @@ def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, 
     from morph_core.protocol.loopback import SamplingController, record_episodes
     from morph_core.protocol.transition_batch import TransitionBatch
     from morph_core.protocol.transitions import SkipCounts, assemble
-    from trainer.bags.messages import TYPESTORE, record_message
+    from trainer.codec import TYPESTORE, record_message
     from trainer.live.learner import LiveOptions, live_train_config
     from trainer.live.trainer_node import LiveTrainer
 

@@ -30,7 +30,7 @@ from morph_core.protocol.loopback import MeanController, SamplingController, rec
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
 from trainer.bags.cli import main, summarize_bag
-from trainer.bags.messages import header, record_message, stamp
+from trainer.codec import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types

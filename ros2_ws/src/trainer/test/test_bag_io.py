@@ -31,8 +31,8 @@ from morph_core.msgs.records import (
 from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.protocol.loopback import GaussianController, record_episodes
 from trainer.bags.io import BagError, BagReader, read_bag
-from trainer.bags.messages import TOPIC_TYPES, record_message
 from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions, jazzy_metadata_problems
+from trainer.codec import TOPIC_TYPES, record_message
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
