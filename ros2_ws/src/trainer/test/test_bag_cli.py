@@ -29,7 +29,8 @@ from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
-from trainer.bags.cli import main, summarize_bag
+from trainer.bags.cli import main
+from trainer.bags.contents import summarize_bag
 from trainer.codec import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -283,7 +284,7 @@ def test_info_names_a_body_by_what_it_is():
     from morph_core.env.centipede_model import ant_mjcf, centipede_mjcf
     from morph_core.env.urdf import robot_urdf
     from morph_core.policy.tree import read_urdf
-    from trainer.bags.cli import described_body
+    from trainer.bags.contents import described_body
 
     def named(urdf: str) -> str:
         return described_body(urdf, read_urdf(urdf).tree)

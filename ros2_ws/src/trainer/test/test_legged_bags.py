@@ -19,10 +19,9 @@ from morph_core.policy.config import PolicyConfig
 from morph_core.policy.weights import untrained_weights
 from morph_core.protocol.loopback import GaussianController, LoopbackRecording, SamplingController, record_episodes
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
-from trainer.bags.cli import bag_config, bag_task
+from trainer.bags.contents import bag_config, bag_task, read_bags
 from trainer.bags.io import read_bag
 from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
-from trainer.cli.train import read_bags
 from trainer.codec import TOPIC_TYPES, odometry_record, record_message
 
 TS = get_typestore(Stores.ROS2_JAZZY)
