@@ -11,18 +11,9 @@ only what rosbag2 stores is used (topic name and type, log time, CDR data,
 the message definitions for types the Jazzy type store lacks).
 
 Topics are found relative to a namespace (given, or taken from the one
-``.../joint_states`` topic) and decoded as
-
-    joint_states     sensor_msgs/msg/JointState         -> JointStateRecord
-    odom             nav_msgs/msg/Odometry               -> OdometryRecord
-    effort_commands  std_msgs/msg/Float64MultiArray      -> EffortRecord (answers_ns from the answer tag)
-    policy_info      trajectory_msgs/msg/JointTrajectory -> PolicyInfoRecord (msgs.policy_info layout)
-    episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``msgs.episode_start``)
-                     or any stamped type                 -> EpisodeStartRecord (``episode_start_record``)
-    robot_description std_msgs/msg/String               -> DescriptionRecord (the URDF, read by the assembler)
-
-An effort command's names dimension (``msgs.effort_names``) goes into
-``EffortRecord.names``; one that does not parse or fit rejects the message.
+``.../joint_states`` topic) and decoded by the ROS codec (``trainer.codec``: its
+table says which type becomes which record); the episode announcement may be
+any stamped type (``episode_start_record``).
 
 Other topics (``/clock``, ...) are counted in ``stats.skipped``. A message
 that cannot be decoded is counted in ``stats.rejected`` by (topic, reason),
