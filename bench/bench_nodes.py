@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.msgs.joint_state import chain_batch, validate_joint_state
+from morph_core.msgs.joint_state import validate_joint_state
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chains import chain_batch
 from morph_core.policy.numpy_actor import NumpyPolicy
 
 BIN = Path(sys.executable).parent

@@ -33,6 +33,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from morph_core.constants import MAX_JOINTS
 from morph_core.env.bodies import (
     MAX_TREE_JOINTS,
     RANDOM_MAX_BRANCHING,
@@ -43,7 +44,6 @@ from morph_core.env.bodies import (
     YFamily,
     body_label,
 )
-from morph_core.env.model import MAX_JOINTS
 from morph_core.env.swimmer_batch import SwimmerBatch
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 

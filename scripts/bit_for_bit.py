@@ -43,7 +43,7 @@ import sys, torch
 from rosbags.typesys import Stores, get_typestore
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
-from trainer.bags.messages import record_message
+from trainer.codec import record_message
 from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
 ts = get_typestore(Stores.ROS2_JAZZY)
 types = {"episode_start": "std_msgs/msg/Int64MultiArray", "joint_states": "sensor_msgs/msg/JointState",

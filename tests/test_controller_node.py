@@ -26,6 +26,7 @@ from morph_core.env.centipede_model import centipede_model
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import robot_urdf, swimmer_urdf
 from morph_core.msgs.effort_names import effort_names, effort_tree
+from morph_core.msgs.episode_start import LABEL
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -40,7 +41,6 @@ from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.controller import Controller
-from morph_core.protocol.episode_start import LABEL
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 
 STARTUP = 60.0

@@ -20,11 +20,11 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
 from morph_core.env.swimmer_env import MorphSwimmerEnv
+from morph_core.msgs.episode_start import EpisodeCause, pack_episode_start, unpack_episode_start
 from morph_core.msgs.joint_state import quaternion_from_yaw
 from morph_core.msgs.stamps import answer_tag, from_ns, to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
-from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start, unpack_episode_start
 from swimmer_sim_node.sim_node import chain_lengths
 
 STARTUP = 60.0

@@ -766,7 +766,7 @@ def test_live_trainer_under_fuzzed_3d_odometry(probe, diagnostics, tmp_path, tra
     from morph_core.policy.config import PolicyConfig
     from morph_core.policy.weights import untrained_weights
     from morph_core.protocol.loopback import LoopbackRecording, SamplingController
-    from trainer.bags.messages import TYPESTORE, record_message
+    from trainer.codec import TYPESTORE, record_message
     from trainer.live.learner import LiveOptions, live_train_config
     from trainer.live.trainer_node import STREAM_TOPICS, LiveTrainer
 

@@ -17,6 +17,11 @@ The checks:
   launch, ament) appear in no import of its modules, and importing any of its modules loads none of them
   through the workspace modules it imports at import time (module level, outside ``TYPE_CHECKING``).
   (``tests/test_policy_weights.py`` checks the nodes' imports at run time, beyond the workspace's modules.)
+- the core's layers, the numbered list of docs/design.md's "The core, module by module": a module of
+  ``morph_core`` imports no module of a layer above its own, at any level (inside functions too), and every
+  subpackage of the core is in one layer;
+- the trainer's library modules never import its command-line modules (``trainer.cli.*``, a room's ``cli``,
+  a ``__main__``): the commands import the library, not the reverse.
 """
 
 from __future__ import annotations
@@ -216,6 +221,54 @@ def structure_table() -> dict[str, dict[str, set[str]]]:
     return table
 
 
+def core_layers() -> dict[str, int]:
+    """docs/design.md's layers of the core: unit -> its layer's number (1 at the bottom), from the numbered list
+    of "The core, module by module" (a unit is a subpackage, a module of the package's top, or ``__init__``)."""
+    text = DESIGN.read_text(encoding="utf-8")
+    section = text.split("\n## The core, module by module\n", 1)[1].split("\n## ", 1)[0]
+    layers = {}
+    for number, names in re.findall(r"^(\d+)\. ((?:`\w+`(?:, )?)+):", section, flags=re.MULTILINE):
+        for name in re.findall(r"`(\w+)`", names):
+            assert name not in layers, f"docs/design.md puts {name} in two layers"
+            layers[name] = int(number)
+    return layers
+
+
+def core_unit(module: str) -> str | None:
+    """The layer unit of a ``morph_core`` module (``morph_core.policy.tree`` -> ``policy``), else None."""
+    parts = module.split(".")
+    if parts[0] != "morph_core":
+        return None
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def upward_imports(imports: list[Import], layers: dict[str, int]) -> list[str]:
+    """The imports of a core module from a layer above its own, each with its file line."""
+    found = []
+    for i in imports:
+        source, target = core_unit(i.source), core_unit(i.target)
+        if source is not None and target is not None and layers[target] > layers[source]:
+            found.append(
+                f"{i.source} (layer {layers[source]}, {source}) imports {i.target} "
+                f"(layer {layers[target]}, {target}), line {i.line}"
+            )
+    return found
+
+
+def is_command_line(module: str) -> bool:
+    """A command-line module of the trainer: ``trainer.cli`` and its modules, a room's ``cli``, a ``__main__``."""
+    parts = module.split(".")
+    return parts[0] == "trainer" and (parts[1:2] == ["cli"] or parts[-1] in ("cli", "__main__"))
+
+
+def library_imports_of_command_lines(imports: list[Import]) -> list[str]:
+    return [
+        f"{i.source} imports {i.target} (line {i.line})"
+        for i in imports
+        if package_of(i.source) == "trainer" and not is_command_line(i.source) and is_command_line(i.target)
+    ]
+
+
 def forbidden(name: str, never: set[str]) -> bool:
     return name in never or ("ROS" in never and is_ros(name))
 
@@ -240,8 +293,8 @@ def test_the_parser_sees_every_kind_of_import():
     assert tree and not any(i.at_import_time for i in tree)
     assert [i.at_import_time for i in by_source["morph_core.env.render"] if i.target == "numpy"] == [True]
     # inside a function: seen, but not at import time
-    chains = [i for i in by_source["morph_core.msgs.joint_state"] if i.target == "morph_core.policy.chains"]
-    assert chains and not any(i.at_import_time for i in chains)
+    robot = [i for i in by_source["morph_core.env.mjcf_body"] if i.target == "morph_core.env.mjcf_robot"]
+    assert robot and not any(i.at_import_time for i in robot)
 
 
 def test_no_import_loops():
@@ -305,3 +358,42 @@ def test_no_package_imports_what_the_design_page_says_it_never_imports():
                         chain.append(parent[chain[-1]])
                     offenders.append("importing " + " -> ".join(reversed(chain)))
     assert offenders == [], "\n".join(sorted(set(offenders)))
+
+
+def test_the_cores_layers_point_down_as_the_design_page_says():
+    layers = core_layers()
+    modules = workspace_modules()
+    units = {core_unit(m) for m in modules} - {None}
+    assert units == set(layers), (
+        f"docs/design.md's layers of the core list {sorted(set(layers) - units)} that do not exist and leave out "
+        f"{sorted(units - set(layers))}"
+    )
+    assert layers["constants"] == 1 < layers["policy"] < layers["msgs"] < layers["env"] < layers["algo"]
+    imports = all_imports(modules)
+    # the check sees an upward import wherever it is: one inside a function of the bottom layer
+    planted = Import("morph_core.constants", "morph_core.algo.train", 1, at_import_time=False)
+    assert upward_imports([planted], layers) == [
+        "morph_core.constants (layer 1, constants) imports morph_core.algo.train (layer 6, algo), line 1"
+    ]
+    assert any(not i.at_import_time for i in imports if core_unit(i.source) and core_unit(i.target))
+    upward = upward_imports(imports, layers)
+    assert upward == [], "imports from a layer above (docs/design.md, The core, module by module):\n" + "\n".join(
+        upward
+    )
+
+
+def test_the_trainer_s_library_never_imports_its_command_lines():
+    modules = workspace_modules()
+    commands = sorted(m for m in modules if is_command_line(m))
+    assert {
+        "trainer.cli.train",
+        "trainer.cli.eval",
+        "trainer.bags.cli",
+        "trainer.sweep.cli",
+        "trainer.sweep.__main__",
+    } <= set(commands)
+    assert not is_command_line("trainer.live.bringup") and not is_command_line("trainer.client")
+    planted = Import("trainer.live.bringup", "trainer.cli.train", 7, at_import_time=False)  # inside a function
+    assert library_imports_of_command_lines([planted]) == ["trainer.live.bringup imports trainer.cli.train (line 7)"]
+    offenders = library_imports_of_command_lines(all_imports(modules))
+    assert offenders == [], "library modules that import a command line:\n" + "\n".join(offenders)

@@ -14,9 +14,8 @@ import sys
 
 import pytest
 
-from trainer.bags.cli import bag_task
+from trainer.bags.contents import bag_task, read_bags
 from trainer.bags.io import BagReader
-from trainer.cli.train import read_bags
 
 FROM_BAGS = ["--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "1",
              "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false",

@@ -24,10 +24,10 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.train import TrainConfig
+from morph_core.msgs.episode_start import unpack_episode_start
 from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
-from morph_core.protocol.episode_start import unpack_episode_start
 from morph_core.protocol.transitions import TransitionAssembler
 from trainer.live.learner import LIVE_LEARNING_RATE
 from trainer.live.trainer_node import (
@@ -520,7 +520,7 @@ def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, 
     from morph_core.protocol.loopback import SamplingController, record_episodes
     from morph_core.protocol.transition_batch import TransitionBatch
     from morph_core.protocol.transitions import SkipCounts, assemble
-    from trainer.bags.messages import TYPESTORE, record_message
+    from trainer.codec import TYPESTORE, record_message
     from trainer.live.learner import LiveOptions, live_train_config
     from trainer.live.trainer_node import LiveTrainer
 

@@ -31,11 +31,11 @@ from morph_core.msgs.records import (
 from morph_core.policy.tree import read_urdf
 from morph_core.protocol.transitions import TransitionConfig
 from trainer.bags.cli import main as bag_main
-from trainer.bags.cli import summarize_bag
+from trainer.bags.contents import summarize_bag
 from trainer.bags.io import BagError, BagReader
-from trainer.bags.messages import DESCRIPTION_TOPIC
 from trainer.bags.record import KNOWN_TYPES
 from trainer.bags.writer import jazzy_metadata_problems
+from trainer.codec import DESCRIPTION_TOPIC
 
 STARTUP = 60.0
 STEP_NS = 40_000_000

@@ -21,7 +21,7 @@ from morph_core.msgs.records import DescriptionRecord, EpisodeStartRecord, Joint
 from morph_core.policy.actor_critic import GraphActorCritic, gaussian_log_prob
 from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transitions import TransitionConfig
-from trainer.bags.cli import summarize_bag
+from trainer.bags.contents import summarize_bag
 from trainer.bags.io import BagReader
 from trainer.cli.train import main as train_main
 

@@ -30,9 +30,9 @@ from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.effort_names import effort_tree, names_label, tree_label
+from morph_core.msgs.episode_start import unpack_episode_start
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.tree import KinematicTree, read_urdf
-from morph_core.protocol.episode_start import unpack_episode_start
 from swimmer_sim_node.sim_node import make_sim
 
 STARTUP = 60.0

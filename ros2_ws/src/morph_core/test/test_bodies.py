@@ -5,6 +5,7 @@ import time
 import numpy as np
 import pytest
 
+from morph_core.constants import MAX_JOINTS
 from morph_core.env.bodies import (
     RANDOM_MAX_BRANCHING,
     STAR_MAX_ARMS,
@@ -13,7 +14,7 @@ from morph_core.env.bodies import (
     body_label,
     parse_bodies,
 )
-from morph_core.env.model import MAX_JOINTS, check_parents
+from morph_core.env.model import check_parents
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
 

@@ -2,14 +2,14 @@
 
 import pytest
 
-from morph_core.msgs.records import EpisodeStartRecord
-from morph_core.protocol.episode_start import (
+from morph_core.msgs.episode_start import (
     LABEL,
     EpisodeCause,
     EpisodeStartError,
     pack_episode_start,
     unpack_episode_start,
 )
+from morph_core.msgs.records import EpisodeStartRecord
 
 
 def test_round_trip():

@@ -14,6 +14,7 @@ import string
 import numpy as np
 import pytest
 
+from morph_core.constants import MAX_JOINTS
 from morph_core.msgs.effort_names import (
     NAMES_PREFIX,
     EffortNamesError,
@@ -23,7 +24,7 @@ from morph_core.msgs.effort_names import (
     tree_label,
 )
 from morph_core.msgs.joint_state import JointStateError, validate_joint_state
-from morph_core.policy.tree import MAX_JOINTS, KinematicTree, UrdfRobot
+from morph_core.policy.tree import KinematicTree, UrdfRobot
 from morph_core.protocol.joint_map import JointMap, JointMapError
 
 PRINTABLE = string.printable[:95]  # printable ASCII, space included: what a joint name may hold

@@ -12,14 +12,13 @@ from morph_core.msgs.joint_state import (
     JointStateError,
     YawUnwrapper,
     body_to_world,
-    chain_batch,
     global_features,
     quaternion_from_yaw,
     validate_joint_state,
     world_to_body,
     yaw_from_quaternion,
 )
-from morph_core.policy.chains import ChainBatch
+from morph_core.policy.chains import ChainBatch, chain_batch
 
 
 def test_valid_state_keeps_message_order():
@@ -121,7 +120,7 @@ def test_names_that_are_no_joint_names_are_refused(names, reason):
 
 
 def test_names_of_the_longest_allowed_length_pass():
-    from morph_core.msgs.joint_state import MAX_NAME_CHARS
+    from morph_core.constants import MAX_NAME_CHARS
 
     validate_joint_state(["a" * MAX_NAME_CHARS, "b"], [0.0, 0.0], [0.0, 0.0])
 

@@ -11,10 +11,10 @@ import pytest
 
 from morph_core.env.reward import ANT_HEALTHY_Z_RANGE
 from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.episode_start import EpisodeCause, pack_episode_start, unpack_episode_start
 from morph_core.msgs.records import EpisodeStartRecord, OdometryRecord
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.weights import untrained_weights
-from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start, unpack_episode_start
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 from morph_core.protocol.transition_batch import TransitionBatch, TransitionBatchError
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig, task_of

@@ -12,8 +12,8 @@ import pytest
 
 from morph_core.env.mjcf_robot import MjcfRobot, RobotModelError, load_robot
 from morph_core.env.sim import SwimmerSim
+from morph_core.msgs.episode_start import EpisodeCause
 from morph_core.policy.tree import KinematicTree
-from morph_core.protocol.episode_start import EpisodeCause
 
 ANT_XML = Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / "ant.xml"
 

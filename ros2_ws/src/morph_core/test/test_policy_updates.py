@@ -12,9 +12,9 @@ import torch
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from safetensors.torch import save as torch_save
 
-from morph_core.msgs.joint_state import chain_batch
 from morph_core.msgs.policy_weights import PolicyWeights, pack_policy_weights
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
+from morph_core.policy.chains import chain_batch
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import CheckpointError, SignedWeights, load_checkpoint, weights_from_arrays
 from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust

@@ -7,9 +7,10 @@ import random
 import numpy as np
 import pytest
 
+from morph_core.constants import MAX_JOINTS
 from morph_core.env.bodies import y_parents
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.policy.tree import MAX_DESCRIPTION_BYTES, MAX_JOINTS, TreeError, read_urdf
+from morph_core.policy.tree import MAX_DESCRIPTION_BYTES, TreeError, read_urdf
 from morph_core.protocol.joint_map import JointMapError
 from morph_core.protocol.robot_description import (
     DESCRIPTION,

@@ -9,9 +9,9 @@ import pytest
 from morph_core.env.centipede import MorphCentipedeEnv
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import robot_urdf
+from morph_core.msgs.episode_start import EpisodeCause
 from morph_core.msgs.joint_state import JointStateError, legged_global_features
 from morph_core.policy.tree import read_urdf
-from morph_core.protocol.episode_start import EpisodeCause
 
 
 def _globals_from_odometry(sim: SwimmerSim) -> np.ndarray:

@@ -13,7 +13,7 @@ import pytest
 from morph_core.env.bodies import parse_bodies, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
-from morph_core.protocol.episode_start import EpisodeCause
+from morph_core.msgs.episode_start import EpisodeCause
 
 PERIOD_NS = 40_000_000
 

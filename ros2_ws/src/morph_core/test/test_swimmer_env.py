@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.env.model import MAX_JOINTS, swimmer_mjcf, swimmer_model
+from morph_core.constants import MAX_JOINTS
+from morph_core.env.model import swimmer_mjcf, swimmer_model
 
 
 @pytest.mark.parametrize("seed", [0, 123])

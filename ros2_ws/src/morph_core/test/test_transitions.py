@@ -21,7 +21,7 @@ from morph_core.env.reward import applied_action
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import chain_batch, quaternion_from_yaw
+from morph_core.msgs.joint_state import quaternion_from_yaw
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -31,7 +31,7 @@ from morph_core.msgs.records import (
     PolicyInfoRecord,
 )
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.chains import ChainBatch
+from morph_core.policy.chains import ChainBatch, chain_batch
 from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import (
     GaussianController,

@@ -19,7 +19,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from morph_core.env.model import MAX_JOINTS, swimmer_model
+from morph_core.constants import MAX_JOINTS
+from morph_core.env.model import swimmer_model
 from morph_core.env.urdf import swimmer_urdf
 from morph_core.policy.tree import MAX_DESCRIPTION_BYTES, KinematicTree, TreeError
 

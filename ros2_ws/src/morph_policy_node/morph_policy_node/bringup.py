@@ -170,7 +170,7 @@ PROG_ENV = "MORPH_PROG"
 
 
 def main(argv=None) -> int:
-    from morph_core.env.model import MAX_JOINTS
+    from morph_core.constants import MAX_JOINTS
     from morph_core.util.config_cli import CommandLineParser
 
     ap = CommandLineParser(prog=os.environ.get(PROG_ENV, "python -m morph_policy_node.bringup"),

@@ -163,6 +163,7 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from morph_core.msgs.effort_names import names_label, tree_label
+from morph_core.msgs.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.msgs.joint_state import JointStateError
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import PolicyWeights as WeightsMessage
@@ -184,7 +185,6 @@ from morph_core.protocol.controller import (
     effort_units,
     policy_error,
 )
-from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
 from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.joint_map import JointMapError
 from morph_core.protocol.policy_updates import CheckpointTrust, PolicyUpdates, checkpoint_trust

@@ -41,7 +41,7 @@ Wire conventions
   nanosec), its body's joint count, and why it began (0 node start, 1 the previous
   one ran ``episode_steps``, 2 reset service, 3 ``num_joints`` set, 4 the
   physics diverged, 5 a legged body fell: its last step terminated). Layout
-  and decoding: ``morph_core.protocol.episode_start``.
+  and decoding: ``morph_core.msgs.episode_start``.
 - ``effort_commands`` (std_msgs/Float64MultiArray): one value per joint,
   clipped to [-1, 1]. A command whose layout names its joints (a
   ``names=<JSON list>`` dimension, ``morph_core.msgs.effort_names``) is
@@ -145,15 +145,14 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 
+from morph_core.constants import MAX_JOINTS, MAX_NAME_CHARS, MIN_JOINTS
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
-from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.sim import EffortError, SwimmerSim
 from morph_core.msgs.effort_names import EffortNamesError, effort_names, effort_tree
-from morph_core.msgs.joint_state import MAX_NAME_CHARS
+from morph_core.msgs.episode_start import EpisodeCause, pack_episode_start
 from morph_core.msgs.stamps import SILENCE_TAG, StampError, from_ns, parse_answer_tag
 from morph_core.policy.tree import KinematicTree, UrdfRobot
-from morph_core.protocol.episode_start import EpisodeCause, pack_episode_start
 from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.joint_map import JointMap, JointMapError
 from morph_core.protocol.lockstep import Action, LockstepGate

@@ -30,8 +30,9 @@ from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transition_batch import EXPORT_KEYS, TransitionBatch
 from morph_core.protocol.transitions import SkipCounts, TransitionConfig, assemble
-from trainer.bags.cli import main, summarize_bag
-from trainer.bags.messages import header, record_message, stamp
+from trainer.bags.cli import main
+from trainer.bags.contents import summarize_bag
+from trainer.codec import header, record_message, stamp
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -284,7 +285,7 @@ def test_info_names_a_body_by_what_it_is():
     from morph_core.env.centipede_model import ant_mjcf, centipede_mjcf
     from morph_core.env.urdf import robot_urdf
     from morph_core.policy.tree import read_urdf
-    from trainer.bags.cli import described_body
+    from trainer.bags.contents import described_body
 
     def named(urdf: str) -> str:
         return described_body(urdf, read_urdf(urdf).tree)
@@ -325,8 +326,8 @@ def test_training_a_policy_that_reads_joint_descriptions_from_the_topics_is_refu
 ):
     """The transitions rebuilt from bags or a live stream do not carry joint descriptions: morph-train says so at
     once, for a fresh policy of joint_features 11 and for an --init checkpoint that reads them."""
-    from trainer.cli.train import check_live
     from trainer.cli.train import main as train_main
+    from trainer.train_options import check_live
 
     bag = write_bag(tmp_path / "bag", sampled_records)
     init = tmp_path / "described.safetensors"

@@ -31,8 +31,8 @@ from morph_core.msgs.records import (
 from morph_core.msgs.stamps import answer_tag, from_ns
 from morph_core.protocol.loopback import GaussianController, record_episodes
 from trainer.bags.io import BagError, BagReader, read_bag
-from trainer.bags.messages import TOPIC_TYPES, record_message
 from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions, jazzy_metadata_problems
+from trainer.codec import TOPIC_TYPES, record_message
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -332,7 +332,7 @@ def test_episode_announcement_of_a_custom_type(tmp_path):
 
 
 def test_the_sims_episode_announcement(tmp_path):
-    """std_msgs/Int64MultiArray with the fields named in layout.dim[0].label (protocol.episode_start)."""
+    """std_msgs/Int64MultiArray with the fields named in layout.dim[0].label (msgs.episode_start)."""
 
     def announcement(label, data):
         dim = T["std_msgs/msg/MultiArrayDimension"](label=label, size=len(data), stride=len(data))

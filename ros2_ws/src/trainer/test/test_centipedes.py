@@ -141,7 +141,7 @@ def test_morph_eval_run_on_a_centipede_run_evaluates_its_bodies_and_the_zero_sho
     """Neither --bodies nor --joints: the run's own centipedes and 5, 6, 8, 10 leg pairs, no swimmer chains; a
     swimmer run, or an option given, keeps the chains (2..10, 15, 20) as before."""
     from morph_core.env.bodies import Centipede
-    from trainer.cli.eval import EvalConfig, eval_bodies, run_eval_config
+    from trainer.reports.evaluation import EvalConfig, eval_bodies, run_eval_config
 
     cfg = EvalConfig()
     bodies = eval_bodies(run_eval_config(centipede_run, cfg, set()))

@@ -18,8 +18,8 @@ from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.policy_updates import checkpoint_trust
 from morph_core.protocol.trust import TrustedKeys, load_public_key
-from trainer.cli.eval import EvalConfig, evaluate_run
 from trainer.cli.keys import main as keys_main
+from trainer.reports.evaluation import EvalConfig, evaluate_run
 from trainer.reports.ship import body_key, scored_bodies
 
 SMALL = dict(

@@ -15,9 +15,8 @@ import pytest
 import torch
 
 import morph_core.env.registration  # noqa: F401  (registers MorphSwimmer-v0)
-from morph_core.msgs.joint_state import chain_batch
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.chains import ChainBatch
+from morph_core.policy.chains import ChainBatch, chain_batch
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.onnx_export import (

@@ -19,11 +19,10 @@ from morph_core.policy.config import PolicyConfig
 from morph_core.policy.weights import untrained_weights
 from morph_core.protocol.loopback import GaussianController, LoopbackRecording, SamplingController, record_episodes
 from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
-from trainer.bags.cli import bag_config, bag_task
-from trainer.bags.io import odometry_record, read_bag
-from trainer.bags.messages import TOPIC_TYPES, record_message
+from trainer.bags.contents import bag_config, bag_task, read_bags
+from trainer.bags.io import read_bag
 from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
-from trainer.cli.train import read_bags
+from trainer.codec import TOPIC_TYPES, odometry_record, record_message
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 NS = "/robot"
@@ -171,7 +170,8 @@ def test_walkers_learn_at_the_same_settings_from_bags_live_and_the_simulator(cen
     # run and a live run of centipedes start as a simulator run does (before, they took the swimmer's 0.01 and
     # the live trainer's 0.003, at which a 12-feature policy's updates run away).
     from morph_core.algo.ppo_config import LEGGED_DEFAULTS
-    from trainer.cli.train import _live_config, build_parser, main
+    from trainer.cli.train import build_parser, main
+    from trainer.train_options import live_config
 
     path, _ = centipede_bag
     bags = tmp_path / "bags"
@@ -180,7 +180,7 @@ def test_walkers_learn_at_the_same_settings_from_bags_live_and_the_simulator(cen
     parser = build_parser()
     args = parser.parse_args(["--live", "--namespaces", "/a", "--out", str(tmp_path / "live"), "--bodies",
                               "centipede:2-4", *given])  # fmt: skip
-    live, _, _ = _live_config(args, parser)
+    live, _, _ = live_config(args, parser)
     from_bags = json.loads((bags / "config.json").read_text())
     want = {**LEGGED_DEFAULTS, **({"learning_rate": 0.001} if given else {})}
     for key, value in want.items():

@@ -27,9 +27,10 @@ from morph_core.msgs.records import (
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import MeanController, SamplingController, record_episodes
 from morph_core.protocol.transitions import SkipCounts
-from trainer.bags.messages import record_message
+from trainer.bags.contents import read_bags
 from trainer.bags.writer import BagTopic, BagWriter, WriterOptions
-from trainer.cli.train import main, read_bags
+from trainer.cli.train import main
+from trainer.codec import record_message
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types

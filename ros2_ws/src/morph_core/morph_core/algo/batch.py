@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES, ChainBatch
+from morph_core.constants import NUM_GLOBAL_FEATURES
+from morph_core.policy.chains import ChainBatch
 from morph_core.policy.index_plan import check_parents, is_chain
 
 

@@ -93,7 +93,7 @@ class _Graph:
 
     @classmethod
     def trace(cls, fn: Callable, key, leaves: list) -> _Graph:
-        import torch._inductor
+        import torch._inductor  # Inductor and the tracer load when a graph is traced, not at start-up
         from torch._guards import detect_fake_mode
         from torch.fx.experimental.proxy_tensor import make_fx
         from torch.fx.experimental.symbolic_shapes import SYMPY_INTERP

@@ -13,8 +13,9 @@ import numpy as np
 import torch
 
 from morph_core.algo.batch import RolloutBatch
+from morph_core.constants import NUM_GLOBAL_FEATURES
 from morph_core.env.vec_env import Episode, PaddedObs, SwimmerVecEnv
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES, pad_descriptions, pad_observations
+from morph_core.policy.chains import pad_descriptions, pad_observations
 from morph_core.policy.numpy_actor import NumpyPolicy
 
 

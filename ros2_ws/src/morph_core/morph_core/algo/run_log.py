@@ -41,7 +41,7 @@ class RunLog:
                 self._write(f, [], header=True)
         self.tb = None
         if tensorboard:
-            from torch.utils.tensorboard import SummaryWriter
+            from torch.utils.tensorboard import SummaryWriter  # TensorBoard loads only for a run that asks
 
             # TensorBoard hides events at steps >= purge_step: the checkpoint's own row stays (as in the CSV).
             purge = None if resume_step is None else resume_step + 1

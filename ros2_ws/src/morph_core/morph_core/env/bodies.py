@@ -56,10 +56,10 @@ from functools import cache
 
 import numpy as np
 
-from morph_core.env.centipede_model import JOINTS_PER_LEG_PAIR, MAX_LEG_PAIRS, MIN_LEG_PAIRS
+from morph_core.constants import MAX_JOINTS
+from morph_core.env.centipede_model import JOINTS_PER_LEG_PAIR, MAX_LEG_PAIRS, MIN_LEG_PAIRS, centipede_model
 from morph_core.env.legged_model import LEGGED_JOINTS_PER_LEG, LEGGED_LEGS, MAX_SEED, TORSOS, LeggedBody
 from morph_core.env.mjcf_body import MjcfBody
-from morph_core.env.model import MAX_JOINTS
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.index_plan import joint_depths
 from morph_core.policy.tree import KinematicTree, swimmer_joint_names
@@ -293,8 +293,6 @@ class Centipede:
 
 @cache
 def centipede_tree(leg_pairs: int) -> KinematicTree:
-    from morph_core.env.centipede_model import centipede_model  # compiles MuJoCo models: only when asked
-
     return KinematicTree.from_mujoco(centipede_model(leg_pairs))
 
 

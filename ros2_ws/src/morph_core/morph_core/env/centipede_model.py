@@ -212,6 +212,6 @@ def centipede_model(leg_pairs: int) -> mujoco.MjModel:
 @lru_cache(maxsize=1)
 def ant_model() -> mujoco.MjModel:
     """The compiled ``ant_mjcf()``, once; shared and read-only as ``centipede_model``'s."""
-    import mujoco
+    import mujoco  # as in _centipede_model: the limits above serve code that never simulates
 
     return mujoco.MjModel.from_xml_string(ant_mjcf())

@@ -193,7 +193,7 @@ class LeggedDesign:
 def settled_height(model: mujoco.MjModel, steps: int = SETTLE_STEPS) -> float:
     """The root's height (qpos[2]) after ``steps`` control steps (5 physics steps each) at zero action from
     ``qpos0``, no noise: where a body of a free root comes to stand on its joint limits."""
-    import mujoco
+    import mujoco  # MuJoCo (the sim extra) only to simulate: ``env.bodies`` reads this module's labels without it
 
     data = mujoco.MjData(model)
     mujoco.mj_step(model, data, nstep=5 * steps)
@@ -207,7 +207,7 @@ def _standing_height(body: LeggedBody) -> float:
 
 @lru_cache(maxsize=256)
 def _legged_model(body: LeggedBody) -> mujoco.MjModel:
-    import mujoco
+    import mujoco  # MuJoCo only to compile, as in settled_height
 
     return mujoco.MjModel.from_xml_string(body.mjcf())
 

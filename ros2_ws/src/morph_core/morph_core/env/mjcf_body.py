@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from morph_core.env.legged_model import HEALTHY_FRACTIONS, settled_height
+
 if TYPE_CHECKING:
     import mujoco
 
@@ -68,8 +70,6 @@ class MjcfBody:
 
     @property
     def healthy_z_range(self) -> tuple[float, float]:
-        from morph_core.env.legged_model import HEALTHY_FRACTIONS
-
         h = self.standing_height
         return HEALTHY_FRACTIONS[0] * h, HEALTHY_FRACTIONS[1] * h
 
@@ -80,14 +80,12 @@ class MjcfBody:
 
 @lru_cache(maxsize=64)
 def _standing(path: str) -> float:
-    from morph_core.env.legged_model import settled_height
-
     return settled_height(_loaded(path)[0])
 
 
 @lru_cache(maxsize=64)
 def _loaded(path: str):
-    import mujoco
+    import mujoco  # MuJoCo (and mjcf_robot, which loads it) only to read a file: env.bodies parses specs without
 
     from morph_core.env.mjcf_robot import RobotModelError, load_robot
 
@@ -120,6 +118,6 @@ def _loaded(path: str):
 
 
 def _hinge_ids(model, tree) -> set[int]:
-    import mujoco
+    import mujoco  # as in _loaded
 
     return {mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) for n in tree.names}

@@ -38,13 +38,11 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from morph_core.constants import MAX_JOINTS, MIN_JOINTS
 from morph_core.policy.index_plan import joint_depths
 
 if TYPE_CHECKING:
     import mujoco
-
-MIN_JOINTS = 1
-MAX_JOINTS = 64
 
 SEGMENT_LENGTH = 1.0
 SEGMENT_RADIUS = 0.1
@@ -294,6 +292,6 @@ def _chain_model(num_joints: int) -> mujoco.MjModel:
 
 @lru_cache(maxsize=TREE_CACHE_SIZE)
 def _tree_model(parents: tuple[int, ...]) -> mujoco.MjModel:
-    import mujoco
+    import mujoco  # as in _chain_model: nodes that never simulate read this module
 
     return mujoco.MjModel.from_xml_string(_tree_mjcf(parents))

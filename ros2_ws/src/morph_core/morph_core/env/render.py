@@ -161,7 +161,7 @@ class Take:
         reset_seed: int = 0,
         view: CameraView | None = None,
     ):
-        import mujoco
+        import mujoco  # MuJoCo and the envs load after the GL backend is chosen (MUJOCO_GL is read at load)
 
         from morph_core.env.bodies import Centipede, is_walker, tree_depth
         from morph_core.env.centipede import MorphCentipedeEnv

@@ -60,10 +60,11 @@ from morph_core.env.mjcf_robot import MjcfRobot, RootState
 from morph_core.env.model import check_num_joints
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.env.urdf import robot_urdf, swimmer_urdf
+from morph_core.env.vec_env import BodyEnv
+from morph_core.msgs.episode_start import EpisodeCause
 from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 from morph_core.msgs.stamps import seconds_to_ns
 from morph_core.policy.tree import KinematicTree
-from morph_core.protocol.episode_start import EpisodeCause
 
 
 class EffortError(ValueError):
@@ -91,8 +92,6 @@ class CentipedeBodies:
     ``vec_env.BodyEnv`` (the spec's draw, then Ant-v5's reset noise, from one generator)."""
 
     def __init__(self, bodies: BodyMix):
-        from morph_core.env.vec_env import BodyEnv  # the env stack, only for a sim of centipedes
-
         if not all(isinstance(item, WALKER_FAMILIES) for item in bodies.items):
             raise ValueError(f"{str(bodies)!r} mixes swimmers and walkers: a sim runs one task (one period)")
         self.bodies = bodies

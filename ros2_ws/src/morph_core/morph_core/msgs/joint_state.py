@@ -11,8 +11,8 @@ world ("odom") frame and whose twist is, by the ROS convention, in the body
 features: yaw from the orientation quaternion, unwrapped across messages;
 linear velocity rotated from body to world by that yaw.
 
-Nothing here imports ROS: callers pass plain sequences and numbers. Nor torch,
-unless ``chain_batch`` (a torch batch) is called: the nodes run without it.
+Nothing here imports ROS: callers pass plain sequences and numbers. Nor torch:
+the nodes run without it (the torch policy's one-chain batch is ``policy.chains.chain_batch``).
 """
 
 from __future__ import annotations
@@ -22,28 +22,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from morph_core.env.model import MAX_JOINTS
+from morph_core.constants import LEGGED_GLOBAL_FEATURES, MAX_JOINTS
+from morph_core.policy.tree import joint_name_error
 
 
 class JointStateError(ValueError):
     """A joint state that cannot be turned into a chain; ``str(err)`` is the reason."""
 
 
-MAX_NAME_CHARS = 256
-"""longest joint name taken (URDF names are short; a megabyte-long one is a fault, not a robot)"""
 QUATERNION_NORM_TOLERANCE = 1e-3
 """|norm - 1| allowed in an odometry's orientation: any estimator's unit quaternion is far closer; a
 non-unit one gives a wrong yaw (``yaw_from_quaternion`` assumes a unit quaternion), so it is refused"""
-
-
-def joint_name_error(names: Sequence[str]) -> str | None:
-    """Why the names are not a chain's joint names (each 1..MAX_NAME_CHARS printable ASCII), or None."""
-    for i, name in enumerate(names):
-        if not 0 < len(name) <= MAX_NAME_CHARS:
-            return f"joint name {i} has {len(name)} characters, expected 1..{MAX_NAME_CHARS}"
-        if not (name.isascii() and name.isprintable()):
-            return f"joint name {i} {name[:40]!r} is not printable ASCII"
-    return None
 
 
 def validate_joint_state(
@@ -170,10 +159,6 @@ def write_global_features(qpos, qvel, out) -> None:
     out[9], out[10], out[11] = wx, wy, wz
 
 
-LEGGED_GLOBAL_FEATURES = 12
-"""``env.centipede.GLOBAL_FEATURES``: a body in 3-D (a policy whose ``global_features`` is 12 reads these)"""
-
-
 def legged_global_features(
     orientation_xyzw: Sequence[float],
     position: Sequence[float],
@@ -204,17 +189,3 @@ def legged_global_features(
     out = np.empty(LEGGED_GLOBAL_FEATURES)
     write_global_features(qpos, qvel, out)
     return out
-
-
-def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray):
-    """A torch ``ChainBatch`` of one chain, joints in the given order (joint 0 next to the torso)."""
-    from morph_core.policy.chains import ChainBatch  # torch, only for callers that run the torch policy
-
-    n = len(positions)
-    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, -1)  # the policy's width: 4, or 12 (legged)
-    return ChainBatch.from_padded(
-        np.asarray(positions, dtype=np.float32).reshape(1, n),
-        np.asarray(velocities, dtype=np.float32).reshape(1, n),
-        glob,
-        np.array([n], dtype=np.int64),
-    )

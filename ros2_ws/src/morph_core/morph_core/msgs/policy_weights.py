@@ -45,6 +45,8 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+from safetensors import SafetensorError
+from safetensors.numpy import load
 
 TOPIC = "policy_weights"
 """the weights topic's name, relative to a pair's namespace"""
@@ -171,9 +173,6 @@ def with_tensors(message: WeightsMessage) -> PolicyWeights:
 def read_tensors(data: bytes) -> dict[str, np.ndarray]:
     """The tensors of a safetensors file as float arrays, NumPy only; raises ``PolicyWeightsError`` on a
     file that does not parse, holds no tensor, a non-float tensor, or NaN/inf."""
-    from safetensors import SafetensorError
-    from safetensors.numpy import load
-
     try:
         tensors = load(data)
     except (SafetensorError, ValueError, TypeError) as err:

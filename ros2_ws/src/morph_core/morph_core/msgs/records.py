@@ -119,7 +119,7 @@ class EpisodeStartRecord:
     cause: str | None = None
     """why it began, hence how the previous episode ended: "start", "steps" (time limit), "reset",
     "rebuild", "diverged" or "fell" (a legged body fell: its last step terminated;
-    ``protocol.episode_start.EpisodeCause``)"""
+    ``msgs.episode_start.EpisodeCause``)"""
 
 
 @dataclass(frozen=True)

@@ -53,7 +53,7 @@ import torch
 from torch import nn
 from torch_geometric.nn import NNConv
 
-from morph_core.policy.chains import NUM_EDGE_FEATURES
+from morph_core.constants import NUM_EDGE_FEATURES
 from morph_core.policy.config import BACKENDS
 
 

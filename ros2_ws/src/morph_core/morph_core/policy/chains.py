@@ -23,10 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from morph_core.constants import NUM_EDGE_FEATURES, NUM_GLOBAL_FEATURES
 from morph_core.policy.index_plan import IndexPlan, chain_parents, check_parents, is_chain
-
-NUM_GLOBAL_FEATURES = 4  # yaw, yaw rate, vx, vy of the swimmer's torso frame (a policy's width: its config's)
-NUM_EDGE_FEATURES = 2  # joint angle, joint angular velocity
 
 
 @dataclass(frozen=True)
@@ -204,6 +202,19 @@ def pad_observations(observations: Sequence[dict], width: int | None = None, wit
             raise ValueError(f"observation {i}: parents must be [{n[i]}] like its joint_pos, got {list(p.shape)}")
         parents[i, : n[i]] = p
     return pos, vel, glob, n, parents
+
+
+def chain_batch(positions: np.ndarray, velocities: np.ndarray, global_feats: np.ndarray) -> ChainBatch:
+    """A ``ChainBatch`` of one chain, joints in the given order (joint 0 next to the torso): a controller's one
+    state (``msgs.joint_state``'s arrays) for the torch policy."""
+    n = len(positions)
+    glob = np.asarray(global_feats, dtype=np.float32).reshape(1, -1)  # the policy's width: 4, or 12 (legged)
+    return ChainBatch.from_padded(
+        np.asarray(positions, dtype=np.float32).reshape(1, n),
+        np.asarray(velocities, dtype=np.float32).reshape(1, n),
+        glob,
+        np.array([n], dtype=np.int64),
+    )
 
 
 @dataclass(frozen=True)

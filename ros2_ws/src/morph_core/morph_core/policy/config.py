@@ -9,14 +9,9 @@ from __future__ import annotations
 import numbers
 from dataclasses import dataclass, fields
 
+from morph_core.constants import NUM_EDGE_FEATURES, NUM_GLOBAL_FEATURES
 from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES
 
-NUM_EDGE_FEATURES = 2
-"""per joint: angle, angular velocity (the same as ``chains.NUM_EDGE_FEATURES``, which needs torch); a policy
-with joint descriptions reads ``PolicyConfig.edge_features`` = 2 + ``joint_features``"""
-NUM_GLOBAL_FEATURES = 4
-"""the swimmer's global input: the torso's yaw, yaw rate, vx, vy (the same as ``chains.NUM_GLOBAL_FEATURES``);
-the default of ``PolicyConfig.global_features``"""
 MAX_GLOBAL_FEATURES = 256
 """widest global input a config may ask for (a checkpoint's JSON comes off the network)"""
 BACKENDS = ("dense", "pyg")

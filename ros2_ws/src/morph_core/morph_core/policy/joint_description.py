@@ -155,7 +155,7 @@ def describe(
 def mujoco_descriptions(model: mujoco.MjModel, tree: KinematicTree | None = None) -> np.ndarray:
     """[J, NUM_DESCRIPTION_FEATURES] descriptions of a compiled model's actuated hinges, in ``tree``'s order
     (default: ``KinematicTree.from_mujoco(model)``)."""
-    import mujoco
+    import mujoco  # MuJoCo (the sim extra) only for a compiled model: a robot's node describes its URDF without it
 
     tree = KinematicTree.from_mujoco(model) if tree is None else tree
     data = mujoco.MjData(model)

@@ -45,9 +45,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from morph_core.constants import NUM_GLOBAL_FEATURES
 from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.policy.chains import ChainBatch
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
+from morph_core.policy.chains import ChainBatch, chain_batch
 from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
 
@@ -290,7 +290,6 @@ def check_against_policy(
     """Largest ``scaled_difference`` ONNX Runtime - torch over random states of each chain length in ``lengths``;
     with ``tree``, of trees of each of ``TREE_SHAPES`` at each length, torch given the same parents."""
     ort = _require("onnxruntime")
-    from morph_core.msgs.joint_state import chain_batch  # the policy node's one-chain batch
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1

@@ -35,8 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from morph_core.env.model import MAX_JOINTS
-from morph_core.msgs.joint_state import joint_name_error
+from morph_core.constants import MAX_JOINTS, MAX_NAME_CHARS
 from morph_core.policy.index_plan import chain_parents
 
 if TYPE_CHECKING:
@@ -52,6 +51,17 @@ _LAYOUT_PREFIX = b"morph-control joint layout v1\0"
 
 class TreeError(ValueError):
     """A description that is not a kinematic tree of 1..MAX_JOINTS actuated hinges; ``str(err)`` is the reason."""
+
+
+def joint_name_error(names: Sequence[str]) -> str | None:
+    """Why the names are not a robot's joint names (each 1..MAX_NAME_CHARS printable ASCII), or None: the one
+    rule, which a robot description and a joint state (``msgs.joint_state``) both check."""
+    for i, name in enumerate(names):
+        if not 0 < len(name) <= MAX_NAME_CHARS:
+            return f"joint name {i} has {len(name)} characters, expected 1..{MAX_NAME_CHARS}"
+        if not (name.isascii() and name.isprintable()):
+            return f"joint name {i} {name[:40]!r} is not printable ASCII"
+    return None
 
 
 def swimmer_joint_names(num_joints: int) -> tuple[str, ...]:

@@ -79,16 +79,10 @@ from typing import Protocol
 
 import numpy as np
 
-from morph_core.msgs.joint_state import (
-    LEGGED_GLOBAL_FEATURES,
-    YawUnwrapper,
-    global_features,
-    legged_global_features,
-    validate_joint_state,
-)
+from morph_core.constants import LEGGED_GLOBAL_FEATURES, NUM_GLOBAL_FEATURES
+from morph_core.msgs.joint_state import YawUnwrapper, global_features, legged_global_features, validate_joint_state
 from morph_core.msgs.policy_info import pack_policy_info
 from morph_core.msgs.records import JointStateRecord, OdometryRecord
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.joint_description import NUM_DESCRIPTION_FEATURES, urdf_descriptions
 from morph_core.policy.tree import TreeError, UrdfRobot
 from morph_core.protocol.episode_tracker import EpisodeTracker

@@ -47,10 +47,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from morph_core.constants import LEGGED_GLOBAL_FEATURES, NUM_GLOBAL_FEATURES
 from morph_core.env.model import body_parents
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
-from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES, quaternion_from_yaw, world_to_body
+from morph_core.msgs.episode_start import EpisodeCause
+from morph_core.msgs.joint_state import quaternion_from_yaw, world_to_body
 from morph_core.msgs.policy_info import unpack_policy_info
 from morph_core.msgs.records import (
     DescriptionRecord,
@@ -61,12 +63,10 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.joint_description import mujoco_descriptions
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import KinematicTree
 from morph_core.protocol.controller import Answer, Controller
-from morph_core.protocol.episode_start import EpisodeCause
 
 
 def _numpy(policy) -> NumpyPolicy:

@@ -53,7 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
-from morph_core.policy.chains import NUM_GLOBAL_FEATURES
+from morph_core.constants import NUM_GLOBAL_FEATURES
+from morph_core.env.bodies import body_label, swimmer_tree
 from morph_core.policy.index_plan import chain_parents
 from morph_core.util.atomic import atomic_write_bytes
 
@@ -222,8 +223,6 @@ class TransitionBatch:
     def body_labels(self) -> list[str]:
         """Each row's body as logs name it (``env.bodies.body_label`` of its tree: ``chain-N``, a named
         shape such as ``star-2x2``, else ``tree-`` and its topology hash)."""
-        from morph_core.env.bodies import body_label, swimmer_tree  # labels only: the env's families
-
         if not len(self):
             return []
         shapes, inverse = np.unique(np.c_[self.num_joints, self.parents], axis=0, return_inverse=True)

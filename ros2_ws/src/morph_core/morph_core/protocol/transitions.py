@@ -98,8 +98,8 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
+from morph_core.constants import LEGGED_GLOBAL_FEATURES, MAX_JOINTS, NUM_GLOBAL_FEATURES
 from morph_core.env.centipede_model import ANT_TIMESTEP
-from morph_core.env.model import MAX_JOINTS
 from morph_core.env.reward import (
     ANT_FRAME_SKIP,
     ANT_HEALTHY_Z_RANGE,
@@ -109,7 +109,7 @@ from morph_core.env.reward import (
     applied_action,
     swimmer_reward,
 )
-from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES, JointStateError, validate_joint_state
+from morph_core.msgs.joint_state import JointStateError, validate_joint_state
 from morph_core.msgs.records import (
     DescriptionRecord,
     EffortRecord,
@@ -120,7 +120,6 @@ from morph_core.msgs.records import (
     Record,
 )
 from morph_core.msgs.stamps import seconds_to_ns
-from morph_core.policy.config import NUM_GLOBAL_FEATURES
 from morph_core.policy.tree import KinematicTree, UrdfRobot
 from morph_core.protocol.controller import Controller, check_odometry, global_width_error
 from morph_core.protocol.joint_map import JointMap, JointMapError, JointOrder

@@ -11,18 +11,9 @@ only what rosbag2 stores is used (topic name and type, log time, CDR data,
 the message definitions for types the Jazzy type store lacks).
 
 Topics are found relative to a namespace (given, or taken from the one
-``.../joint_states`` topic) and decoded as
-
-    joint_states     sensor_msgs/msg/JointState         -> JointStateRecord
-    odom             nav_msgs/msg/Odometry               -> OdometryRecord
-    effort_commands  std_msgs/msg/Float64MultiArray      -> EffortRecord (answers_ns from the answer tag)
-    policy_info      trajectory_msgs/msg/JointTrajectory -> PolicyInfoRecord (msgs.policy_info layout)
-    episode_start    std_msgs/msg/Int64MultiArray (the sim's layout, ``protocol.episode_start``)
-                     or any stamped type                 -> EpisodeStartRecord (``episode_start_record``)
-    robot_description std_msgs/msg/String               -> DescriptionRecord (the URDF, read by the assembler)
-
-An effort command's names dimension (``msgs.effort_names``) goes into
-``EffortRecord.names``; one that does not parse or fit rejects the message.
+``.../joint_states`` topic) and decoded by the ROS codec (``trainer.codec``: its
+table says which type becomes which record); the episode announcement may be
+any stamped type (``episode_start_record``).
 
 Other topics (``/clock``, ...) are counted in ``stats.skipped``. A message
 that cannot be decoded is counted in ``stats.rejected`` by (topic, reason),
@@ -43,25 +34,25 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.rosbag2.storage_mcap import McapReader, decompress
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 from ruamel.yaml import YAML
 from ruamel.yaml.error import YAMLError
 
-from morph_core.msgs.effort_names import EffortNamesError, effort_names, effort_tree
-from morph_core.msgs.policy_info import PolicyInfoError, unpack_policy_info
 from morph_core.msgs.records import (
     DescriptionRecord,
-    EffortRecord,
-    EpisodeStartRecord,
-    JointStateRecord,
-    OdometryRecord,
     Record,
 )
-from morph_core.msgs.stamps import StampError, check_stamp, parse_answer_tag
-from trainer.bags.messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
+from trainer.codec import (
+    DATA_TOPIC_TYPES,
+    DECODERS,
+    DESCRIPTION_TOPIC,
+    EPISODE_TOPIC,
+    TOPIC_TYPES,
+    DecodeError,
+    episode_start_record,
+)
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
@@ -69,156 +60,6 @@ _SQLITE_MAGIC = b"SQLite format 3\x00"
 
 class BagError(ValueError):
     """A bag that cannot be read as asked; the text names the file and the problem."""
-
-
-class DecodeError(ValueError):
-    """One message that does not fit its record; ``reason`` is the short key it is counted under."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
-
-
-# -- the episode announcement: one small function, adapt it to the sim's message -------------
-_EPISODE_FIELDS = ("episode", "episode_index", "index")
-_JOINTS_FIELDS = ("num_joints", "joints", "joint_count")
-_NAME_LISTS = ("name", "joint_names", "names")
-
-
-def episode_start_record(msg, log_ns: int) -> EpisodeStartRecord:
-    """An episode announcement as a record: the sim's layout, or any stamped message.
-
-    The sim's announcement (``std_msgs/Int64MultiArray``, fields named by
-    ``layout.dim[0].label``, e.g. "episode,stamp_ns,num_joints,cause") is
-    decoded by ``morph_core.protocol.episode_start.unpack_episode_start``.
-
-    Any other type needs a stamp (the first state of the episode):
-    ``header.stamp`` or a ``stamp`` field (builtin_interfaces/Time). The
-    episode index comes from an integer field ``episode`` /
-    ``episode_index`` / ``index``, the joint count from ``num_joints`` /
-    ``joints`` / ``joint_count`` or the length of a name list (``name``,
-    ``joint_names``); else from ``key=value`` pairs in a string field
-    (``frame_id``, ``header.frame_id`` or ``data``, e.g. a std_msgs/Header
-    with frame_id "episode=3 num_joints=6"). Missing values are None.
-    Raises ``DecodeError`` when the message does not fit.
-    """
-    layout = getattr(msg, "layout", None)
-    if layout is not None and hasattr(msg, "data"):
-        from morph_core.protocol.episode_start import EpisodeStartError, unpack_episode_start
-
-        if not len(layout.dim):
-            raise DecodeError("bad layout", "a multi-array announcement without layout.dim[0] naming its fields")
-        try:
-            return unpack_episode_start(log_ns, layout.dim[0].label, [int(v) for v in msg.data])
-        except EpisodeStartError as err:
-            raise DecodeError("bad layout", str(err)) from None
-    stamp = getattr(getattr(msg, "header", None), "stamp", None) or getattr(msg, "stamp", None)
-    if stamp is None or not hasattr(stamp, "nanosec"):
-        raise DecodeError("no stamp", f"{type(msg).__name__} has neither header.stamp nor stamp")
-    episode = _int_field(msg, _EPISODE_FIELDS)
-    joints = _int_field(msg, _JOINTS_FIELDS)
-    if joints is None:
-        names = next((getattr(msg, f) for f in _NAME_LISTS if isinstance(getattr(msg, f, None), list)), None)
-        joints = len(names) if names else None
-    header = getattr(msg, "header", None)
-    strings = (getattr(header, "frame_id", None), getattr(msg, "frame_id", None), getattr(msg, "data", None))
-    text = " ".join(s for s in strings if isinstance(s, str))
-    if episode is None:
-        episode = _int_in_text(text, _EPISODE_FIELDS)
-    if joints is None:
-        joints = _int_in_text(text, _JOINTS_FIELDS)
-    return EpisodeStartRecord(log_ns, _checked_ns(stamp), episode, joints)
-
-
-def _int_field(msg, names: Sequence[str]) -> int | None:
-    for name in names:
-        value = getattr(msg, name, None)
-        if isinstance(value, int | np.integer) and not isinstance(value, bool):
-            return int(value)
-    return None
-
-
-def _int_in_text(text: str, names: Sequence[str]) -> int | None:
-    for name in names:
-        m = re.search(rf"\b{name}\s*[=:]\s*(\d+)", text)
-        if m:
-            return int(m.group(1))
-    return None
-
-
-# -- decoding the other topics ---------------------------------------------------------------
-def _checked_ns(stamp) -> int:
-    """A stamp as ns; one that is no time (nanosec of 10**9 or more, a negative sec) is refused, as the nodes
-    refuse it: read as ns it would land on another message's stamp."""
-    try:
-        return check_stamp(stamp.sec, stamp.nanosec)
-    except StampError as err:
-        raise DecodeError("bad stamp", str(err)) from None
-
-
-def _stamp_ns(msg) -> int:
-    return _checked_ns(msg.header.stamp)
-
-
-def _f64(values) -> np.ndarray:
-    return np.array(values, dtype=np.float64)
-
-
-def joint_state_record(msg, log_ns: int) -> JointStateRecord:
-    names = tuple(msg.name)
-    pos, vel, eff = _f64(msg.position), _f64(msg.velocity), _f64(msg.effort)
-    n = len(names)
-    if len(pos) != n or len(vel) != n or len(eff) not in (0, n):
-        raise DecodeError(
-            "length mismatch", f"{n} names, {len(pos)} positions, {len(vel)} velocities, {len(eff)} efforts"
-        )
-    return JointStateRecord(log_ns, _stamp_ns(msg), names, pos, vel, eff)
-
-
-def odometry_record(msg, log_ns: int) -> OdometryRecord:
-    """The pose and the body-frame twist in 3-D (a swimmer's sim publishes zeros out of its plane: a bag recorded
-    before the record held them reads as it did)."""
-    p, q, lin, ang = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear, msg.twist.twist.angular
-    return OdometryRecord(
-        log_ns, _stamp_ns(msg), float(p.x), float(p.y), (q.x, q.y, q.z, q.w), (lin.x, lin.y), float(ang.z),
-        float(p.z), float(lin.z), (float(ang.x), float(ang.y)),
-    )  # fmt: skip
-
-
-def effort_record(msg, log_ns: int) -> EffortRecord:
-    labels = [d.label for d in msg.layout.dim]
-    answers = parse_answer_tag(labels[0]) if labels else None
-    data = _f64(msg.data)
-    try:
-        names, layout = effort_names(labels, len(data)), effort_tree(labels)
-    except EffortNamesError as err:
-        raise DecodeError("bad names dimension", str(err)) from None
-    return EffortRecord(log_ns, answers, data, names, layout)
-
-
-def description_record(msg, log_ns: int) -> DescriptionRecord:
-    return DescriptionRecord(log_ns, msg.data)
-
-
-def policy_info_record(msg, log_ns: int):
-    if not msg.points:
-        raise DecodeError("no trajectory point")
-    p = msg.points[0]
-    try:
-        return unpack_policy_info(
-            log_ns, _stamp_ns(msg), msg.joint_names, p.positions, p.velocities, p.accelerations, p.effort
-        )
-    except PolicyInfoError as err:
-        raise DecodeError("bad layout", str(err)) from None
-
-
-_DECODERS = {
-    DESCRIPTION_TOPIC: description_record,
-    "joint_states": joint_state_record,
-    "odom": odometry_record,
-    "effort_commands": effort_record,
-    "policy_info": policy_info_record,
-}
 
 
 # -- storage files -----------------------------------------------------------------------------
@@ -542,7 +383,7 @@ class BagReader:
             raise DecodeError("undecodable CDR", f"{type(err).__name__}: {err}") from None
         if name == self.episode_topic:
             return episode_start_record(msg, log_ns)
-        return _DECODERS[name](msg, log_ns)
+        return DECODERS[name](msg, log_ns)
 
     def _namespace(self, given: str | None, topics: dict, bag) -> str:
         if given is not None:

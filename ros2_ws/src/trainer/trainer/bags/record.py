@@ -36,7 +36,6 @@ process exits: a bring-up can record N episodes and wait for it.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import signal
@@ -56,8 +55,8 @@ from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
 from morph_core.util.config_cli import CommandLineParser
-from trainer.bags.messages import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES
 from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions
+from trainer.codec import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES, message_class
 
 # The announcement and the description first: subscribed to before joint_states in the same discovery pass, so a
 # lockstep sim (which starts once joint_states has a listener) cannot announce its first episode unheard, and the
@@ -133,12 +132,6 @@ def bag_qos(profile: QoSProfile) -> Qos:
         _qos_time(profile.liveliness_lease_duration),
         profile.avoid_ros_namespace_conventions,
     )
-
-
-def message_class(msgtype: str):
-    """The Python class of ``pkg/msg/Type`` (raw subscriptions still need it for type support)."""
-    pkg, kind, name = msgtype.split("/")
-    return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
 
 
 def _msg_file(msgtype: str) -> Path:

@@ -234,7 +234,7 @@ def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> R
     from ruamel.yaml import YAML
 
     from morph_core.algo.train_from_data import EpisodeReturns, data_digest, episode_spans
-    from trainer.cli.train import read_bags
+    from trainer.bags.contents import read_bags
 
     data, _, _ = read_bags([bag], namespace)
     if not len(data):

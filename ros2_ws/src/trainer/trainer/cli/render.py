@@ -36,8 +36,8 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from morph_core.constants import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.bodies import is_chain_label, parse_bodies
-from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
 from morph_core.policy.weights import CheckpointError, PolicyWeights, load_checkpoint, untrained_weights
 from morph_core.util.config_cli import (
     BoolAction,

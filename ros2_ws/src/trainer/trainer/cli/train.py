@@ -51,44 +51,33 @@ policy) and state.safetensors (what ``--resume`` continues from).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import sys
 from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
-from morph_core.algo.ppo_config import family_defaults
 from morph_core.algo.rollout_workers import RolloutWorkerError
 from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
-from morph_core.algo.trust_region import RULES
-from morph_core.policy.actor_critic import GraphActorCritic
-from morph_core.protocol.transition_batch import MissingPolicyInfoError, TransitionBatch
-from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
+from morph_core.protocol.transition_batch import MissingPolicyInfoError
+from morph_core.protocol.transitions import SkipCounts, TransitionConfig
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
-    BoolAction,
     CommandLineParser,
-    DeprecatedAlias,
-    add_dataclass_options,
     overrides_from_args,
-    replace_nested,
 )
-from trainer.bags.cli import bag_config, bag_robot, no_steps, summarize_bag
-from trainer.bags.io import BagError, BagReader
+from trainer import train_options
+from trainer.bags.contents import no_steps, read_bags, summarize_bag
+from trainer.bags.io import BagError
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
-from trainer.cli.train_session import (
+from trainer.train_options import descriptions_error, init_error, live_config, new_run_config
+from trainer.train_session import (
     ResumedConfig,
     ResumeError,
     finished_data_message,
     finished_message,
     saved_counters,
 )
-from trainer.live.learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
-
-PPO_TOPICS = ("joint_states", "odom")
-"""topics a bag must have to train on; a missing policy_info is reported as what PPO lacks
-(``MissingPolicyInfoError``), effort_commands may be missing (policy_info holds the action)"""
 
 
 class CliError(Exception):
@@ -96,132 +85,7 @@ class CliError(Exception):
 
 
 def build_parser() -> CommandLineParser:
-    parser = CommandLineParser(
-        prog="morph-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--out", type=Path, required=True, help="run directory")
-    parser.add_argument(
-        "--resume", action=BoolAction, default=False, help="continue the run in --out from its last checkpoint"
-    )
-    bags = parser.add_argument_group("training from recorded bags")
-    bags.add_argument(
-        "--from-bags",
-        nargs="+",
-        metavar="BAG",
-        default=None,
-        help="train on these rosbag2 bags (folder, metadata.yaml or storage file) instead of the simulator",
-    )
-    bags.add_argument(
-        "--init",
-        type=Path,
-        default=None,
-        help="start a new run from this policy checkpoint (.safetensors, its .json beside it): from bags, in the "
-        "simulator (fine-tuning on --bodies) or --live",
-    )
-    bags.add_argument(
-        "--iterations",
-        type=int,
-        default=None,
-        help="PPO updates on these bags (default: one pass, ceil(steps / (num_envs * num_steps)))",
-    )
-    bags.add_argument(
-        "--new-data",
-        action=BoolAction,
-        default=False,
-        help="with --resume: the bags are new data for the run, trained on after what it has done "
-        "(policy, critic, optimizer and generator carry over)",
-    )
-    bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
-    live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live.trainer_node)")
-    live.add_argument("--live", action=BoolAction, default=False,
-                      help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
-                      f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
-    live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
-    live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
-                      help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
-    live.add_argument("--max-staleness", type=int, default=LiveOptions.max_staleness,
-                      help="drop steps sampled by weights more than this many versions old")  # fmt: skip
-    live.add_argument("--silence-timeout", type=float, default=LiveOptions.silence_timeout,
-                      help="seconds without a new state before a pair's partial episode is dropped")  # fmt: skip
-    live.add_argument("--max-updates", type=int, default=LiveOptions.max_updates,
-                      help="stop after this many updates (0: at --total-timesteps)")  # fmt: skip
-    live.add_argument("--weights-period", type=float, default=LiveOptions.weights_period,
-                      help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
-    live.add_argument("--nice", type=int, default=LiveOptions.nice,
-                      help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
-    live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
-                      help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
-                      "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
-    live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
-                      help="take each pair's messages from its policy node's stream_chunks instead "
-                      f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
-    # The rule's choices and their help come from the table of trust-region rules.
-    rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
-    parser.add_argument(
-        "--rule", dest="rule", choices=list(RULES), default=None, help=f"trust-region rule ({rules}) (default: "
-        f"{TrainConfig.rule})"
-    )  # fmt: skip
-    parser.add_argument("--clip-mode", dest="clip_mode", choices=list(RULES), default=None, action=DeprecatedAlias,
-                        new="--rule", help=argparse.SUPPRESS)  # fmt: skip
-    add_dataclass_options(parser, TrainConfig, skip=("rule",))
-    parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
-                        help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray start "
-                        "--head printed it); default: a local Ray on this machine")  # fmt: skip
-    return parser
-
-
-def read_bags(bags: list[str | Path], namespace: str | None = None) -> tuple[TransitionBatch, list[str], SkipCounts]:
-    """The transitions of ``bags`` (each its own stream), the reader's warnings and the steps skipped;
-    raises ``BagError`` for a bag that cannot be read."""
-    batches, warnings, skips = [], [], SkipCounts()
-    for bag in bags:
-        reader = BagReader(bag, required=PPO_TOPICS, namespace=namespace)
-        config = bag_config(bag, TransitionConfig(), namespace)  # a swimmer's task, or a legged body's
-        asm = TransitionAssembler(config, bag_robot(bag, namespace))  # its first states are of its first robot
-        batches.append(TransitionBatch.from_transitions(asm.push_many(reader.records()) + asm.flush()))
-        warnings += reader.stats.warnings
-        skips.merge(asm.skips)
-    return TransitionBatch.concatenate(batches), warnings, skips
-
-
-def init_error(args) -> str | None:
-    """Why ``--init`` cannot start this run (every data source: bags, the simulator, live), or None."""
-    if args.init is None:
-        return None
-    if args.resume:
-        return "--init starts a new run; --resume continues the run in --out from its own state"
-    try:
-        GraphActorCritic.load(args.init)
-    except Exception as err:  # a missing file, no .json beside it, not safetensors, other weights
-        return f"--init {args.init}: not a policy checkpoint ({type(err).__name__}: {err})"
-    return None
-
-
-def new_run_config(base: TrainConfig, overrides: dict, say: bool = True) -> TrainConfig:
-    """A new run's config: ``base`` (the simulator's and the bags' ``TrainConfig()``, the live trainer's own),
-    then, for bodies with legs, the centipede results' PPO settings where no option sets them (said in one
-    line), then the options given. Every source takes them, so a centipede learns at one learning rate from
-    the simulator, from bags and live."""
-    legged = family_defaults(overrides.get("bodies", ""), overrides)
-    cfg = replace_nested(base, {**legged, **overrides})
-    if legged and say:
-        given = " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in legged.items())
-        print(f"morph-train: bodies with legs: {given} (the centipede results' settings; give an option to "
-              "set it otherwise)", flush=True)  # fmt: skip
-    return cfg
-
-
-def descriptions_error(cfg, init) -> str | None:
-    """Why a run from the topics (bags, live) cannot train the policy ``cfg`` or ``init`` describes, or None: one
-    that reads joint descriptions (``joint_features``), which the transitions rebuilt from the topics do not carry
-    yet (the policy node reads them off robot_description; the simulator trainer carries them)."""
-    width = (GraphActorCritic.load(init).config if init is not None else cfg.policy).joint_features
-    if not width:
-        return None
-    return (
-        f"the policy reads joint descriptions (joint_features {width}) and training from the topics (--from-bags, "
-        "--live) does not carry them yet: train it in the simulator (--bodies), or with joint_features 0"
-    )
+    return train_options.build_parser(__doc__)
 
 
 def _train_from_bags(args) -> None:
@@ -295,53 +159,10 @@ def _train_from_bags(args) -> None:
     print("\n".join(follower.summary(args.out, data=True)), flush=True)
 
 
-def _live_config(args, parser, say: bool = True) -> tuple[TrainConfig, LiveOptions, ResumedConfig | None]:
-    """The live run's config, options and (on ``--resume``) what changes in its config.json; ``parser.error``
-    for what the trainer refuses before it starts ROS, and a finished run resumed is said and exits 0."""
-    if not args.namespaces:
-        parser.error("--live needs --namespaces NS [NS ...]")
-    if args.from_bags is not None:
-        parser.error("--live and --from-bags are two data sources: choose one")
-    overrides = overrides_from_args(args, TrainConfig)
-    if (error := init_error(args)) is not None:  # fine-tuning live: the checks of the other sources
-        parser.error(error)
-    try:
-        if args.resume:
-            if not (args.out / "state.safetensors").exists():
-                parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
-            resumed = ResumedConfig(args.out, overrides)
-            cfg = resumed.cfg
-        else:
-            if (args.out / "state.safetensors").exists():
-                parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
-            cfg, resumed = new_run_config(live_train_config(), overrides, say), None
-        options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
-                              args.silence_timeout, args.max_updates, args.weights_period, args.nice,
-                              args.stream_chunks, args.signing_key, args.init)  # fmt: skip
-    except (OSError, TypeError, ValueError) as err:
-        parser.error(str(err))
-    if (error := descriptions_error(cfg, args.init)) is not None:
-        parser.error(error)
-    if resumed and not args.max_updates and (done := finished_message(args.out, cfg)):
-        print(f"morph-train: {done}")
-        parser.exit(0)
-    return cfg, options, resumed
-
-
-def check_live(argv: list[str]) -> None:
-    """Refuse ``morph-train --live`` arguments (``argv``, without the program) as the trainer would, with its
-    one-line error and exit code 2, before anything starts: a bring-up checks its trainer's command first."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not args.live:
-        parser.error("check_live: a command without --live")
-    _live_config(args, parser, say=False)  # the trainer says it when it starts
-
-
 def _train_live(args, parser) -> int:
     from trainer.live.trainer_node import run_live  # rclpy only here
 
-    cfg, options, resumed = _live_config(args, parser)
+    cfg, options, resumed = live_config(args, parser)
     try:
         signer = None if args.signing_key is None else load_signing_key(args.signing_key)
     except ValueError as err:  # KeyFileError is a ValueError

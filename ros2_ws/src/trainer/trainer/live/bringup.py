@@ -33,8 +33,8 @@ from pathlib import Path
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import load_public_key, load_signing_key, public_key_path, write_key_pair
 from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
-from trainer.bags.messages import DATA_TOPIC_TYPES
 from trainer.bags.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
+from trainer.codec import DATA_TOPIC_TYPES
 
 TRAINER_NODE = "morph_live_trainer"
 TRAINER_INPUTS = (tuple(DATA_TOPIC_TYPES), (CHUNK_TOPIC,))
@@ -133,7 +133,7 @@ def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: 
 def run(args, extra: list[str]) -> int:
     import subprocess
 
-    from trainer.cli.train import check_live
+    from trainer.train_options import check_live
 
     namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
     # What the trainer would refuse (an --out that holds a run, no run to --resume, a bad option after --) it

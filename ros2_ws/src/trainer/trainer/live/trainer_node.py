@@ -4,7 +4,7 @@
 
 Per namespace the node subscribes to ``episode_start``,
 ``robot_description``, ``joint_states``, ``odom``, ``effort_commands`` and
-``policy_info`` (decoded into records by ``trainer.bags.io``'s decoders, as
+``policy_info`` (decoded into records by ``trainer.codec``'s decoders, as
 from a bag) and feeds one ``protocol.transitions.TransitionAssembler``: the
 same transitions as training from recorded topics, lost or reordered
 messages counted as skips, each state read on the tree of the pair's latest
@@ -68,7 +68,6 @@ from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import rclpy
-from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
@@ -76,10 +75,8 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Int64MultiArray, MultiArrayDimension, String, UInt8MultiArray
+from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
 from std_srvs.srv import Trigger
-from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.ppo_config import PPOConfig
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
@@ -98,16 +95,18 @@ from morph_core.protocol.transitions import (
 )
 from morph_core.protocol.trust import Signer
 from morph_ros_util.diagnostics import InputDiagnostics
-from trainer.bags.io import (
+from trainer.codec import (
+    DATA_TOPIC_TYPES,
+    DECODERS,
+    DESCRIPTION_TOPIC,
+    EPISODE_TOPIC,
+    TOPIC_TYPES,
+    TYPESTORE,
     DecodeError,
-    description_record,
-    effort_record,
     episode_start_record,
-    joint_state_record,
-    odometry_record,
+    message_class,
     policy_info_record,
 )
-from trainer.bags.messages import DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES, TYPESTORE
 from trainer.live.learner import LiveLearner, LiveOptions
 
 DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
@@ -138,15 +137,10 @@ WEIGHTS_QOS = QoSProfile(
 """the weights topic: the latest policy kept for late joiners"""
 CHUNK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1_000, reliability=ReliabilityPolicy.RELIABLE)
 """deep for the same reason as DATA_QOS (a chunk holds dozens of steps)"""
-DATA_TOPICS = {
-    "joint_states": (JointState, joint_state_record),
-    "odom": (Odometry, odometry_record),
-    "effort_commands": (Float64MultiArray, effort_record),
-    "policy_info": (JointTrajectory, policy_info_record),
-}
-"""a pair's data topics: message type and decoder into a record"""
-ANNOUNCEMENTS = (Int64MultiArray, episode_start_record)
-DESCRIPTION = (String, description_record)
+DATA_TOPICS = {topic: (message_class(msgtype), DECODERS[topic]) for topic, msgtype in DATA_TOPIC_TYPES.items()}
+"""a pair's data topics: message type and decoder into a record (the codec's)"""
+ANNOUNCEMENTS = (message_class(TOPIC_TYPES[EPISODE_TOPIC]), episode_start_record)
+DESCRIPTION = (message_class(TOPIC_TYPES[DESCRIPTION_TOPIC]), DECODERS[DESCRIPTION_TOPIC])
 STREAM_TOPICS = {EPISODE_TOPIC: ANNOUNCEMENTS, DESCRIPTION_TOPIC: DESCRIPTION, **DATA_TOPICS}
 """every topic of a pair's stream the trainer reads (its topics, or its policy node's chunks): type and decoder"""
 REPORT_PERIOD = 10.0

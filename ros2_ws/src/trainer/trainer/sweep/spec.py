@@ -29,7 +29,7 @@ from pathlib import Path
 
 from morph_core.algo.train import TrainConfig
 from morph_core.util.config_cli import check_field_types, parse_bool
-from trainer.cli.eval import EvalConfig, eval_bodies
+from trainer.reports.evaluation import EvalConfig, eval_bodies
 
 SPEC_KEYS = ("set", "grid", "trials", "eval")
 

@@ -57,7 +57,7 @@ def run_trial(config: dict) -> None:
     from ray import tune
 
     from morph_core.algo.train import train
-    from trainer.cli.eval import evaluate_run, one_blas_thread
+    from trainer.reports.evaluation import evaluate_run, one_blas_thread
     from trainer.reports.summary import late_means
 
     trial = Trial.from_dict(config["trial"])

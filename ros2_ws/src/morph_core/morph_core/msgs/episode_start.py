@@ -22,7 +22,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 
-from morph_core.env.model import MAX_JOINTS, MIN_JOINTS
+from morph_core.constants import MAX_JOINTS, MIN_JOINTS
 from morph_core.msgs.records import EpisodeStartRecord
 
 FIELDS = ("episode", "stamp_ns", "num_joints", "cause")
