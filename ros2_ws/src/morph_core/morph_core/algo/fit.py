@@ -49,7 +49,8 @@ class Collected:
 
 
 class Source(Protocol):
-    """What a data source provides the loop (see the module docstring)."""
+    """What a data source provides the loop (see the module docstring). ``collect``, ``progress`` and ``advance``
+    are the pulled loop's (``fit``); a pushed source hands ``Fit.step`` its batches itself and needs the rest."""
 
     name: str
     """for messages: ``"training from data"``"""

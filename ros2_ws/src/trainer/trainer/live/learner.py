@@ -271,7 +271,7 @@ class LiveLearner:
         if not episodes_list:
             raise ValueError("no episodes to train on")
         try:
-            return self.fit.step(self.collect(episodes_list, versions, pairs))
+            return self.fit.step(self.prepare(episodes_list, versions, pairs))
         except NonFiniteUpdate as err:
             self.rejected_updates += 1
             raise NonFiniteUpdate(f"{err} ({self.rejected_updates} so far, {len(episodes_list)} episodes), "
@@ -283,7 +283,7 @@ class LiveLearner:
     def columns(self) -> list[str]:
         return live_log_columns(self.cfg)
 
-    def collect(self, episodes_list: list[TransitionBatch], versions: np.ndarray, pairs: int) -> Collected:
+    def prepare(self, episodes_list: list[TransitionBatch], versions: np.ndarray, pairs: int) -> Collected:
         """The pool as one batch: values and GAE from the current critic, the proximal policy's log-probs."""
         cfg = self.cfg
         t0 = time.perf_counter()
