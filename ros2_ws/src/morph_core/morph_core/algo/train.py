@@ -114,9 +114,7 @@ def train(
                              for part, name in zip(env_parts, pool.rng_names, strict=True)])  # fmt: skip
             _check_policy_checkpoints(run.checkpoints, run.counters["global_step"], learner.policy)
         else:
-            run.start()
-            if init is not None:
-                run.write_json("init.json", {"init": str(Path(init).resolve())})
+            run.start(init=init)
         fit(run, learner, gen, Rollouts(cfg, run.counters, pool, helpers))
     finally:
         pool.close()

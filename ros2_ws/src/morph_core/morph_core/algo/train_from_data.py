@@ -437,9 +437,7 @@ def train_from_data(
     elif new_data:
         raise ValueError(f"new_data: no trained state in {run_dir} to continue")
     else:
-        run.start()
-        if init is not None:
-            run.write_json("init.json", {"init": str(Path(init).resolve())})
+        run.start(init=init)
     if current is None or new_data:
         current = _Round(digest, len(data), list(source or []), iterations or passes_cut(len(usable), cfg.batch_size))
         counters["data_round"] += 1

@@ -190,9 +190,7 @@ class LiveLearner:
             self.run_id = live["run"]
             self.epoch = int(live.get("epoch", 0))  # a state written before epochs: before every run
         else:
-            self.run.start()
-            if init is not None:
-                self.run.write_json("init.json", {"init": str(Path(init).resolve())})
+            self.run.start(init=init)
             self._save_state()  # version 0 is resumable too: policy nodes may already run it
         self.resumed = self.run.resuming
         self.fit = Fit(self.run, self.learner, self.gen, self)  # pushed: ``update`` runs its steps
