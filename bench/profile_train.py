@@ -79,7 +79,7 @@ CATEGORIES: list[tuple[str, str]] = [
         r"Helpers\.publish_advantages) ",
     ),
     ("statistics", r"^(update_stats|explained_variance|update\b)"),
-    ("logging, checkpoint", r"^(Run\.|_train_loop|merge_env_states|.*get_state)"),
+    ("logging, checkpoint", r"^(Run\.|Fit\.step|Rollouts\.row|fit\b|merge_env_states|.*get_state)"),
 ]
 _COMPILED = [(name, re.compile(pattern)) for name, pattern in CATEGORIES]
 _NOT_THE_LOOP = ("Thread._bootstrap ", "Thread.run ")

@@ -91,10 +91,14 @@ class Run:
         self.progress: RunLog | None = None
 
     # -- start or resume -----------------------------------------------------------------------------
-    def start(self, config: dict | None = None) -> None:
-        """A new run: the directory and ``config.json`` (``config``: what to write, else the run's config)."""
+    def start(self, config: dict | None = None, init: str | Path | None = None) -> None:
+        """A new run: the directory and ``config.json`` (``config``: what to write, else the run's config); with
+        ``init``, the checkpoint it starts from in ``init.json`` (a run killed before its first state restarts
+        from it)."""
         self.dir.mkdir(parents=True, exist_ok=True)
         self.write_json("config.json", self.cfg.to_dict() if config is None else config)
+        if init is not None:
+            self.write_json("init.json", {"init": str(Path(init).resolve())})
 
     def write_json(self, name: str, data: dict) -> None:
         """A JSON file of the run (atomically: a reader never sees half of one)."""

@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from morph_core.algo.data_parallel import HelperPool, Helpers, HelperSpec
+from morph_core.algo.fit import Collected, fit, new_learner, save_policy
 from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import minibatch_cuts
-from morph_core.algo.ppo import compute_gae, explained_variance
+from morph_core.algo.ppo import compute_gae
 from morph_core.algo.ppo_config import PPOConfig, SimConfig
 from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
 from morph_core.algo.run import RowHook, Run, initial_policy
-from morph_core.algo.update import update
 from morph_core.algo.update_stats import update_columns
 from morph_core.env.bodies import is_chain_label
 from morph_core.env.vec_env import Episode, merge_env_states, split_env_state
@@ -102,12 +102,7 @@ def train(
         raise ValueError("rollout_workers > 1 needs a pool of workers (morph-train makes one on Ray)")
     cfg, initial = initial_policy(cfg, init, resume)
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)
-    # Threads before init: the orthogonal init's QR differs in its last bits with the thread count.
-    torch.set_num_threads(1)
-    torch.manual_seed(cfg.seed)
-    policy = GraphActorCritic(cfg.policy) if initial is None else initial
-    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
-    gen = torch.Generator().manual_seed(cfg.seed)
+    learner, gen = new_learner(cfg, initial)
     helpers = Helpers(helper_spec(cfg, learner), learner) if cfg.processes > 1 else None
     pool = _rollout_pool(cfg, learner, gen, helpers, rollout_pool)
     try:
@@ -119,10 +114,8 @@ def train(
                              for part, name in zip(env_parts, pool.rng_names, strict=True)])  # fmt: skip
             _check_policy_checkpoints(run.checkpoints, run.counters["global_step"], learner.policy)
         else:
-            run.start()
-            if init is not None:
-                run.write_json("init.json", {"init": str(Path(init).resolve())})
-        _train_loop(cfg, run, learner, gen, pool, helpers)
+            run.start(init=init)
+        fit(run, learner, gen, Rollouts(cfg, run.counters, pool, helpers))
     finally:
         pool.close()
         if helpers is not None:
@@ -130,90 +123,79 @@ def train(
     return run.dir
 
 
-def _train_loop(cfg: TrainConfig, run: Run, learner: Learner, gen, pool: RolloutPool, helpers) -> None:
-    policy, optimizer, counters = learner.policy, learner.optimizer, run.counters
-    run.open_log(log_columns(cfg))
-    T, E = cfg.num_steps, cfg.num_envs
-    rollout = pool.rollout
-    update_cfg = cfg.update_config()
-    dims, trees = cfg.dims, not cfg.body_mix.chains_only  # the spec parsed once, not at every iteration
-    recent: list[Episode] = []
-    bar = _progress(cfg, counters["global_step"])
-    while counters["global_step"] < cfg.total_timesteps:
-        counters["iteration"] += 1
+class Rollouts:
+    """The simulator as ``fit``'s source: rollouts of the vectorised swimmers, their advantages, and the
+    episodes' returns as its columns; its state is every swimmer's (``SWIMMERS``)."""
 
+    name, time_column, bounded = "the simulator", "rollout_s", True
+    state_every_update = guard = False
+    save_policy = staticmethod(save_policy)
+
+    def __init__(self, cfg: TrainConfig, counters: dict, pool: RolloutPool, helpers: Helpers | None):
+        self.cfg, self.counters, self.pool, self.peers = cfg, counters, pool, helpers
+        self.dims, self.trees = cfg.dims, not cfg.body_mix.chains_only  # the spec parsed once, not every iteration
+        self.recent: list[Episode] = []
+        self.worker_states: list[WorkerState] = []
+
+    def columns(self) -> list[str]:
+        return log_columns(self.cfg)
+
+    def finished(self) -> bool:
+        return self.counters["global_step"] >= self.cfg.total_timesteps
+
+    def collect(self, learner: Learner) -> Collected:
         # 1. Rollout, by a NumPy snapshot of the policy: a torch forward pass over six chains
         # is mostly per-operation overhead (policy.numpy_actor, tested equal to torch).
         t0 = time.perf_counter()
-        if not pool.collecting:  # else started after the last update (step 4)
+        pool, rollout = self.pool, self.pool.rollout
+        if not pool.collecting:  # else started after the last update (``row``)
             pool.start(learner.params.theta)
         episodes = pool.finish()
-        counters["global_step"] += T * E
-        global_step = counters["global_step"]
         rollout_s = time.perf_counter() - t0
-
         # 2. Advantages.
         advantages, returns = compute_gae(
             *map(torch.from_numpy, (rollout.rewards, rollout.values, rollout.terminated, rollout.truncated,
                                     rollout.final_values, rollout.last_value)),
-            cfg.gamma, cfg.gae_lambda,
+            self.cfg.gamma, self.cfg.gae_lambda,
         )  # fmt: skip
-        if helpers is not None:
-            helpers.publish_advantages(advantages, returns)
-        batch = rollout.batch(advantages, returns)
+        if self.peers is not None:
+            self.peers.publish_advantages(advantages, returns)
+        return Collected(rollout.batch(advantages, returns), rollout_s, (episodes, learner))
 
-        # 3. Update.
-        t1 = time.perf_counter()
-        if cfg.anneal_lr:  # a function of the step count alone, so a resumed run gets the same rate
-            optimizer.param_groups[0]["lr"] = cfg.learning_rate * (1.0 - (global_step - T * E) / cfg.total_timesteps)
-        torch.set_num_threads(cfg.torch_threads)
-        stats = update(learner, batch, update_cfg, gen, peers=helpers)
-        update_s = time.perf_counter() - t1
+    def updated(self, collected: Collected) -> None:
+        pass
 
-        # 4. Log and checkpoint. The workers' next rollout starts first (their swimmers' states taken
-        # before it when a checkpoint is due): this process's logging and saving overlap it. It writes
-        # their columns of the rollout, so nothing below reads the batch.
-        explained = explained_variance(batch.values, batch.returns)
-        checkpoint = run.checkpoint_due(final=global_step >= cfg.total_timesteps)
-        worker_states = pool.get_states() if checkpoint else []
-        if global_step < cfg.total_timesteps:
-            pool.start(learner.params.theta)
-        recent = (recent + episodes)[-50:]
-        row = {
-            "global_step": global_step,
-            "iteration": counters["iteration"],
-            "wall_time": time.time(),
-            "sps": T * E / (rollout_s + update_s),
-            "rollout_s": rollout_s,
-            "update_s": update_s,
-            "learning_rate": optimizer.param_groups[0]["lr"],
-            "episodes": len(episodes),
-            "return_mean": _mean_return(episodes),
-            **stats.row(dims),
-            "explained_variance": explained,
-            "log_std": float(policy.log_std.detach()),
-        }
-        for d in dims:
+    def row(self, collected: Collected, checkpoint: bool) -> dict:
+        # The workers' next rollout starts first (their swimmers' states taken before it when a checkpoint is
+        # due): the logging and saving overlap it. It writes their columns of the rollout, so nothing after
+        # this reads the batch.
+        episodes, learner = collected.context
+        self.worker_states = self.pool.get_states() if checkpoint else []
+        if not self.finished():
+            self.pool.start(learner.params.theta)
+        self.recent = (self.recent + episodes)[-50:]
+        row = {"episodes": len(episodes), "return_mean": _mean_return(episodes)}
+        for d in self.dims:
             row[f"return_d{d}"] = _mean_return([e for e in episodes if e.num_joints == d])
-        if trees:
+        if self.trees:
             row["return_chains"] = _mean_return([e for e in episodes if is_chain_label(e.body)])
             row["return_trees"] = _mean_return([e for e in episodes if not is_chain_label(e.body)])
-        run.log(row, stats)
-        if checkpoint:
-            policy.save(run.mark_checkpoint(), metadata={"global_step": global_step})
-            swimmers, arrays = merge_env_states([(s.env_meta, s.env_arrays) for s in worker_states])
-            more_rngs = {name: s.rng for name, s in zip(pool.rng_names, worker_states, strict=True) if name}
-            name, version = SWIMMERS
-            run.save_state(learner, gen, {name: {**swimmers, "version": version}},
-                           {f"{name}.{k}": v for k, v in arrays.items()}, more_rngs)  # fmt: skip
-        run.report(row, checkpoint)
-        if bar is not None:
-            bar.update(T * E)
-            ret = _mean_return(recent)
-            bar.set_postfix(ret=f"{ret:.1f}", sps=f"{row['sps']:.0f}", kl=f"{row['approx_kl']:.3f}")
-    if bar is not None:
-        bar.close()
-    run.close()
+        return row
+
+    def state(self) -> tuple[dict, dict, dict]:
+        states, pool = self.worker_states, self.pool
+        swimmers, arrays = merge_env_states([(s.env_meta, s.env_arrays) for s in states])
+        more_rngs = {name: s.rng for name, s in zip(pool.rng_names, states, strict=True) if name}
+        name, version = SWIMMERS
+        return {name: {**swimmers, "version": version}}, {f"{name}.{k}": v for k, v in arrays.items()}, more_rngs
+
+    def progress(self) -> tuple[int, int, str]:
+        return self.cfg.total_timesteps, self.counters["global_step"], "step"
+
+    def advance(self, row: dict) -> tuple[int, dict]:
+        ret = _mean_return(self.recent)
+        postfix = {"ret": f"{ret:.1f}", "sps": f"{row['sps']:.0f}", "kl": f"{row['approx_kl']:.3f}"}
+        return self.cfg.num_envs * self.cfg.num_steps, postfix
 
 
 def _mean_return(episodes: list[Episode]) -> float:
@@ -265,14 +247,6 @@ def _check_policy_checkpoints(ckpt_dir: Path, step: int, policy: GraphActorCriti
                 log.warning("resume: %s; written again from the resumed state", err)
             else:
                 log.warning("resume: %s", err)
-
-
-def _progress(cfg: TrainConfig, start: int):
-    if not cfg.progress_bar:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=cfg.total_timesteps, initial=start, unit="step", dynamic_ncols=True)
 
 
 def load_run_config(run_dir: str | Path, overrides: dict | None = None) -> TrainConfig:

@@ -71,7 +71,6 @@ so ``resume`` on other data is refused (``DataMismatchError``), and
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -84,12 +83,12 @@ import torch
 
 from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import load_training_state, state_section
+from morph_core.algo.fit import Collected, fit, new_learner, refuse_anneal, save_policy
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
-from morph_core.algo.ppo import compute_gae, explained_variance
+from morph_core.algo.ppo import compute_gae
 from morph_core.algo.ppo_config import PPOConfig
-from morph_core.algo.run import RowHook, Run
-from morph_core.algo.update import update
+from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.update_stats import update_columns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
@@ -393,8 +392,7 @@ def train_from_data(
     the row hook (``run.Run.report``).
     """
     run_dir = Path(run_dir)
-    if cfg.anneal_lr:
-        raise ValueError("anneal_lr needs a known run length; training from data has none")
+    refuse_anneal(cfg, Recorded)
     if iterations is not None and iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
     if new_data and not resume:
@@ -406,18 +404,10 @@ def train_from_data(
     check_data(data, cfg)
     digest = data_digest(data)
     usable = torch.from_numpy(np.flatnonzero(data.has_policy_info))  # the steps an update may take
-    one_pass = passes_cut(len(usable), cfg.batch_size)
 
-    torch.set_num_threads(1)  # before init, as algo.train (the orthogonal init's QR depends on it)
-    if init is not None:
-        policy = GraphActorCritic.load(init)
-        cfg = dataclasses.replace(cfg, policy=policy.config)  # the run's config says what it trains
-    else:
-        torch.manual_seed(cfg.seed)
-        policy = GraphActorCritic(cfg.policy)
+    cfg, initial = initial_policy(cfg, init, resume=False)  # checked above: a run resumed before its first state
     check_global_width(data, cfg.policy)
-    learner = Learner.create(policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
-    gen = torch.Generator().manual_seed(cfg.seed)
+    learner, gen = new_learner(cfg, initial)
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)
     counters = run.counters
     counters.update(data_round=0, env_steps=0)
@@ -447,90 +437,87 @@ def train_from_data(
     elif new_data:
         raise ValueError(f"new_data: no trained state in {run_dir} to continue")
     else:
-        run.start()
-        if init is not None:
-            run.write_json("init.json", {"init": str(Path(init).resolve())})
+        run.start(init=init)
     if current is None or new_data:
-        current = _Round(digest, len(data), list(source or []), iterations or one_pass)
+        current = _Round(digest, len(data), list(source or []), iterations or passes_cut(len(usable), cfg.batch_size))
         counters["data_round"] += 1
         counters["env_steps"] += len(data)
     # Trees in the data, the run's bodies or a log resumed: the returns over chains and trees apart, kept for the run.
     trees = not data.is_chains or not cfg.body_mix.chains_only or (run.resuming and _logs_trees(run_dir))
-    run.open_log(log_columns(cfg, trees))
-
-    samples = Samples(data, cfg.max_joints)
-    recorded = EpisodeReturns.of(data).row(cfg.dims, trees)
-    update_cfg = cfg.update_config()
-    bar = _progress(cfg, current)
-    while current.done < current.iterations:
-        t0 = time.perf_counter()
-        # 1. Values and advantages of every recorded step with the critic as it is now.
-        values, advantages, returns = samples.advantages(policy, cfg.gamma, cfg.gae_lambda)
-        # 2. This update's samples: all, or the next part of this pass's permutation.
-        if one_pass == 1:
-            index = usable
-        else:
-            part = current.done % one_pass
-            if part == 0 or current.order is None:
-                current.order = torch.randperm(len(usable), generator=gen).numpy()
-            index = usable[torch.tensor_split(torch.from_numpy(current.order), one_pass)[part]]
-        if len(index) % cfg.minibatch_size == 1:
-            index = index[:-1]  # a last minibatch of one sample: its normalised advantage would be NaN
-        batch = with_proximal(policy, samples.batch(index, values, advantages, returns))
-        prepare_s = time.perf_counter() - t0
-
-        # 3. Update.
-        t1 = time.perf_counter()
-        torch.set_num_threads(cfg.torch_threads)
-        stats = update(learner, batch, update_cfg, gen)
-        torch.set_num_threads(1)
-        update_s = time.perf_counter() - t1
-        current.done += 1
-        counters["iteration"] += 1
-        counters["global_step"] += batch.size
-
-        # 4. Log and checkpoint.
-        row = {
-            "global_step": counters["global_step"],
-            "iteration": counters["iteration"],
-            "data_round": counters["data_round"],
-            "round_iteration": current.done,
-            "env_steps": counters["env_steps"],
-            "data_steps": len(data),
-            "usable_steps": len(usable),
-            "batch_size": batch.size,
-            "wall_time": time.time(),
-            "sps": batch.size / (prepare_s + update_s),
-            "prepare_s": prepare_s,
-            "update_s": update_s,
-            "learning_rate": learner.optimizer.param_groups[0]["lr"],
-            **recorded,
-            **stats.row(cfg.dims),
-            "explained_variance": explained_variance(batch.values, batch.returns),
-            "log_std": float(policy.log_std.detach()),
-            **off_policy_stats(batch, cfg.proximal_weight_cap),
-        }
-        run.log(row, stats)
-        saved = run.checkpoint_due(final=current.done >= current.iterations)
-        if saved:
-            policy.save(run.mark_checkpoint(), metadata={"global_step": counters["global_step"]})
-            _save_state(run, learner, gen, current)
-        run.report(row, saved)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(kl=f"{row['approx_kl']:.3f}", w=f"{row['is_weight_mean']:.3f}")
-    if bar is not None:
-        bar.close()
-    run.close()
+    fit(run, learner, gen, Recorded(cfg, data, usable, current, run.counters, gen, trees))
     return run_dir
 
 
-def _save_state(run: Run, learner: Learner, gen: torch.Generator, current: _Round) -> None:
-    name, version = DATA
-    section = {"version": version, "round": {k: getattr(current, k) for k in ("digest", "steps", "source",
-                                                                               "iterations", "done")}}  # fmt: skip
-    arrays = {} if current.order is None else {f"{name}.order": current.order}
-    run.save_state(learner, gen, {name: section}, arrays)
+class Recorded:
+    """Recorded transitions as ``fit``'s source: each batch all the usable steps or the next part of a pass's
+    permutation, with values and advantages from the critic as it is now; its state is the data set
+    (``_Round``, ``DATA``)."""
+
+    name, time_column, bounded = "training from data", "prepare_s", False
+    state_every_update = guard = False
+    peers = None
+    save_policy = staticmethod(save_policy)
+
+    def __init__(self, cfg: PPOConfig, data: TransitionBatch, usable: torch.Tensor, current: _Round, counters: dict,
+                 gen: torch.Generator, trees: bool):  # fmt: skip
+        self.cfg, self.data, self.usable, self.current = cfg, data, usable, current
+        self.counters, self.gen = counters, gen
+        self.trees = trees
+        self.one_pass = passes_cut(len(usable), cfg.batch_size)
+        self.samples = Samples(data, cfg.max_joints)
+        self.recorded = EpisodeReturns.of(data).row(cfg.dims, trees)
+
+    def columns(self) -> list[str]:
+        return log_columns(self.cfg, self.trees)
+
+    def finished(self) -> bool:
+        return self.current.done >= self.current.iterations
+
+    def collect(self, learner: Learner) -> Collected:
+        cfg, current, usable = self.cfg, self.current, self.usable
+        t0 = time.perf_counter()
+        # 1. Values and advantages of every recorded step with the critic as it is now.
+        values, advantages, returns = self.samples.advantages(learner.policy, cfg.gamma, cfg.gae_lambda)
+        # 2. This update's samples: all, or the next part of this pass's permutation.
+        if self.one_pass == 1:
+            index = usable
+        else:
+            part = current.done % self.one_pass
+            if part == 0 or current.order is None:
+                current.order = torch.randperm(len(usable), generator=self.gen).numpy()
+            index = usable[torch.tensor_split(torch.from_numpy(current.order), self.one_pass)[part]]
+        if len(index) % cfg.minibatch_size == 1:
+            index = index[:-1]  # a last minibatch of one sample: its normalised advantage would be NaN
+        batch = with_proximal(learner.policy, self.samples.batch(index, values, advantages, returns))
+        return Collected(batch, time.perf_counter() - t0)
+
+    def updated(self, collected: Collected) -> None:
+        self.current.done += 1
+
+    def row(self, collected: Collected, checkpoint: bool) -> dict:
+        return {
+            "data_round": self.counters["data_round"],
+            "round_iteration": self.current.done,
+            "env_steps": self.counters["env_steps"],
+            "data_steps": len(self.data),
+            "usable_steps": len(self.usable),
+            "batch_size": collected.batch.size,
+            **self.recorded,
+            **off_policy_stats(collected.batch, self.cfg.proximal_weight_cap),
+        }
+
+    def state(self) -> tuple[dict, dict, None]:
+        current, (name, version) = self.current, DATA
+        section = {"version": version, "round": {k: getattr(current, k) for k in ("digest", "steps", "source",
+                                                                                   "iterations", "done")}}  # fmt: skip
+        arrays = {} if current.order is None else {f"{name}.order": current.order}
+        return {name: section}, arrays, None
+
+    def progress(self) -> tuple[int, int, str]:
+        return self.current.iterations, self.current.done, "update"
+
+    def advance(self, row: dict) -> tuple[int, dict]:
+        return 1, {"kl": f"{row['approx_kl']:.3f}", "w": f"{row['is_weight_mean']:.3f}"}
 
 
 def _logs_trees(run_dir: Path) -> bool:
@@ -550,11 +537,3 @@ def run_state(run_dir: str | Path) -> dict | None:
         return None
     tensors, meta = load_training_state(path)
     return {**meta["counters"], **state_section(meta, tensors, *DATA, path)[0]["round"]}
-
-
-def _progress(cfg: PPOConfig, current: _Round):
-    if not cfg.progress_bar:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=current.iterations, initial=current.done, unit="update", dynamic_ncols=True)

@@ -55,7 +55,6 @@ version stays, and the policy nodes keep the last good weights.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 import uuid
@@ -66,16 +65,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from morph_core.algo.fit import Collected, Fit, NonFiniteUpdate, new_learner, refuse_anneal
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
-from morph_core.algo.ppo import explained_variance
 from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
-from morph_core.algo.update import compile_ahead, update
+from morph_core.algo.update import compile_ahead
 from morph_core.msgs.policy_weights import pack_policy_weights
-from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.index_plan import chain_parents
 from morph_core.policy.weights import SignedWeights, write_checkpoint
 from morph_core.protocol.transition_batch import TransitionBatch
@@ -148,10 +146,6 @@ def live_log_columns(cfg: PPOConfig) -> list[str]:
     return [*log_columns(cfg), *LIVE_COLUMNS]
 
 
-class NonFiniteUpdate(RuntimeError):
-    """An update made the policy's parameters NaN or inf; the learner kept the ones before it."""
-
-
 def _tree(t: Transition) -> np.ndarray:
     """A step's parents (a chain's when it has none)."""
     return chain_parents(len(t.joint_pos)) if t.parents is None else np.asarray(t.parents)
@@ -174,20 +168,16 @@ class LiveLearner:
         """``signer``: a ``protocol.trust.Signer`` for the weights and checkpoints (None: unsigned). ``on_row(row,
         saved)``: the row hook, after each update (its state is always saved). ``init``: a policy checkpoint a
         new run starts from (its architecture the run's), as ``algo.train.train``'s."""
-        if cfg.anneal_lr:
-            raise ValueError("anneal_lr needs a known run length; live training has none")
+        refuse_anneal(cfg, LiveLearner)
         if max_staleness < 0:
             raise ValueError(f"max_staleness must be >= 0, got {max_staleness}")
         cfg, initial = initial_policy(cfg, init, resume)
         self.run = Run(run_dir, cfg, resume=resume, on_row=on_row)
         self.run_dir = self.run.dir
         self.max_staleness = max_staleness
-        torch.set_num_threads(1)  # before init, as algo.train
         self.cfg = cfg  # on resume: the run's config.json with any overrides (``train.load_run_config``)
-        torch.manual_seed(cfg.seed)
-        self.policy = GraphActorCritic(cfg.policy) if initial is None else initial
-        self.learner = Learner.create(self.policy, cfg.learning_rate, cfg.adam_eps, cfg.compile)
-        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.learner, self.gen = new_learner(cfg, initial)
+        self.policy = self.learner.policy
         self.run.counters.update(version=0, env_steps=0)
         self.run_id = uuid.uuid4().hex
         self.epoch = time.time_ns()
@@ -200,12 +190,10 @@ class LiveLearner:
             self.run_id = live["run"]
             self.epoch = int(live.get("epoch", 0))  # a state written before epochs: before every run
         else:
-            self.run.start()
-            if init is not None:
-                self.run.write_json("init.json", {"init": str(Path(init).resolve())})
+            self.run.start(init=init)
             self._save_state()  # version 0 is resumable too: policy nodes may already run it
         self.resumed = self.run.resuming
-        self.run.open_log(live_log_columns(cfg))
+        self.fit = Fit(self.run, self.learner, self.gen, self)  # pushed: ``update`` runs its steps
         self._pool: list[TransitionBatch] = []
         self._pool_versions: list[np.ndarray] = []
         self.pool_size = 0
@@ -280,53 +268,49 @@ class LiveLearner:
         episodes_list, versions = pool if pool is not None else self.take_pool()
         if not episodes_list:
             raise ValueError("no episodes to train on")
+        try:
+            return self.fit.step(self.prepare(episodes_list, versions, pairs))
+        except NonFiniteUpdate as err:
+            self.rejected_updates += 1
+            raise NonFiniteUpdate(f"{err} ({self.rejected_updates} so far, {len(episodes_list)} episodes), "
+                                  f"version {self.version} kept") from None  # fmt: skip
+
+    # -- as fit's source (``algo.fit.Source``): pushed, one batch per ``update`` --------------------------
+    name, time_column, bounded, state_every_update, guard, peers = "live training", "prepare_s", False, True, True, None
+
+    def columns(self) -> list[str]:
+        return live_log_columns(self.cfg)
+
+    def prepare(self, episodes_list: list[TransitionBatch], versions: np.ndarray, pairs: int) -> Collected:
+        """The pool as one batch: values and GAE from the current critic, the proximal policy's log-probs."""
         cfg = self.cfg
         t0 = time.perf_counter()
         data = TransitionBatch.concatenate(episodes_list)
         known = versions[np.isfinite(versions)]
         lags = self.version - known
-        episodes = len(episodes_list)
         samples = Samples(data, cfg.max_joints)
         values, advantages, returns = samples.advantages(self.policy, cfg.gamma, cfg.gae_lambda)
         batch = with_proximal(self.policy, samples.batch(torch.arange(len(data)), values, advantages, returns))
-        prepare_s = time.perf_counter() - t0
-        t1 = time.perf_counter()
-        torch.set_num_threads(cfg.torch_threads)
-        before = self._learning_state()
-        stats = update(self.learner, batch, cfg.update_config(), self.gen)
-        torch.set_num_threads(1)
-        if not torch.isfinite(self.learner.params.theta).all():
-            self._restore_learning_state(before)
-            self.rejected_updates += 1
-            kl = stats.per_dim.overall()["approx_kl"]
-            raise NonFiniteUpdate(
-                f"the update on {episodes} episodes ({batch.size} samples, approx KL {kl:.3g}) made the policy "
-                f"non-finite; refused ({self.rejected_updates} so far), version {self.version} kept"
-            )
-        update_s = time.perf_counter() - t1
-        c = self.counters
-        c["iteration"] += 1
-        c["global_step"] += batch.size
-        c["version"] += 1
-        row = {
-            "global_step": c["global_step"],
-            "iteration": c["iteration"],
+        return Collected(batch, time.perf_counter() - t0, (data, len(episodes_list), lags, pairs))
+
+    def updated(self, collected: Collected) -> None:
+        self.counters["version"] += 1
+
+    def finished(self) -> bool:
+        return False  # no end: checkpoints every checkpoint_interval steps only
+
+    def row(self, collected: Collected, checkpoint: bool) -> dict:
+        data, episodes, lags, pairs = collected.context
+        c, batch = self.counters, collected.batch
+        return {
             "data_round": c["iteration"],
             "round_iteration": 1,
             "env_steps": c["env_steps"],
             "data_steps": len(data),
             "usable_steps": len(data),  # every pooled step has its behaviour log-prob (add_episode)
             "batch_size": batch.size,
-            "wall_time": time.time(),
-            "sps": batch.size / (prepare_s + update_s),
-            "prepare_s": prepare_s,
-            "update_s": update_s,
-            "learning_rate": self.learner.optimizer.param_groups[0]["lr"],
-            **EpisodeReturns.of(data).row(cfg.dims, trees=not cfg.body_mix.chains_only),  # as live_log_columns
-            **stats.row(cfg.dims),
-            "explained_variance": explained_variance(batch.values, batch.returns),
-            "log_std": float(self.policy.log_std.detach()),
-            **off_policy_stats(batch, cfg.proximal_weight_cap),
+            **EpisodeReturns.of(data).row(self.cfg.dims, trees=not self.cfg.body_mix.chains_only),  # as the columns
+            **off_policy_stats(batch, self.cfg.proximal_weight_cap),
             "version": c["version"],
             "pool_episodes": episodes,
             "dropped_stale": self.dropped_stale,
@@ -334,12 +318,13 @@ class LiveLearner:
             "version_lag_mean": float(lags.mean()) if len(lags) else float("nan"),
             "pairs": pairs,
         }
-        self.run.log(row, stats)
-        if self.run.checkpoint_due():
-            self._save_checkpoint(self.run.mark_checkpoint())
-        self._save_state()  # every update: a resumed trainer continues from the version the nodes run
-        self.run.report(row, True)
-        return row
+
+    def state(self) -> tuple[dict, dict, None]:
+        name, version = LIVE
+        return {name: {"version": version, "run": self.run_id, "epoch": self.epoch}}, {}, None
+
+    def save_policy(self, path: Path, learner: Learner, step: int) -> None:
+        self._save_checkpoint(path)
 
     def compile_update(self) -> float:
         """Compile the update before the first batch is in (``algo.update.compile_ahead``; nothing without
@@ -352,24 +337,8 @@ class LiveLearner:
             torch.set_num_threads(1)
         return time.perf_counter() - t0
 
-    def _learning_state(self) -> tuple:
-        """What an update changes (parameters, Adam, the rule's state, the generator), copied."""
-        learner = self.learner
-        return (learner.params.theta.detach().clone(), copy.deepcopy(learner.optimizer.state_dict()),
-                {k: v.clone() for k, v in learner.rule_state.items()}, self.gen.get_state())  # fmt: skip
-
-    def _restore_learning_state(self, saved: tuple) -> None:
-        theta, optimizer, rule_state, gen = saved
-        with torch.no_grad():
-            self.learner.params.theta.copy_(theta)  # in place: the policy's parameters are views of it
-        self.learner.optimizer.load_state_dict(optimizer)
-        self.learner.rule_state = rule_state
-        self.gen.set_state(gen)
-
     def _save_state(self) -> None:
-        name, version = LIVE
-        self.run.save_state(self.learner, self.gen, {name: {"version": version, "run": self.run_id,
-                                                            "epoch": self.epoch}})  # fmt: skip
+        self.run.save_state(self.learner, self.gen, *self.state())
 
     def weights_message(self) -> tuple[list[tuple[str, int, int]], bytes]:
         """The current policy as the weights topic carries it (``msgs.policy_weights``), signed with the
