@@ -185,7 +185,7 @@ def save_policy(path: Path, learner: Learner, step: int) -> None:
 def _progress(cfg, source: Source):
     if not cfg.progress_bar:
         return None
-    from tqdm import tqdm
+    from tqdm import tqdm  # the bar only when asked: a quiet run (tests, sweeps) never loads it
 
     total, done, unit = source.progress()
     return tqdm(total=total, initial=done, unit=unit, dynamic_ncols=True)
