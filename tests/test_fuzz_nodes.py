@@ -429,12 +429,9 @@ def _limited(limits) -> str:
     return text
 
 
-def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespace, untrained_checkpoint, diagnostics):
-    """effort_units:=urdf against ``FUZZ_COUNT`` descriptions whose limits are damaged (a good one now and then),
-    a good state answered after each: every answer is the policy's efforts times the limits of a good description
-    sent (never of a damaged one), every damaged description that arrived is refused as ``effort_limit``, RSS
-    flat, no traceback."""
-    rng = random.Random(15)
+def _answers_and_publishers(probe) -> tuple[dict[int, np.ndarray], dict]:
+    """The efforts the policy node answers, by the stamp they answer (filled as they come), and the test's
+    publishers of states, odometry and the latched description."""
     answers: dict[int, np.ndarray] = {}
 
     def on_efforts(msg):
@@ -443,10 +440,20 @@ def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespac
             answers[tag] = np.array(msg.data)
 
     probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
-    diag = diagnostics(f"{namespace}/morph_policy")
     pubs = {"joint_states": probe.node.create_publisher(JointState, "joint_states", 10),
             "odom": probe.node.create_publisher(Odometry, "odom", 10),
             "robot_description": probe.node.create_publisher(String, "robot_description", LATCHED)}  # fmt: skip
+    return answers, pubs
+
+
+def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespace, untrained_checkpoint, diagnostics):
+    """effort_units:=urdf against ``FUZZ_COUNT`` descriptions whose limits are damaged (a good one now and then),
+    a good state answered after each: every answer is the policy's efforts times the limits of a good description
+    sent (never of a damaged one), every damaged description that arrived is refused as ``effort_limit``, RSS
+    flat, no traceback."""
+    rng = random.Random(15)
+    answers, pubs = _answers_and_publishers(probe)
+    diag = diagnostics(f"{namespace}/morph_policy")
     first = (1.5, 0.25, 30.0)
     pubs["robot_description"].publish(String(data=_limited(first)))  # latched, before the node starts
     proc = launch("morph_policy_node", checkpoint=str(untrained_checkpoint), effort_units="urdf", input_timeout=60.0)
@@ -563,18 +570,8 @@ def test_policy_node_reading_joint_descriptions_under_garbled_descriptions(
     pos, vel = np.linspace(-0.4, 0.4, n), np.linspace(0.2, -0.2, n)
     quat, lin, z = (0.0, 0.0, 0.0998, 0.995), (0.3, -0.1), 0.6
     rng = random.Random(51)
-    answers: dict[int, np.ndarray] = {}
-
-    def on_efforts(msg):
-        tag = parse_answer_tag(msg.layout.dim[0].label) if msg.layout.dim else None
-        if tag is not None:
-            answers[tag] = np.array(msg.data)
-
-    probe.node.create_subscription(Float64MultiArray, "effort_commands", on_efforts, DEEP)
+    answers, pubs = _answers_and_publishers(probe)
     diag = diagnostics(f"{namespace}/morph_policy")
-    pubs = {"joint_states": probe.node.create_publisher(JointState, "joint_states", 10),
-            "odom": probe.node.create_publisher(Odometry, "odom", 10),
-            "robot_description": probe.node.create_publisher(String, "robot_description", LATCHED)}  # fmt: skip
     pubs["robot_description"].publish(String(data=good))  # latched, before the node starts
     proc = launch("morph_policy_node", checkpoint=str(checkpoint), input_timeout=60.0)
     probe.spin_until(
