@@ -68,7 +68,7 @@ def build_parser(description: str | None = None) -> CommandLineParser:
     live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live.trainer_node)")
     live.add_argument("--live", action=BoolAction, default=False,
                       help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
-                      f"{LIVE_LEARNING_RATE} here: stale samples)")  # fmt: skip
+                      f"{LIVE_LEARNING_RATE} here: stale samples; walkers' to theirs, as in every source)")  # fmt: skip
     live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
     live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
                       help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
