@@ -429,6 +429,22 @@ def _limited(limits) -> str:
     return text
 
 
+def _description_counts(probe, diag, sent) -> tuple[dict, object, int]:
+    """The node's counts once they show every message sent (descriptions may be replaced in their keep-last-1
+    queue before the node takes them): all counts, the descriptions', and how many descriptions were lost."""
+    counts = _wait_counts(probe, diag, dict(sent), {"robot_description": sent["robot_description"]})
+    described = counts["robot_description"]
+    return counts, described, sent["robot_description"] - described.received
+
+
+def _assert_states_all_taken_and_node_quiet(counts, sent, proc, elapsed: float) -> None:
+    """Every state arrived and none was refused; no traceback; warnings throttled (1 s per call site)."""
+    assert counts["joint_states"].rejected_total == 0 and counts["joint_states"].received == sent["joint_states"]
+    log = proc.log()
+    assert "Traceback" not in log
+    assert _warning_lines(log) <= 2 * (elapsed / 1.0 + 2) + 2, "warnings not throttled"
+
+
 def _answers_and_publishers(probe) -> tuple[dict[int, np.ndarray], dict]:
     """The efforts the policy node answers, by the stamp they answer (filled as they come), and the test's
     publishers of states, odometry and the latched description."""
@@ -495,15 +511,10 @@ def test_policy_node_with_urdf_units_under_fuzzed_limits(probe, launch, namespac
 
     rss_before, rss_after, elapsed = _fuzz_measured(probe, proc, fuzz)
     assert proc.alive(), proc.log()[-3000:]
-    counts = _wait_counts(probe, diag, dict(sent), {"robot_description": sent["robot_description"]})
-    described = counts["robot_description"]
-    lost = sent["robot_description"] - described.received  # keep last 1: replaced before the node took it
+    counts, described, lost = _description_counts(probe, diag, sent)
     assert set(described.rejected) <= {"effort_limit"} and described.rejected_total <= bad["robot_description"]
     assert described.rejected_total >= bad["robot_description"] - lost, (described, lost)
-    assert counts["joint_states"].rejected_total == 0 and counts["joint_states"].received == sent["joint_states"]
-    log = proc.log()
-    assert "Traceback" not in log
-    assert _warning_lines(log) <= 2 * (elapsed / 1.0 + 2) + 2, "warnings not throttled"
+    _assert_states_all_taken_and_node_quiet(counts, sent, proc, elapsed)
     growth = rss_after - rss_before
     print(
         f"\npolicy node, effort_units:=urdf: {sent['robot_description']} descriptions "
@@ -624,16 +635,11 @@ def test_policy_node_reading_joint_descriptions_under_garbled_descriptions(
     probe.spin_for(1.0)
     rss_after = proc.rss_kb()
     assert proc.alive(), proc.log()[-3000:]
-    counts = _wait_counts(probe, diag, dict(sent), {"robot_description": sent["robot_description"]})
-    described = counts["robot_description"]
-    lost = sent["robot_description"] - described.received  # keep last 1: replaced before the node took it
+    counts, described, lost = _description_counts(probe, diag, sent)
     assert set(described.rejected) <= {"description", "joint_description"}, described
     assert "joint_description" in described.rejected, described  # garbled numbers the tree reader lets through
     assert refused["robot_description"] - lost <= described.rejected_total <= refused["robot_description"]
-    assert counts["joint_states"].rejected_total == 0 and counts["joint_states"].received == sent["joint_states"]
-    log = proc.log()
-    assert "Traceback" not in log
-    assert _warning_lines(log) <= 2 * (elapsed / 1.0 + 2) + 2, "warnings not throttled"
+    _assert_states_all_taken_and_node_quiet(counts, sent, proc, elapsed)
     growth = rss_after - rss_before
     print(
         f"\npolicy node, joint_features 11: {sent['robot_description']} descriptions ({refused['robot_description']} "

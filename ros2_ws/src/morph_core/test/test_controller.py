@@ -321,6 +321,15 @@ def _rss_kb() -> int:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
 
 
+def _measured(fuzz, warmup: int) -> tuple[int, int, float]:
+    """``fuzz(n, stamp) -> stamp`` run ``warmup`` times (caches and allocator pools grown), then ``FUZZ_COUNT``
+    times: RSS before and after the measured part [kB], and its seconds."""
+    stamp = fuzz(warmup, 0)
+    before, t0 = _rss_kb(), time.monotonic()
+    fuzz(FUZZ_COUNT, stamp)
+    return before, _rss_kb(), time.monotonic() - t0
+
+
 FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "2000"))
 """descriptions fuzzed (2,000 in CI; ``scripts/fuzz_nodes.sh`` runs 10,000)"""
 
@@ -362,10 +371,7 @@ def test_urdf_units_under_fuzzed_descriptions_and_states():
                 counts["answered"] += 1
         return stamp
 
-    stamp = fuzz(500, 0)  # warm-up: caches and allocator pools grown
-    before, t0 = _rss_kb(), time.monotonic()
-    fuzz(FUZZ_COUNT, stamp)
-    after, elapsed = _rss_kb(), time.monotonic() - t0
+    before, after, elapsed = _measured(fuzz, 500)
     print(f"effort_units:=urdf fuzz: {FUZZ_COUNT} descriptions (+500 warm-up), {counts}, {elapsed:.1f} s, "
           f"RSS {before / 1024:.1f} -> {after / 1024:.1f} MB")  # fmt: skip
     assert counts["adopted"] > 100 and counts["rejected"] > FUZZ_COUNT // 2 and counts["refused"] > 0
@@ -521,10 +527,7 @@ def test_joint_descriptions_under_fuzzed_descriptions_and_states():
                 counts["answered"] += 1
         return stamp
 
-    stamp = fuzz(300, 0)  # warm-up: caches and allocator pools grown
-    before, t0 = _rss_kb(), time.monotonic()
-    fuzz(FUZZ_COUNT, stamp)
-    after, elapsed = _rss_kb(), time.monotonic() - t0
+    before, after, elapsed = _measured(fuzz, 300)
     print(f"joint descriptions fuzz: {FUZZ_COUNT} descriptions (+300 warm-up), {counts}, {elapsed:.1f} s, "
           f"RSS {before / 1024:.1f} -> {after / 1024:.1f} MB")  # fmt: skip
     assert counts["adopted"] > 100 and counts["rejected"] > FUZZ_COUNT // 4 and counts["answered"] > FUZZ_COUNT
