@@ -270,13 +270,21 @@ class SkipCounts:
     def add(self, reason: str, count: int = 1) -> None:
         setattr(self, reason, getattr(self, reason) + count)
 
+    def steps(self) -> dict[str, int]:
+        """Steps skipped, by reason (every step reason, zeros too)."""
+        return {r: getattr(self, r) for r in self.STEP_REASONS}
+
+    def messages(self) -> dict[str, int]:
+        """Messages left unused, by reason (every message reason, zeros too)."""
+        return {r: getattr(self, r) for r in self.MESSAGE_REASONS}
+
     @property
     def steps_skipped(self) -> int:
-        return sum(getattr(self, r) for r in self.STEP_REASONS)
+        return sum(self.steps().values())
 
     @property
     def messages_unused(self) -> int:
-        return sum(getattr(self, r) for r in self.MESSAGE_REASONS)
+        return sum(self.messages().values())
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)

@@ -76,8 +76,8 @@ class BagSummary:
             "steps_per_chain": {str(n): c for n, c in sorted(self.steps_per_chain.items())},
             "robot_description": {"messages": self.descriptions, "bodies": list(self.described)},
             "steps_per_body": dict(self.steps_per_body),
-            "skipped_steps": {r: getattr(self.skips, r) for r in SkipCounts.STEP_REASONS},
-            "unused_messages": {r: getattr(self.skips, r) for r in SkipCounts.MESSAGE_REASONS},
+            "skipped_steps": self.skips.steps(),
+            "unused_messages": self.skips.messages(),
         }
 
 
@@ -218,8 +218,7 @@ def format_summary(s: BagSummary) -> str:
     )
     if st.applied_unverified:
         lines.append(f"  applied effort not reported by the state (command trusted): {st.applied_unverified}")
-    skipped = {r: getattr(s.skips, r) for r in SkipCounts.STEP_REASONS}
-    unused = {r: getattr(s.skips, r) for r in SkipCounts.MESSAGE_REASONS}
+    skipped, unused = s.skips.steps(), s.skips.messages()
     lines.append(f"  skipped steps: {_counts(skipped) or 'none'}" + (f" ({why})" if (why := no_steps(s)) else ""))
     lines.append(f"  unused messages: {_counts(unused) or 'none'}")
     lines += [f"  warning: {w}" for w in s.warnings]
@@ -230,7 +229,7 @@ def no_steps(s: BagSummary) -> str:
     """Why a bag gave no step when no step was skipped (every step left out is counted under its reason, but a
     bag can hold no step to leave out); '' when it gave steps or the skipped steps say why."""
     st = s.stats
-    if st.transitions or any(getattr(s.skips, r) for r in SkipCounts.STEP_REASONS):
+    if st.transitions or s.skips.steps_skipped:
         return ""
     if not st.states:
         return "no joint_states of the robot's topics were read: morph-bag info lists the bag's topics"

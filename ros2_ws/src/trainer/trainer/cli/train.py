@@ -60,7 +60,7 @@ from morph_core.algo.rollout_workers import RolloutWorkerError
 from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.protocol.transition_batch import MissingPolicyInfoError
-from morph_core.protocol.transitions import SkipCounts, TransitionConfig
+from morph_core.protocol.transitions import TransitionConfig
 from morph_core.protocol.trust import load_signing_key
 from morph_core.util.config_cli import (
     CommandLineParser,
@@ -112,7 +112,7 @@ def _train_from_bags(args) -> None:
     for w in warnings:
         print(f"morph-train: warning: {w}", file=sys.stderr)
     if not len(data):
-        skipped = ", ".join(f"{r} {getattr(skips, r)}" for r in SkipCounts.STEP_REASONS if getattr(skips, r))
+        skipped = ", ".join(f"{r} {n}" for r, n in skips.steps().items() if n)
         why = skipped or "none; " + (
             no_steps(summarize_bag(args.from_bags[0], TransitionConfig(), args.namespace))
             if len(args.from_bags) == 1

@@ -188,6 +188,7 @@ class _Pair:
     messages: int = 0
     """messages taken off the pair's topics or chunks, decodable or not"""
     decode_errors: Counter = field(default_factory=Counter)
+    """messages refused before the assembler, by reason"""
     dropped_partial: int = 0
     drops: int = 0
     chunk_sequence: int | None = None
@@ -196,6 +197,11 @@ class _Pair:
 
     def __post_init__(self):
         self.assembler = TransitionAssembler(TransitionConfig(task=self.task, settle_states=SETTLE_STATES))
+
+    def refuse(self, reason: str) -> None:
+        """A message taken that could not be read (counted, never passed on)."""
+        self.messages += 1
+        self.decode_errors[reason] += 1
 
 
 def _nonzero(skips: SkipCounts) -> str:
@@ -215,9 +221,9 @@ def input_counts(pairs) -> InputCounts:
         messages.received += p.messages
         messages.rejected.update(p.decode_errors)
         skips = p.assembler.skips
-        messages.ignored.update({r: getattr(skips, r) for r in SkipCounts.MESSAGE_REASONS if getattr(skips, r)})
+        messages.ignored.update({r: n for r, n in skips.messages().items() if n})
         steps.received += p.assembler.stats.transitions + skips.steps_skipped
-        steps.rejected.update({r: getattr(skips, r) for r in SkipCounts.STEP_REASONS if getattr(skips, r)})
+        steps.rejected.update({r: n for r, n in skips.steps().items() if n})
     return counts
 
 
@@ -298,22 +304,19 @@ class LiveTrainer(Node):
             try:
                 sequence, entries = unpack_stream_chunk(chunk.data)
             except StreamChunkError:
-                pair.messages += 1
-                pair.decode_errors["stream_chunk"] += 1
+                pair.refuse("stream_chunk")
                 return
             if pair.chunk_sequence is not None and sequence > pair.chunk_sequence + 1:
                 pair.chunks_lost += sequence - pair.chunk_sequence - 1
             pair.chunk_sequence = sequence  # lower: a restarted policy node counts from 0 again
             for entry in entries:
                 if entry.topic not in decoders:  # a topic of a newer chunk layout, which this trainer does not read
-                    pair.messages += 1
-                    pair.decode_errors[f"unread_{entry.topic}"] += 1
+                    pair.refuse(f"unread_{entry.topic}")
                     continue
                 try:
                     msg = chunk_message(entry)
                 except Exception:  # noqa: BLE001 - rosbags raises several types for bytes that are not the type's CDR
-                    pair.messages += 1
-                    pair.decode_errors[f"cdr_{entry.topic}"] += 1
+                    pair.refuse(f"cdr_{entry.topic}")
                     continue
                 self._take(pair, decoders[entry.topic], msg, entry.log_ns)
 
@@ -321,12 +324,12 @@ class LiveTrainer(Node):
 
     def _take(self, pair: _Pair, decode, msg, log_ns: int) -> None:
         """One message of a pair's stream: decoded into a record (or counted) and pushed to its assembler."""
-        pair.messages += 1
         try:
             record = decode(msg, log_ns)
         except DecodeError as err:
-            pair.decode_errors[err.reason] += 1
+            pair.refuse(err.reason)
             return
+        pair.messages += 1
         if decode is policy_info_record:
             pair.versions[record.stamp_ns] = parse_policy_version(msg.header.frame_id)
             while len(pair.versions) > _VERSIONS_KEPT:
