@@ -11,7 +11,8 @@ Each round
    seeded per round; policy node: ``deterministic:=false`` with the latest
    checkpoint; ``morph-record``) into ``bags/round_NNN``;
 2. trains on that bag alone, ``morph-train --from-bags`` (one pass over it:
-   one update when the round's steps fit one batch, as a swimmer's do), resuming the run in ``train/`` across rounds
+   one update when the round's steps fit one batch, as a swimmer's do),
+   resuming the run in ``train/`` across rounds
    (``--resume --new-data``) so the optimizer's state carries over; options
    after ``--`` go to morph-train (e.g. ``-- --compile false``);
 3. appends a row to ``rounds.csv``: simulator steps so far (episodes x
@@ -233,15 +234,15 @@ class RoundData:
 def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> RoundData:
     from ruamel.yaml import YAML
 
-    from morph_core.algo.train_from_data import EpisodeReturns, data_digest, episode_spans
+    from morph_core.algo.train_from_data import EpisodeReturns, data_digest
     from trainer.bags.contents import read_bags
 
     data, _, _ = read_bags([bag], namespace)
     if not len(data):
         raise RoundFailed(f"{bag}: no usable steps (morph-bag info {bag} says why)")
     ep = EpisodeReturns.of(data)
-    starts, lengths = episode_spans(data)
-    complete = (ep.lengths == episode_steps) | data.terminated[starts + lengths - 1]
+    last = np.cumsum(ep.lengths) - 1  # each episode's last row: episodes are contiguous runs, in order
+    complete = (ep.lengths == episode_steps) | data.terminated[last]
     returns: dict[int, list[float]] = {}
     for n, ret in zip(ep.num_joints[complete], ep.returns[complete], strict=True):
         returns.setdefault(int(n), []).append(float(ret))
