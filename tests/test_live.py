@@ -40,6 +40,8 @@ from trainer.live.trainer_node import (
     chunk_message,
 )
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 120.0
 SMALL = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
          "--compile", "false", "--tensorboard", "false", "--progress-bar", "false", "--checkpoint-interval", "128",

@@ -25,6 +25,8 @@ from trainer.bags.contents import summarize_bag
 from trainer.bags.io import BagReader
 from trainer.cli.train import main as train_main
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 SPEC = "star:2x2,y:1x2"
 LABELS = {"star-2x2", "y-1x2"}

@@ -24,6 +24,8 @@ from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.trust import write_key_pair
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 EPOCH = 5_000
 RSS_GROWTH_LIMIT_KB = 20_000

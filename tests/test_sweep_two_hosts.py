@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 HEAD, WORKER, PORT = "10.77.0.1", "10.77.0.2", 6379
 TINY = ["total-timesteps=512", "num-envs=2", "num-steps=128", "minibatch-size=64", "update-epochs=1",
         "compile=false", "tensorboard=false"]  # fmt: skip

@@ -40,6 +40,7 @@ def _shared_rollout(cfg: TrainConfig, helpers: Helpers, learner: Learner):
     return rollout.batch(adv, ret)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("rule", "compiled"),
     [(rule, False) for rule in ("compensated", "per-joint-clip", "kl-penalty", "kl-stop")] + [("compensated", True)],
@@ -87,6 +88,7 @@ def _rows(run_dir):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_a_two_process_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     straight = train(TrainConfig(total_timesteps=768, seed=5, **SMALL), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=256, seed=5, **SMALL), tmp_path / "b")
@@ -129,6 +131,7 @@ def test_env_states_split_and_merge_back():
         assert np.array_equal(merged[k], arrays[k]), k
 
 
+@pytest.mark.slow
 def test_a_helper_that_dies_stops_training_with_a_clear_error():
     cfg = TrainConfig(num_envs=2, num_steps=16, minibatch_size=16, compile=False, processes=2)
     learner = _learner(cfg)
@@ -159,6 +162,7 @@ def _helpers_in_an_epoch(cfg: TrainConfig) -> tuple[Helpers, int]:
     return helpers, len(cuts) - 1
 
 
+@pytest.mark.slow
 def test_a_helper_that_dies_within_an_epoch_stops_training_with_a_clear_error():
     # Within an epoch process 0 waits on a semaphore, not a pipe: the helper's death must still end the wait.
     cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
@@ -174,6 +178,7 @@ def test_a_helper_that_dies_within_an_epoch_stops_training_with_a_clear_error():
         helpers.close()
 
 
+@pytest.mark.slow
 def test_a_helper_waiting_within_an_epoch_leaves_when_closed():
     cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
     helpers, _ = _helpers_in_an_epoch(cfg)
@@ -183,6 +188,7 @@ def test_a_helper_waiting_within_an_epoch_leaves_when_closed():
     assert proc.exitcode == 0  # it read "close" while waiting and left; killed, it would read -9
 
 
+@pytest.mark.slow
 def test_a_failing_helper_reports_its_error():
     cfg = TrainConfig(num_envs=2, num_steps=16, minibatch_size=16, compile=False, processes=2)
     learner = _learner(cfg)

@@ -71,6 +71,7 @@ def test_a_rollout_stores_the_parents_the_policy_acted_on():
     envs.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("processes", [1, 2])
 def test_a_run_on_trees_resumes_exactly_as_an_uninterrupted_run(tmp_path, processes):
     cfg = dict(SMALL, bodies=TREES, seed=4, processes=processes)

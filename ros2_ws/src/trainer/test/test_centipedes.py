@@ -50,6 +50,7 @@ def test_a_centipede_run_has_twelve_globals_and_resumes_bit_for_bit(centipede_ru
     assert any(r["return_mean"] not in ("", "nan") for r in rows)  # centipedes fell or timed out: episodes ended
 
 
+@pytest.mark.slow
 def test_morph_eval_on_trained_and_zero_shot_centipedes(centipede_run, capsys):
     from trainer.cli.eval import main
 
@@ -101,6 +102,7 @@ def test_an_evaluated_centipede_stops_where_it_fell_its_length_and_distance_the_
     assert len(set(results.steps)) > 1  # the episodes ended at different steps: the batch went on without each
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     gif = tmp_path / "c.gif"
@@ -122,6 +124,7 @@ def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5  # it moved (or the camera followed it)
 
 
+@pytest.mark.slow
 def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     # --processes 2: the helper steps half the centipedes and shares the 12-wide global rollout.
     two = {**SMALL, "num_envs": 4, "processes": 2, "checkpoint_interval": 256}
@@ -167,6 +170,7 @@ def _train_cli(tmp_path, *options):
     return json.loads((out / "config.json").read_text()), run.stdout
 
 
+@pytest.mark.slow
 def test_morph_train_on_centipedes_takes_the_centipede_settings_unless_given(tmp_path):
     cfg, out = _train_cli(tmp_path / "a", "--bodies", "centipede:2")
     assert (cfg["learning_rate"], cfg["gamma"], cfg["gae_lambda"]) == (3e-4, 0.99, 0.95)

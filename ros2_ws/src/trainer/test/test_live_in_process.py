@@ -21,6 +21,7 @@ def rows(run_dir) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_whole_episodes_without_loss_and_runs_with_it(tmp_path):
     whole = rows(train_in_process(TINY, InProcessOptions(episode_steps=100), tmp_path / "whole", log=lambda _: 0)
                  .run_dir)  # fmt: skip

@@ -229,6 +229,7 @@ def test_a_diverged_update_is_refused_and_the_learner_kept_as_it_was(tmp_path, e
     assert len(list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))) == 1  # the refused update not logged
 
 
+@pytest.mark.slow
 def test_the_update_compiled_ahead_is_the_graph_the_first_update_runs(tmp_path, episodes):
     """compile_update traces the minibatch gradient on made-up chains before any data: the first real update
     then finds its graph (none traced anew, no fallback), and nothing the update reads has changed."""

@@ -174,6 +174,7 @@ def test_fuzz_garbled_specs_give_a_spec_error_never_a_traceback(tmp_path):
 # --- sweeps on Ray --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_2x2_grid_makes_four_run_directories_the_tools_read(tmp_path):
     from trainer.reports.runs import load_runs
 
@@ -196,6 +197,7 @@ def test_a_2x2_grid_makes_four_run_directories_the_tools_read(tmp_path):
     assert all(s["done"] for s in status.values())
 
 
+@pytest.mark.slow
 def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
     from morph_core.algo.train import train
     from trainer.sweep.spec import load_spec
@@ -221,6 +223,7 @@ def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
         assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
 
 
+@pytest.mark.slow
 def test_a_sweep_stopped_as_a_whole_resumes_with_the_same_command(tmp_path):
     out = tmp_path / "sweep"
     sets = [*TINY[1:], "total-timesteps=3072"]

@@ -31,6 +31,7 @@ def _rows(run_dir):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("compiled", [False, True])
 def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
     small = {**SMALL, "compile": compiled}
@@ -49,6 +50,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
     assert ckpts == ["policy_00000128.safetensors", "policy_00000256.safetensors", "policy_00000384.safetensors"]
 
 
+@pytest.mark.slow
 def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
@@ -74,6 +76,7 @@ def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     assert [r["global_step"] for r in _rows(run)] == [str(128 * i) for i in range(1, 17)]
 
 
+@pytest.mark.slow
 def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
     cli = [sys.executable, "-m", "trainer.cli.train"]
     help_text = subprocess.run([*cli, "--help"], capture_output=True, text=True, check=True).stdout
@@ -87,6 +90,7 @@ def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
     assert bad.returncode != 0 and "no run to resume" in bad.stderr
 
 
+@pytest.mark.slow
 def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_path, capsys):
     from trainer.cli.train import main
 
@@ -149,6 +153,7 @@ def test_annealed_learning_rate_falls_linearly_towards_zero(tmp_path):
     assert [float(r["learning_rate"]) for r in rows] == pytest.approx([0.004 * (1 - b / 512) for b in before])
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_short_training_run_improves_return(tmp_path):
     # The paper configuration for 20 iterations. Early on the swimmers first learn to move at

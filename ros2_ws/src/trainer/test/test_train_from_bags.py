@@ -130,6 +130,7 @@ def test_ppo_from_a_bag_changes_the_policy_and_logs_per_dimension(tmp_path, init
     assert GraphActorCritic.load(run / "checkpoints" / ckpts[-1]) is not None  # loads as the policy node would
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampled, capsys):
     bag = write_bag(tmp_path / "bag", sampled)
     other = write_bag(tmp_path / "other", sampled[: len(sampled) // 2], "sqlite3")

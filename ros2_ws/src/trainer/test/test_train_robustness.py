@@ -14,6 +14,8 @@ from morph_core.algo.checkpoint import check_training_state, previous_state_path
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.weights import load_checkpoint
 
+pytestmark = pytest.mark.slow  # every test here starts processes, trains or compiles
+
 SMALL = dict(
     num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
     tensorboard=False, progress_bar=False, compile=False, min_joints=2, max_joints=3,
