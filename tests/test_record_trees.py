@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.algo.small_runs import options_of, small
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.records import DescriptionRecord, EpisodeStartRecord, JointStateRecord
@@ -32,10 +33,7 @@ SPEC = "star:2x2,y:1x2"
 LABELS = {"star-2x2", "y-1x2"}
 SEED = 5
 STEPS = 40
-SMALL = [
-    "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "1",
-    "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
-]  # fmt: skip
+SMALL = options_of(small(num_envs=1, num_steps=32, minibatch_size=16, update_epochs=1, checkpoint_interval=32))
 
 
 @pytest.mark.timeout(300)

@@ -15,6 +15,7 @@ from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import part_sizes
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.rollout import collect
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, helper_spec, train
 from morph_core.algo.trust_region import get_rule
 from morph_core.algo.update import update
@@ -77,10 +78,7 @@ def test_the_two_process_update_equals_the_one_process_update(rule, compiled):
         helpers.close()
 
 
-SMALL = dict(
-    num_envs=4, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=256, tensorboard=False,
-    progress_bar=False, compile=False, processes=2,
-)  # fmt: skip
+SMALL = small(num_envs=4, checkpoint_interval=256, processes=2)
 
 
 def _rows(run_dir):

@@ -14,15 +14,13 @@ import torch
 from PIL import Image
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint, untrained_weights
 
-SMALL = dict(
-    bodies="centipede:2-3", num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(bodies="centipede:2-3", checkpoint_interval=128)
 
 
 @pytest.fixture(scope="module")

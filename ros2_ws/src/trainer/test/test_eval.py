@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from morph_core.algo.evaluate import evaluate_episodes, evaluate_policy
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -22,10 +23,7 @@ from trainer.cli.keys import main as keys_main
 from trainer.reports.evaluation import EvalConfig, evaluate_run
 from trainer.reports.ship import body_key, scored_bodies
 
-SMALL = dict(
-    num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(update_epochs=1, checkpoint_interval=128)
 
 
 def test_evaluation_is_deterministic_and_covers_every_length():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.algo.small_runs import small_config
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import comb_parents, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
@@ -24,8 +25,7 @@ from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
 from trainer.live.learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
-SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
-                    tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+SMALL = small_config(num_envs=1, checkpoint_interval=64)
 
 
 @pytest.fixture(scope="module")

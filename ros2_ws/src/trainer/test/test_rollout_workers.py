@@ -21,15 +21,13 @@ from morph_core.algo.rollout_workers import (  # noqa: E402
     RolloutWorkerError,  # noqa: E402
     worker_seed,
 )
+from morph_core.algo.small_runs import small  # noqa: E402
 from morph_core.algo.train import TrainConfig, rollout_spec, train  # noqa: E402
 from morph_core.policy.actor_critic import GraphActorCritic  # noqa: E402
 from trainer.cli import train as train_cli  # noqa: E402
 from trainer.sim.ray_rollouts import RayRolloutPool, ray_rollout_pool  # noqa: E402
 
-SMALL = dict(
-    num_envs=4, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=256, tensorboard=False,
-    progress_bar=False, compile=False, rollout_workers=2,
-)  # fmt: skip
+SMALL = small(num_envs=4, checkpoint_interval=256, rollout_workers=2)
 TIMES = ("wall_time", "sps", "rollout_s", "update_s")
 
 

@@ -18,12 +18,12 @@ from pathlib import Path
 import pytest
 from safetensors.numpy import load_file
 
+from morph_core.algo.small_runs import sets_of, small
 from morph_core.algo.trust_region import rule_names
 from trainer.sweep.cli import main
 from trainer.sweep.spec import SpecError, load_spec
 
-TINY = ["total-timesteps=512", "num-envs=2", "num-steps=128", "minibatch-size=64", "update-epochs=1",
-        "compile=false", "tensorboard=false"]  # fmt: skip
+TINY = sets_of(small(total_timesteps=512, num_steps=128, minibatch_size=64, update_epochs=1))
 EVAL = ["lengths=2", "episodes=1"]
 WALL_CLOCK = ("wall_time", "sps", "rollout_s", "update_s")
 

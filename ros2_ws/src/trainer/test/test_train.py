@@ -13,12 +13,10 @@ import pytest
 import torch
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 
-SMALL = dict(
-    num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(checkpoint_interval=128)
 
 
 def _final_weights(run_dir):

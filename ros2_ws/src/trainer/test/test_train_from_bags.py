@@ -19,6 +19,7 @@ import torch
 from rosbags.typesys import Stores, get_typestore
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train_from_data import run_state
 from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
 from morph_core.msgs.records import (
@@ -42,10 +43,7 @@ TYPES = {
     "effort_commands": "std_msgs/msg/Float64MultiArray",
     "policy_info": "trajectory_msgs/msg/JointTrajectory",
 }
-SMALL = [
-    "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "2",
-    "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
-]  # fmt: skip
+SMALL = options_of(small(num_envs=1, num_steps=32, minibatch_size=16, checkpoint_interval=32))
 CLI = [sys.executable, "-m", "trainer.cli.train"]
 
 
