@@ -23,7 +23,8 @@ from morph_core.algo.trust_region import rule_names
 from trainer.sweep.cli import main
 from trainer.sweep.spec import SpecError, load_spec
 
-TINY = sets_of(small(total_timesteps=512, num_steps=128, minibatch_size=64, update_epochs=1))
+TINY_SIZES = dict(num_steps=128, minibatch_size=64, update_epochs=1)
+TINY = sets_of(small(total_timesteps=512, **TINY_SIZES))
 EVAL = ["lengths=2", "episodes=1"]
 WALL_CLOCK = ("wall_time", "sps", "rollout_s", "update_s")
 
@@ -202,7 +203,7 @@ def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
     from morph_core.algo.train import train
     from trainer.sweep.spec import load_spec
 
-    sets = [*TINY[1:], "total-timesteps=1024", "checkpoint-interval=512"]
+    sets = sets_of(small(total_timesteps=1024, checkpoint_interval=512, **TINY_SIZES))
     out, faults = tmp_path / "sweep", tmp_path / "faults"
     faults.mkdir()
     done = run_sweep(sweep_command(out, ["seed=3"], sets=sets, cpus=1), env={"MORPH_SWEEP_FAULT_DIR": str(faults)})
@@ -226,7 +227,7 @@ def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
 @pytest.mark.slow
 def test_a_sweep_stopped_as_a_whole_resumes_with_the_same_command(tmp_path):
     out = tmp_path / "sweep"
-    sets = [*TINY[1:], "total-timesteps=3072"]
+    sets = sets_of(small(total_timesteps=3072, **TINY_SIZES))
     cmd = sweep_command(out, ["seed=1,2"], sets=sets, cpus=1)  # one trial at a time: the second waits
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ)
     deadline = time.monotonic() + 60
