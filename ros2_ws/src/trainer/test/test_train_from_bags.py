@@ -290,7 +290,7 @@ def test_a_few_lost_policy_infos_are_warned_about_and_left_out_of_the_updates(tm
     dropped = {infos[10], infos[70], infos[71]}  # the efforts of those steps are there: the steps stay
     bag = write_bag(tmp_path / "bag", [r for i, r in enumerate(sampled) if i not in dropped])
     run = tmp_path / "run"
-    one_batch = ["--num-envs", "1", "--num-steps", "256", *SMALL[4:]]  # every usable step in one update
+    one_batch = options_of(small(num_envs=1, num_steps=256, minibatch_size=16, checkpoint_interval=32))  # one update
     assert main(["--from-bags", str(bag), "--out", str(run), *one_batch]) == 0
     captured = capsys.readouterr()
     assert "morph-train: warning: 3 of 150 steps have no policy_info" in captured.err
