@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
+
 HEAD, WORKER, PORT = "10.77.0.1", "10.77.0.2", 6379
 TINY = ["total-timesteps=512", "num-envs=2", "num-steps=128", "minibatch-size=64", "update-epochs=1",
         "compile=false", "tensorboard=false"]  # fmt: skip
@@ -97,7 +99,7 @@ def test_a_sweep_runs_on_a_ray_cluster_of_two_hosts(two_hosts, tmp_path):
         assert {s["node_ip"] for s in status.values()} == {HEAD, WORKER}
         assert len({s["netns"] for s in status.values()}) == 2
         for name in status:
-            assert (out / name / "eval.csv").exists()  # one run directory each, on the disk both hosts share
+            assert RunDir(out / name).evaluation.exists()  # one run directory each, on the disk both hosts share
     finally:
         for n in reversed(nodes):
             stop(n)
