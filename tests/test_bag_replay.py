@@ -24,6 +24,8 @@ from morph_core.policy.chains import ChainBatch
 from morph_core.protocol.transitions import assemble
 from trainer.bags.io import BagReader
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STEPS = 60
 JOINTS = 3
 SEED = 4

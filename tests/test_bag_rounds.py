@@ -15,6 +15,8 @@ import pytest
 from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train_from_data import run_state
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

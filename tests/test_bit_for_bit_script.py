@@ -6,12 +6,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "bit_for_bit.py"
 sys.path.insert(0, str(SCRIPT.parent))
 import bit_for_bit  # noqa: E402
 
 from morph_core.algo.run_dir import RunDir  # noqa: E402
+
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 
 
 def _out(path: Path, machine: dict | None, returns: list[str]) -> Path:

@@ -18,6 +18,8 @@ from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.tree import read_urdf
 from morph_core.policy.weights import load_checkpoint
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -28,6 +28,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "ros2_ws" / "src"
 COLCON = Path(sys.executable).parent / "colcon"

@@ -43,6 +43,8 @@ from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.controller import Controller
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 Y = swimmer_tree(y_parents(1, 2))
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

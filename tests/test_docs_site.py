@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 API_PAGES = {
@@ -25,6 +27,7 @@ API_PAGES = {
 """API page -> an object whose heading it must hold (the page rendered its package's modules)"""
 
 
+@pytest.mark.slow
 def test_the_docs_site_builds_strict(tmp_path):
     site = tmp_path / "site"
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}  # Material's notice about MkDocs 2.0: not ours to fix

@@ -27,6 +27,8 @@ from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
 from swimmer_sim_node.sim_node import chain_lengths
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 PERIOD_NS = 40_000_000
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

@@ -25,6 +25,8 @@ from std_msgs.msg import Float64MultiArray, Int64MultiArray, UInt8MultiArray
 from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 FLOOD_SECONDS = 5.0
 HUGE = 100_000

@@ -36,6 +36,8 @@ from morph_core.msgs.stamps import SILENCE_TAG, answer_tag, parse_answer_tag, to
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "600"))
 """malformed messages per node"""
 STARTUP = 60.0

@@ -18,6 +18,8 @@ from morph_core.algo.run_dir import RunDir
 from trainer.bags.contents import bag_task, read_bags
 from trainer.bags.io import BagReader
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 FROM_BAGS = ["--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "1",
              "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false",
              "--compile", "false"]  # fmt: skip

@@ -24,6 +24,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train import TrainConfig
 from morph_core.msgs.episode_start import unpack_episode_start
 from morph_core.msgs.policy_weights import unpack_policy_weights
@@ -42,9 +43,10 @@ from trainer.live.trainer_node import (
     chunk_message,
 )
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 120.0
-SMALL = ["--num-envs", "1", "--num-steps", "128", "--minibatch-size", "64", "--update-epochs", "1",
-         "--compile", "false", "--tensorboard", "false", "--progress-bar", "false", "--checkpoint-interval", "128",
+SMALL = [*options_of(small(num_envs=1, num_steps=128, minibatch_size=64, update_epochs=1, checkpoint_interval=128)),
          "--episode-steps", "60", "--silence-timeout", "2"]  # fmt: skip
 
 

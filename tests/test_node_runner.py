@@ -14,6 +14,8 @@ import pytest
 
 from morph_ros_util.node_runner import WEDGE_TIMEOUT
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 LAUNCH_SIGTERM_TIMEOUT = 5.0
 """seconds ROS 2 launch waits after SIGTERM before SIGKILL (``ExecuteProcess``'s ``sigterm_timeout`` default)"""
 

@@ -24,6 +24,8 @@ from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import load_checkpoint
 from morph_policy_node.policy_choice import UNTRAINED_LABEL
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -20,6 +20,8 @@ from morph_core.protocol.controller import PolicyOutputError, act
 from morph_policy_node.policy_choice import choose_policy
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 CONFIGS = [PolicyConfig(), PolicyConfig(bidirectional=False, conv1_channels=5, head_hidden=7, global_hidden=9)]
 
 

@@ -38,6 +38,8 @@ from trainer.bags.record import KNOWN_TYPES
 from trainer.bags.writer import jazzy_metadata_problems
 from trainer.codec import DESCRIPTION_TOPIC
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 STEP_NS = 40_000_000
 TOPICS = ["episode_start", "joint_states", "odom", "effort_commands", "policy_info", "/clock", "probe_episodes"]

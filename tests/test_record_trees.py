@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import options_of, small
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.msgs.records import DescriptionRecord, EpisodeStartRecord, JointStateRecord
@@ -26,15 +27,14 @@ from trainer.bags.contents import summarize_bag
 from trainer.bags.io import BagReader
 from trainer.cli.train import main as train_main
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 SPEC = "star:2x2,y:1x2"
 LABELS = {"star-2x2", "y-1x2"}
 SEED = 5
 STEPS = 40
-SMALL = [
-    "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "1",
-    "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
-]  # fmt: skip
+SMALL = options_of(small(num_envs=1, num_steps=32, minibatch_size=16, update_epochs=1, checkpoint_interval=32))
 
 
 @pytest.mark.timeout(300)

@@ -22,6 +22,8 @@ from visualization_msgs.msg import Marker, MarkerArray
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.model import swimmer_model
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 

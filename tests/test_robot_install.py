@@ -42,7 +42,7 @@ TRAINING_STACK = ("torch", "torch-geometric", "tensorboard", "matplotlib")
 ENV_STACK = ("mujoco", "gymnasium")
 STARTUP = 60.0  # seconds for a node to start and match on a loaded 2-core machine
 
-pytestmark = pytest.mark.timeout(900)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # installs into fresh venvs
 
 
 def _normal(name: str) -> str:

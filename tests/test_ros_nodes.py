@@ -23,6 +23,8 @@ from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0  # seconds for processes to start and match (torch import on a loaded 2-core machine)
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 

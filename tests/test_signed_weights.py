@@ -25,6 +25,8 @@ from morph_core.protocol.trust import write_key_pair
 from morph_policy_node.policy_node import SHIPPED_MODEL
 from morph_ros_util.processes import FASTDDS_ENV, start_node, stop_all
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 EPOCH = 5_000
 RSS_GROWTH_LIMIT_KB = 20_000

@@ -35,6 +35,8 @@ from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.tree import KinematicTree, read_urdf
 from swimmer_sim_node.sim_node import make_sim
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

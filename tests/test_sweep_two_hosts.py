@@ -21,10 +21,12 @@ from pathlib import Path
 import pytest
 
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import sets_of, small
+
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 
 HEAD, WORKER, PORT = "10.77.0.1", "10.77.0.2", 6379
-TINY = ["total-timesteps=512", "num-envs=2", "num-steps=128", "minibatch-size=64", "update-epochs=1",
-        "compile=false", "tensorboard=false"]  # fmt: skip
+TINY = sets_of(small(total_timesteps=512, num_steps=128, minibatch_size=64, update_epochs=1))
 RAY = [str(Path(sys.executable).with_name("ray"))]
 
 

@@ -28,6 +28,8 @@ from morph_core.policy.weights import load_checkpoint
 from morph_policy_node.bringup import TREE_MODEL
 from morph_policy_node.policy_node import SHIPPED_MODEL
 
+pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
+
 STARTUP = 60.0
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DEEP = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

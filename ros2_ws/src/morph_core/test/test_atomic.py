@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from morph_core.util.atomic import atomic_write_bytes
 
 WRITER = """
@@ -31,6 +33,7 @@ def test_the_previous_file_is_kept_and_the_new_one_replaces_it(tmp_path):
     assert path.read_bytes() == b"three" and previous.read_bytes() == b"two"
 
 
+@pytest.mark.slow
 def test_a_writer_killed_at_any_moment_leaves_a_complete_file_under_the_name(tmp_path):
     # A real process rewriting the file in a loop, SIGKILLed at random moments: each time, the name must
     # hold a complete file (it did not when the kill fell between moving the old file away and moving the

@@ -185,6 +185,7 @@ def test_fuzzed_specs_parse_or_raise_value_error_only():
     assert time.monotonic() - started < 60
 
 
+@pytest.mark.slow
 def test_drawn_trees_swim_without_diverging_under_random_and_bang_bang_actions():
     # The fast version of bench/check_body_stability.py (its full sweep is quoted in docs/bodies.md).
     from morph_core.env.swimmer_batch import SwimmerBatch

@@ -66,6 +66,7 @@ def _assert_same(plain, flat_results):
     assert grad.abs().max() > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("weighted", [False, True])
 def test_compiled_gradient_of_the_flat_parameters_equals_autograd_on_the_module(weighted):
     # The training path differentiates the loss as a function of all parameters in one vector, compiled
@@ -80,6 +81,7 @@ def test_compiled_gradient_of_the_flat_parameters_equals_autograd_on_the_module(
     assert not paths.fns[True].fell_back  # it really ran compiled
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rule", ["per-joint-clip", "kl-penalty-per-joint"])
 def test_compiled_gradient_of_the_per_joint_rules_equals_autograd(rule):
     # These rules take the proximal policy's means and log-std (and beta), and per-joint-clip returns its
@@ -110,6 +112,7 @@ def _tree_minibatch(rng, size, max_joints):
     return tree, *rest
 
 
+@pytest.mark.slow
 def test_compiled_gradient_on_trees_equals_autograd():
     # Trees go through the compiled update too: their batches (with the index plan's sender) get a graph of
     # their own, which two tree minibatches of other sizes share, and the chains keep theirs.
@@ -137,6 +140,7 @@ def test_a_share_scales_the_gradient_and_the_losses():
     torch.testing.assert_close(s4["log_ratio"], s1["log_ratio"])  # per sample: not scaled
 
 
+@pytest.mark.slow
 def test_without_a_cxx_compiler_training_falls_back_to_eager():
     import torch._inductor.config as inductor_config
 
@@ -162,6 +166,7 @@ def test_without_a_cxx_compiler_training_falls_back_to_eager():
     assert len(eager_calls) == 2
 
 
+@pytest.mark.slow
 def test_a_call_outside_the_traced_sizes_or_constants_gets_a_graph_of_its_own():
     # The graph is traced with symbolic sizes but assumes what the trace saw: no size of 0 or 1 (a
     # minibatch of one-joint chains is 1 joint wide) and the constants it was given (the value loss
@@ -183,6 +188,7 @@ def test_a_call_outside_the_traced_sizes_or_constants_gets_a_graph_of_its_own():
     assert not paths.fns[True].fell_back
 
 
+@pytest.mark.slow
 def test_calls_beyond_the_graphs_kept_run_eagerly(monkeypatch):
     import morph_core.algo.compiled as compiled_module
 

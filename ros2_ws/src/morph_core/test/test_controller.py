@@ -334,6 +334,7 @@ FUZZ_COUNT = int(os.environ.get("FUZZ_COUNT", "2000"))
 """descriptions fuzzed (2,000 in CI; ``scripts/fuzz_nodes.sh`` runs 10,000)"""
 
 
+@pytest.mark.slow
 def test_urdf_units_under_fuzzed_descriptions_and_states():
     """``FUZZ_COUNT`` descriptions with damaged limits, each with states: every one adopted or refused
     with a reason (a limit that is a number > 0 everywhere, or not), every state answered in the right units or
@@ -492,6 +493,7 @@ def _garbled(text: str, rng: random.Random) -> str:
     return ET.tostring(robot, encoding="unicode")
 
 
+@pytest.mark.slow
 def test_joint_descriptions_under_fuzzed_descriptions_and_states():
     """``FUZZ_COUNT`` garbled descriptions, each with states: every one adopted, unchanged or refused with a code,
     every answer finite and read on the vectors of the description in force, no other exception, RSS flat."""

@@ -16,6 +16,7 @@ from morph_core.algo.minibatches import part_sizes
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.rollout import collect
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, helper_spec, train
 from morph_core.algo.trust_region import get_rule
 from morph_core.algo.update import update
@@ -41,6 +42,7 @@ def _shared_rollout(cfg: TrainConfig, helpers: Helpers, learner: Learner):
     return rollout.batch(adv, ret)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("rule", "compiled"),
     [(rule, False) for rule in ("compensated", "per-joint-clip", "kl-penalty", "kl-stop")] + [("compensated", True)],
@@ -77,10 +79,7 @@ def test_the_two_process_update_equals_the_one_process_update(rule, compiled):
         helpers.close()
 
 
-SMALL = dict(
-    num_envs=4, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=256, tensorboard=False,
-    progress_bar=False, compile=False, processes=2,
-)  # fmt: skip
+SMALL = small(num_envs=4, checkpoint_interval=256, processes=2)
 
 
 def _rows(run_dir):
@@ -88,6 +87,7 @@ def _rows(run_dir):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_a_two_process_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     straight = train(TrainConfig(total_timesteps=768, seed=5, **SMALL), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=256, seed=5, **SMALL), tmp_path / "b")
@@ -130,6 +130,7 @@ def test_env_states_split_and_merge_back():
         assert np.array_equal(merged[k], arrays[k]), k
 
 
+@pytest.mark.slow
 def test_a_helper_that_dies_stops_training_with_a_clear_error():
     cfg = TrainConfig(num_envs=2, num_steps=16, minibatch_size=16, compile=False, processes=2)
     learner = _learner(cfg)
@@ -160,6 +161,7 @@ def _helpers_in_an_epoch(cfg: TrainConfig) -> tuple[Helpers, int]:
     return helpers, len(cuts) - 1
 
 
+@pytest.mark.slow
 def test_a_helper_that_dies_within_an_epoch_stops_training_with_a_clear_error():
     # Within an epoch process 0 waits on a semaphore, not a pipe: the helper's death must still end the wait.
     cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
@@ -175,6 +177,7 @@ def test_a_helper_that_dies_within_an_epoch_stops_training_with_a_clear_error():
         helpers.close()
 
 
+@pytest.mark.slow
 def test_a_helper_waiting_within_an_epoch_leaves_when_closed():
     cfg = TrainConfig(num_envs=2, num_steps=64, minibatch_size=16, compile=False, processes=2)
     helpers, _ = _helpers_in_an_epoch(cfg)
@@ -184,6 +187,7 @@ def test_a_helper_waiting_within_an_epoch_leaves_when_closed():
     assert proc.exitcode == 0  # it read "close" while waiting and left; killed, it would read -9
 
 
+@pytest.mark.slow
 def test_a_failing_helper_reports_its_error():
     cfg = TrainConfig(num_envs=2, num_steps=16, minibatch_size=16, compile=False, processes=2)
     learner = _learner(cfg)

@@ -11,16 +11,14 @@ import torch
 from morph_core.algo.fit import Fit, fit, new_learner, refuse_anneal
 from morph_core.algo.run import Run
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import Recorded, _Round, data_digest
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import assemble
 
-SMALL = dict(
-    num_envs=1, num_steps=32, minibatch_size=16, update_epochs=2, checkpoint_interval=64,
-    tensorboard=False, progress_bar=False, compile=False, seed=4,
-)  # fmt: skip
+SMALL = small(num_envs=1, num_steps=32, minibatch_size=16, checkpoint_interval=64, seed=4)
 
 
 @pytest.fixture(scope="module")

@@ -203,6 +203,7 @@ def _garble(robot: ET.Element, rng: random.Random) -> None:
             pass
 
 
+@pytest.mark.slow
 def test_fuzzed_descriptions_give_finite_vectors_or_a_tree_error():
     rng = random.Random(51)
     bases = [robot_urdf(gymnasium_ant()), robot_urdf(centipede_model(3)), swimmer_urdf(np.array([-1, 0, 1, 0, 3]))]

@@ -83,6 +83,7 @@ def test_torch_pyg_and_numpy_answer_alike_with_descriptions(trees):
         NumpyPolicy(GraphActorCritic(PolicyConfig(global_features=12))).forward(pos, vel, glob, n, parents, desc)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tree", [False, True])
 def test_onnx_takes_the_descriptions_and_answers_as_torch(tree):
     pytest.importorskip("onnxruntime")
@@ -141,6 +142,7 @@ def test_the_vector_env_writes_each_bodys_descriptions_and_the_rollout_batch_car
                      joint_desc=torch.from_numpy(bad))  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("processes", [1, 2])
 def test_a_run_with_descriptions_trains_resumes_bit_for_bit_and_evaluates(tmp_path, processes):
     cfg = dict(num_envs=4, num_steps=32, minibatch_size=64, update_epochs=1, checkpoint_interval=128,

@@ -74,6 +74,7 @@ def test_falls_end_episodes_terminated_and_the_rest_truncated(loop):
             assert i + 1 == len(transitions) or transitions[i + 1].episode != t.episode
 
 
+@pytest.mark.slow
 def test_the_reward_is_ant_v5s_from_the_topics_and_the_env_agrees_without_contact_cost():
     # Without its contact cost the env pays what the topics rebuild: forward velocity (the odometry's x, where
     # the env reads the root's xpos, which MuJoCo leaves one physics step behind: per step they differ, over an

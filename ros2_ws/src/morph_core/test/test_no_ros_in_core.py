@@ -5,6 +5,8 @@ import pathlib
 import subprocess
 import sys
 
+import pytest
+
 import morph_core
 
 ROS_MODULES = (
@@ -46,6 +48,7 @@ def test_no_ros_import_in_source():
     assert offenders == []
 
 
+@pytest.mark.slow
 def test_importing_every_core_module_loads_no_ros():
     modules = sorted(
         ".".join(("morph_core", *f.relative_to(CORE).with_suffix("").parts)).removesuffix(".__init__")

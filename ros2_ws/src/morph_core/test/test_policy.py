@@ -174,6 +174,7 @@ def test_packed_chains_lay_the_batch_end_to_end_with_cuts():
     torch.testing.assert_close(packed.edge_attr, torch.tensor(expected))
 
 
+@pytest.mark.slow
 def test_building_a_policy_leaves_no_generated_module_file_in_the_temp_directory():
     # PyG writes NNConv's generated propagate module into the temp directory, once per process, and keeps
     # the file; a fresh interpreter shows whether it is still there after a policy is built.

@@ -12,14 +12,16 @@ from safetensors.torch import save as safetensors_bytes
 from morph_core.algo.checkpoint import TrainingStateError, _digest, load_training_state, previous_state_path
 from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, load_run_config, train
 from morph_core.algo.train_from_data import run_state, train_from_data
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import assemble
 
-TINY = dict(num_envs=2, num_steps=128, minibatch_size=64, update_epochs=1, checkpoint_interval=256, compile=False,
-            progress_bar=False, tensorboard=False, min_joints=2, max_joints=4, seed=3)  # fmt: skip
+TINY = small(
+    num_steps=128, minibatch_size=64, update_epochs=1, checkpoint_interval=256, min_joints=2, max_joints=4, seed=3
+)
 TIMINGS = {"wall_time", "sps", "rollout_s", "update_s", "prepare_s"}
 
 # config.json as morph-train wrote it before issue 39: flat, the rule as clip_mode, no rule or batch_size keys

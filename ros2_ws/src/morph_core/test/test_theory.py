@@ -215,6 +215,7 @@ def test_the_no_flag_form_of_before_still_works_and_says_it_is_deprecated(capsys
     assert capsys.readouterr().err == "morph-theory: warning: --no-fisher is deprecated: write --fisher false\n"
 
 
+@pytest.mark.slow
 def test_cli_end_to_end_writes_figures_csvs_and_overlay(tmp_path, capsys):
     csv_path = write_synthetic_run(tmp_path / "runA")
     out = tmp_path / "out"

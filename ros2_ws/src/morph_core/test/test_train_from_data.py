@@ -13,6 +13,7 @@ import torch
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import (
     DataMismatchError,
@@ -29,10 +30,7 @@ from morph_core.protocol.transition_batch import MissingPolicyInfoError, Transit
 from morph_core.protocol.transitions import assemble
 
 # batch_size 32 < the 100 recorded steps: one pass is 4 updates on random quarters of the data
-SMALL = dict(
-    num_envs=1, num_steps=32, minibatch_size=16, update_epochs=2, checkpoint_interval=32,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(num_envs=1, num_steps=32, minibatch_size=16, checkpoint_interval=32)
 EPISODES = ((3, 40), (6, 30), (9, 30))
 
 

@@ -10,6 +10,7 @@ import torch
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.rollout import Rollout, collect
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.vec_env import SwimmerVecEnv
@@ -18,10 +19,7 @@ from morph_core.policy.chains import ChainBatch
 from morph_core.policy.index_plan import chain_parents
 from morph_core.policy.numpy_actor import NumpyPolicy
 
-SMALL = dict(
-    num_envs=4, num_steps=64, minibatch_size=64, update_epochs=2, checkpoint_interval=256,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(num_envs=4, minibatch_size=64, checkpoint_interval=256)
 TREES = "2-4,random:3-6"
 
 
@@ -72,6 +70,7 @@ def test_a_rollout_stores_the_parents_the_policy_acted_on():
     envs.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("processes", [1, 2])
 def test_a_run_on_trees_resumes_exactly_as_an_uninterrupted_run(tmp_path, processes):
     cfg = dict(SMALL, bodies=TREES, seed=4, processes=processes)

@@ -607,6 +607,7 @@ def corrupt(data: bytes, rng: random.Random) -> bytes:
     return rng.randbytes(rng.randrange(64))
 
 
+@pytest.mark.slow
 def test_fuzzed_urdfs_give_a_valid_tree_or_a_tree_error():
     rng = random.Random(20261204)
     swimmers = [swimmer_urdf(n) for n in (1, 2, 5, 64)]

@@ -236,6 +236,7 @@ def test_bad_bags_give_clear_errors(tmp_path, capsys):
         main(["export", str(tmp_path / "junk")])  # --out missing: argparse usage error
 
 
+@pytest.mark.slow
 def test_runs_as_a_module(tmp_path, sampled_records):
     bag = write_bag(tmp_path / "run", sampled_records)
     done = subprocess.run(

@@ -224,6 +224,7 @@ def test_untagged_efforts_answer_nothing(tmp_path):
     assert by_type(records, EffortRecord)[0].answers_ns is None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_split_bag_is_read_whole_and_in_order(tmp_path, storage):
     msgs = loop_messages(120)

@@ -34,6 +34,7 @@ def _refused(cmd, cwd) -> list[str]:
     return done.stderr.splitlines()
 
 
+@pytest.mark.slow
 def test_live_on_a_run_without_resume_says_the_trainer_s_one_line(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
@@ -46,6 +47,7 @@ def test_live_on_a_run_without_resume_says_the_trainer_s_one_line(tmp_path):
     assert sorted(p.name for p in run.iterdir()) == [RunDir(run).state.name]
 
 
+@pytest.mark.slow
 def test_live_resume_without_a_run_and_bad_trainer_options_are_refused_first(tmp_path):
     err = _refused([*LIVE, "--out", str(tmp_path / "none"), "--resume"], tmp_path)
     assert (
@@ -59,6 +61,7 @@ def test_live_resume_without_a_run_and_bad_trainer_options_are_refused_first(tmp
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_live_resume_of_a_finished_run_says_so_and_starts_nothing(tmp_path):
     from morph_core.algo.train import TrainConfig, train
 
@@ -91,6 +94,7 @@ def test_the_wrappers_help_names_the_script_and_shows_defaults(tmp_path, script)
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 @needs_setup
 def test_the_wrappers_take_a_relative_out_from_the_caller_s_folder(tmp_path):
     (tmp_path / "rel").mkdir()
@@ -158,6 +162,7 @@ def test_a_signing_key_for_the_trainer_is_the_bring_up_s_key():
     assert split_signing_key(["--seed", "3"]) == (["--seed", "3"], None)
 
 
+@pytest.mark.slow
 def test_live_refuses_a_signing_key_it_cannot_use_in_one_line_before_anything_runs(tmp_path):
     from morph_core.protocol.trust import write_key_pair
 
@@ -174,6 +179,7 @@ def test_live_refuses_a_signing_key_it_cannot_use_in_one_line_before_anything_ru
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_live_init_starts_the_trainer_and_the_nodes_from_one_policy(tmp_path):
     # --init (or the trainer's -- --init, or the deprecated --checkpoint) is the run's starting policy: the
     # trainer's first weights and what the nodes run until they arrive. A bad one is refused before anything runs.

@@ -15,15 +15,13 @@ from PIL import Image
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.numpy_actor import NumpyPolicy
 from morph_core.policy.weights import load_checkpoint, untrained_weights
 
-SMALL = dict(
-    bodies="centipede:2-3", num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(bodies="centipede:2-3", checkpoint_interval=128)
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +49,7 @@ def test_a_centipede_run_has_twelve_globals_and_resumes_bit_for_bit(centipede_ru
     assert any(r["return_mean"] not in ("", "nan") for r in rows)  # centipedes fell or timed out: episodes ended
 
 
+@pytest.mark.slow
 def test_morph_eval_on_trained_and_zero_shot_centipedes(centipede_run, capsys):
     from trainer.cli.eval import main
 
@@ -102,6 +101,7 @@ def test_an_evaluated_centipede_stops_where_it_fell_its_length_and_distance_the_
     assert len(set(results.steps)) > 1  # the episodes ended at different steps: the batch went on without each
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     gif = tmp_path / "c.gif"
@@ -123,6 +123,7 @@ def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5  # it moved (or the camera followed it)
 
 
+@pytest.mark.slow
 def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     # --processes 2: the helper steps half the centipedes and shares the 12-wide global rollout.
     two = {**SMALL, "num_envs": 4, "processes": 2, "checkpoint_interval": 256}
@@ -168,6 +169,7 @@ def _train_cli(tmp_path, *options):
     return json.loads(RunDir(out).config.read_text()), run.stdout
 
 
+@pytest.mark.slow
 def test_morph_train_on_centipedes_takes_the_centipede_settings_unless_given(tmp_path):
     cfg, out = _train_cli(tmp_path / "a", "--bodies", "centipede:2")
     assert (cfg["learning_rate"], cfg["gamma"], cfg["gae_lambda"]) == (3e-4, 0.99, 0.95)

@@ -12,6 +12,7 @@ import pytest
 
 from morph_core.algo.evaluate import evaluate_episodes, evaluate_policy
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.swimmer_env import MorphSwimmerEnv
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -23,10 +24,7 @@ from trainer.cli.keys import main as keys_main
 from trainer.reports.evaluation import EvalConfig, evaluate_run
 from trainer.reports.ship import body_key, scored_bodies
 
-SMALL = dict(
-    num_envs=2, num_steps=64, minibatch_size=32, update_epochs=1, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(update_epochs=1, checkpoint_interval=128)
 
 
 def test_evaluation_is_deterministic_and_covers_every_length():
@@ -39,6 +37,7 @@ def test_evaluation_is_deterministic_and_covers_every_length():
     assert len(set(a[5])) == 3  # episodes start from different reset seeds
 
 
+@pytest.mark.slow
 def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
     runs = [train(TrainConfig(total_timesteps=256, clip_mode=m, seed=1, **SMALL), tmp_path / m)
             for m in ("compensated", "fixed")]  # fmt: skip
@@ -128,6 +127,7 @@ def test_eval_cli_refuses_a_directory_that_is_not_a_run(tmp_path):
     assert out.returncode != 0 and "not a training run" in out.stderr
 
 
+@pytest.mark.slow
 def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
     run = train(TrainConfig(total_timesteps=512, seed=2, **SMALL), tmp_path / "run")
     copy = tmp_path / "copy"
@@ -221,6 +221,7 @@ def test_evaluation_runs_the_policy_the_torch_network_computes():
     assert returns[0] == pytest.approx(total, rel=1e-4, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_from_step_adds_lengths_to_the_late_checkpoints_only(tmp_path):
     # Zero-shot on longer chains late in training: the same checkpoints the stride picks, from a step on.
     run = train(TrainConfig(total_timesteps=640, seed=3, **SMALL), tmp_path / "run")  # checkpoints 128..640
@@ -255,6 +256,7 @@ def test_evaluation_runs_a_tree_as_the_policy_computes_it_on_that_tree():
     assert not np.allclose(returns[star], returns[3])
 
 
+@pytest.mark.slow
 def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_before_trees(tmp_path, capsys):
     run = train(TrainConfig(total_timesteps=256, seed=1, **SMALL), tmp_path / "run")
     cfg = EvalConfig(lengths=[2], bodies="star:2x1,y:1x1", episodes=1)

@@ -35,6 +35,8 @@ from morph_core.policy.weights import CheckpointError, load_checkpoint
 from trainer.cli import export as export_cli
 from trainer.cli.keys import main as keys_main
 
+pytestmark = pytest.mark.slow  # its fixtures train and export policies
+
 SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
 CLI = [sys.executable, "-m", "trainer.cli.export"]
 

@@ -97,6 +97,7 @@ def test_a_centipedes_bag_gives_ant_transitions(centipede_bag):
     np.testing.assert_array_equal(data.reward, [t.reward for t in direct])  # the bag holds what was recorded
 
 
+@pytest.mark.slow
 def test_morph_bag_info_and_export_of_a_centipedes_bag(centipede_bag, tmp_path):
     path, _ = centipede_bag
     out = subprocess.run([sys.executable, "-m", "trainer.bags.cli", "export", str(path), "--out",
@@ -136,6 +137,7 @@ def _rss_kb() -> int:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
 
 
+@pytest.mark.slow
 def test_fuzzed_3d_odometry_is_refused_by_reason_with_flat_memory():
     # 12,000 odometry messages (CDR, as a bag stores them, half of them fuzzed) among a centipede's real
     # states, answers and announcements: none crashes, a bad one costs its steps under a reason, the good ones

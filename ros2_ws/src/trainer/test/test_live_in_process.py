@@ -9,12 +9,14 @@ import json
 import pytest
 
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small_config
 from morph_core.algo.train import TrainConfig
 from trainer.live.in_process import InProcessOptions, main, train_in_process
 from trainer.live.learner import LIVE_LEARNING_RATE
 
-TINY = TrainConfig(num_envs=1, num_steps=256, minibatch_size=64, update_epochs=1, total_timesteps=1200,
-                   min_joints=2, max_joints=4, tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+TINY = small_config(
+    num_envs=1, num_steps=256, minibatch_size=64, update_epochs=1, total_timesteps=1200, min_joints=2, max_joints=4
+)
 
 
 def rows(run_dir) -> list[dict]:
@@ -22,6 +24,7 @@ def rows(run_dir) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_whole_episodes_without_loss_and_runs_with_it(tmp_path):
     whole = rows(train_in_process(TINY, InProcessOptions(episode_steps=100), tmp_path / "whole", log=lambda _: 0)
                  .run_dir)  # fmt: skip

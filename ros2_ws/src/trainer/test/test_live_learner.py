@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small_config
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import comb_parents, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
@@ -25,8 +26,7 @@ from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
 from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
 from trainer.live.learner import LiveLearner, LiveOptions, NonFiniteUpdate
 
-SMALL = TrainConfig(num_envs=1, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=64,
-                    tensorboard=False, progress_bar=False, compile=False)  # fmt: skip
+SMALL = small_config(num_envs=1, checkpoint_interval=64)
 
 
 @pytest.fixture(scope="module")
@@ -230,6 +230,7 @@ def test_a_diverged_update_is_refused_and_the_learner_kept_as_it_was(tmp_path, e
     assert len(list(csv.DictReader(open(RunDir(tmp_path / "a").progress)))) == 1  # the refused update not logged
 
 
+@pytest.mark.slow
 def test_the_update_compiled_ahead_is_the_graph_the_first_update_runs(tmp_path, episodes):
     """compile_update traces the minibatch gradient on made-up chains before any data: the first real update
     then finds its graph (none traced anew, no fallback), and nothing the update reads has changed."""

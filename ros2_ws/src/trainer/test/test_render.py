@@ -55,6 +55,7 @@ def _check_frames(frames: list[np.ndarray], shape: tuple[int, int]) -> None:
     assert all(np.abs(a.astype(int) - b).mean() > 0.5 for a, b in zip(frames, frames[1:], strict=False))
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_tiled_gif_and_mp4_read_back(tmp_path):
     gif, mp4 = tmp_path / "out" / "swim.gif", tmp_path / "out" / "swim.mp4"
@@ -88,6 +89,7 @@ def test_tiled_gif_and_mp4_read_back(tmp_path):
     assert not list((tmp_path / "out").glob(".*.tmp"))  # atomic writes leave no temporaries
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_sequence_of_lengths_one_after_another(tmp_path):
     gif = tmp_path / "seq.gif"
@@ -101,6 +103,7 @@ def test_sequence_of_lengths_one_after_another(tmp_path):
     _check_frames(frames, (48, 80))
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_untrained_policy_mp4(tmp_path):
     mp4 = tmp_path / "untrained.mp4"
@@ -112,6 +115,7 @@ def test_untrained_policy_mp4(tmp_path):
     assert n_frames == VideoConfig(seconds=0.2).frames_per_take() == 3
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_trees_are_filmed_beside_chains_and_captioned_with_their_label(tmp_path):
     gif = tmp_path / "trees.gif"

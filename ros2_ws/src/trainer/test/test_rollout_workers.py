@@ -22,15 +22,13 @@ from morph_core.algo.rollout_workers import (  # noqa: E402
     worker_seed,
 )
 from morph_core.algo.run_dir import RunDir  # noqa: E402
+from morph_core.algo.small_runs import small  # noqa: E402
 from morph_core.algo.train import TrainConfig, rollout_spec, train  # noqa: E402
 from morph_core.policy.actor_critic import GraphActorCritic  # noqa: E402
 from trainer.cli import train as train_cli  # noqa: E402
 from trainer.sim.ray_rollouts import RayRolloutPool, ray_rollout_pool  # noqa: E402
 
-SMALL = dict(
-    num_envs=4, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=256, tensorboard=False,
-    progress_bar=False, compile=False, rollout_workers=2,
-)  # fmt: skip
+SMALL = small(num_envs=4, checkpoint_interval=256, rollout_workers=2)
 TIMES = ("wall_time", "sps", "rollout_s", "update_s")
 
 
@@ -47,6 +45,7 @@ def _rows(run_dir):
         return [{k: v for k, v in row.items() if k not in TIMES} for row in csv.DictReader(f)]
 
 
+@pytest.mark.slow
 def test_a_two_worker_run_resumes_exactly_as_an_uninterrupted_run(local_ray, tmp_path):
     pools = []
 
@@ -76,6 +75,7 @@ def test_a_two_worker_run_resumes_exactly_as_an_uninterrupted_run(local_ray, tmp
     assert not torch.equal(w1["rng.worker0"], w1["rng.worker1"])
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_run_is_restarted_and_the_run_goes_on(local_ray, tmp_path, caplog):
     pools, killed = [], []
 
@@ -110,6 +110,7 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_goes_on(local_ray, tmp
     assert meta["counters"]["global_step"] == 768
 
 
+@pytest.mark.slow
 def test_the_cli_runs_on_ray_workers_and_refuses_bad_combinations(local_ray, tmp_path, capsys):
     out = tmp_path / "cli"
     args = ["--out", str(out), "--num-envs", "4", "--num-steps", "64", "--minibatch-size", "64",
@@ -126,6 +127,7 @@ def test_the_cli_runs_on_ray_workers_and_refuses_bad_combinations(local_ray, tmp
     assert "--ray-address: only with --rollout-workers > 1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_pool_factory_uses_a_running_ray_and_leaves_it_running(local_ray):
     cfg = TrainConfig(**SMALL)
     pool = ray_rollout_pool()(rollout_spec(cfg), 2)
@@ -136,6 +138,7 @@ def test_the_pool_factory_uses_a_running_ray_and_leaves_it_running(local_ray):
     assert ray.is_initialized()
 
 
+@pytest.mark.slow
 def test_more_workers_than_the_cluster_has_cpus_is_refused_not_a_hang(local_ray):
     """Each worker actor takes a CPU: 3 workers on the 2-CPU Ray would wait forever for the third."""
     cfg = TrainConfig(**{**SMALL, "rollout_workers": 3})
@@ -144,6 +147,7 @@ def test_more_workers_than_the_cluster_has_cpus_is_refused_not_a_hang(local_ray)
     assert ray.is_initialized()  # a Ray it did not start is left running
 
 
+@pytest.mark.slow
 def test_a_worker_killed_while_collecting_collects_again_from_its_restored_state(local_ray, caplog):
     # 600 steps take a worker ~0.3 s or more: the kill lands while it collects.
     cfg = TrainConfig(**{**SMALL, "num_steps": 600, "minibatch_size": 64})
@@ -171,6 +175,7 @@ def test_a_worker_killed_while_collecting_collects_again_from_its_restored_state
         pool.close()
 
 
+@pytest.mark.slow
 def test_centipedes_on_two_ray_workers_train_a_twelve_feature_policy(local_ray, tmp_path):
     from morph_core.policy.weights import load_checkpoint
 

@@ -146,6 +146,7 @@ def test_summary_ranks_the_rules_claim_by_claim_and_reports_zero_shot(tmp_path, 
     assert "KL penalty beta at the end, kl-stop: 0.3" in out
 
 
+@pytest.mark.slow
 def test_ship_needs_an_explicit_destination(tmp_path):
     run = write_run(tmp_path / "fixed-s1", "fixed", 1)
     out = subprocess.run(

@@ -19,12 +19,12 @@ import pytest
 from safetensors.numpy import load_file
 
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import sets_of, small
 from morph_core.algo.trust_region import rule_names
 from trainer.sweep.cli import main
 from trainer.sweep.spec import SpecError, load_spec
 
-TINY = ["total-timesteps=512", "num-envs=2", "num-steps=128", "minibatch-size=64", "update-epochs=1",
-        "compile=false", "tensorboard=false"]  # fmt: skip
+TINY = sets_of(small(total_timesteps=512, num_steps=128, minibatch_size=64, update_epochs=1))
 EVAL = ["lengths=2", "episodes=1"]
 WALL_CLOCK = ("wall_time", "sps", "rollout_s", "update_s")
 
@@ -175,6 +175,7 @@ def test_fuzz_garbled_specs_give_a_spec_error_never_a_traceback(tmp_path):
 # --- sweeps on Ray --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_2x2_grid_makes_four_run_directories_the_tools_read(tmp_path):
     from trainer.reports.runs import load_runs
 
@@ -197,6 +198,7 @@ def test_a_2x2_grid_makes_four_run_directories_the_tools_read(tmp_path):
     assert all(s["done"] for s in status.values())
 
 
+@pytest.mark.slow
 def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
     from morph_core.algo.train import train
     from trainer.sweep.spec import load_spec
@@ -222,6 +224,7 @@ def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
         assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
 
 
+@pytest.mark.slow
 def test_a_sweep_stopped_as_a_whole_resumes_with_the_same_command(tmp_path):
     out = tmp_path / "sweep"
     sets = [*TINY[1:], "total-timesteps=3072"]

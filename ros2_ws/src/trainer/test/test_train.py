@@ -14,12 +14,10 @@ import torch
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 
-SMALL = dict(
-    num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False,
-)  # fmt: skip
+SMALL = small(checkpoint_interval=128)
 
 
 def _final_weights(run_dir):
@@ -32,6 +30,7 @@ def _rows(run_dir):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("compiled", [False, True])
 def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
     small = {**SMALL, "compile": compiled}
@@ -50,6 +49,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
     assert ckpts == ["policy_00000128.safetensors", "policy_00000256.safetensors", "policy_00000384.safetensors"]
 
 
+@pytest.mark.slow
 def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
@@ -75,6 +75,7 @@ def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     assert [r["global_step"] for r in _rows(run)] == [str(128 * i) for i in range(1, 17)]
 
 
+@pytest.mark.slow
 def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
     cli = [sys.executable, "-m", "trainer.cli.train"]
     help_text = subprocess.run([*cli, "--help"], capture_output=True, text=True, check=True).stdout
@@ -88,6 +89,7 @@ def test_cli_options_come_from_the_config_and_bad_values_are_refused(tmp_path):
     assert bad.returncode != 0 and "no run to resume" in bad.stderr
 
 
+@pytest.mark.slow
 def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_path, capsys):
     from trainer.cli.train import main
 
@@ -150,6 +152,7 @@ def test_annealed_learning_rate_falls_linearly_towards_zero(tmp_path):
     assert [float(r["learning_rate"]) for r in rows] == pytest.approx([0.004 * (1 - b / 512) for b in before])
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_short_training_run_improves_return(tmp_path):
     # The paper configuration for 20 iterations. Early on the swimmers first learn to move at

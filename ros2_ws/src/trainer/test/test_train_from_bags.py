@@ -20,6 +20,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train_from_data import run_state
 from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
 from morph_core.msgs.records import (
@@ -43,10 +44,7 @@ TYPES = {
     "effort_commands": "std_msgs/msg/Float64MultiArray",
     "policy_info": "trajectory_msgs/msg/JointTrajectory",
 }
-SMALL = [
-    "--num-envs", "1", "--num-steps", "32", "--minibatch-size", "16", "--update-epochs", "2",
-    "--checkpoint-interval", "32", "--tensorboard", "false", "--progress-bar", "false", "--compile", "false",
-]  # fmt: skip
+SMALL = options_of(small(num_envs=1, num_steps=32, minibatch_size=16, checkpoint_interval=32))
 CLI = [sys.executable, "-m", "trainer.cli.train"]
 
 
@@ -131,6 +129,7 @@ def test_ppo_from_a_bag_changes_the_policy_and_logs_per_dimension(tmp_path, init
     assert GraphActorCritic.load(RunDir(run).checkpoints / ckpts[-1]) is not None  # loads as the policy node would
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampled, capsys):
     bag = write_bag(tmp_path / "bag", sampled)
     other = write_bag(tmp_path / "other", sampled[: len(sampled) // 2], "sqlite3")

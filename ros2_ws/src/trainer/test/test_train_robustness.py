@@ -12,19 +12,15 @@ import torch
 
 from morph_core.algo.checkpoint import check_training_state, previous_state_path
 from morph_core.algo.run_dir import RunDir
+from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.weights import load_checkpoint
 
-SMALL = dict(
-    num_envs=2, num_steps=64, minibatch_size=32, update_epochs=2, checkpoint_interval=128,
-    tensorboard=False, progress_bar=False, compile=False, min_joints=2, max_joints=3,
-)  # fmt: skip
+pytestmark = pytest.mark.slow  # every test here starts processes, trains or compiles
+
+SMALL = small(checkpoint_interval=128, min_joints=2, max_joints=3)
 CLI = [sys.executable, "-m", "trainer.cli.train"]
-CLI_SMALL = [
-    "--num-envs", "2", "--num-steps", "64", "--minibatch-size", "32", "--update-epochs", "2",
-    "--min-joints", "2", "--max-joints", "3", "--tensorboard", "false", "--progress-bar", "false",
-    "--compile", "false", "--seed", "4",
-]  # fmt: skip
+CLI_SMALL = options_of(small(min_joints=2, max_joints=3, seed=4))
 
 
 def _cli(*args, out):
