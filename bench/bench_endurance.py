@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_ros_util.processes import FASTDDS_ENV, start_node
+
 
 def rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -45,10 +47,9 @@ def main() -> int:
     import morph_policy_node
     from morph_core.msgs.stamps import answer_tag, from_ns, parse_answer_tag
 
-    os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(morph_policy_node.FASTDDS_PROFILE)
+    os.environ[FASTDDS_ENV] = str(morph_policy_node.FASTDDS_PROFILE)
     ns = f"/endurance{os.getpid()}"
-    node_cmd = [str(Path(sys.executable).parent / "morph_policy_node"), "--ros-args", "-r", f"__ns:={ns}"]
-    proc = subprocess.Popen(node_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = start_node(str(Path(sys.executable).parent / "morph_policy_node"), ns, output=subprocess.DEVNULL)
     rclpy.init()
     node = rclpy.create_node("endurance_probe", namespace=ns)
     ex = SingleThreadedExecutor()
@@ -99,8 +100,7 @@ def main() -> int:
             if row:
                 rows.append(row)
                 print("{:6d}  {:7d}  {:6.2f}  {:6.2f}  {:6.1f}  {:6.1f}".format(*row), flush=True)
-    proc.terminate()
-    proc.wait(10)
+    proc.stop(timeout=10)
     ex.shutdown()
     node.destroy_node()
     rclpy.try_shutdown()

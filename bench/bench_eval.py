@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -29,25 +28,26 @@ from pathlib import Path
 
 from bench_env import raw_step_rate
 
+from morph_core.algo.run_dir import RunDir
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("ros2_ws/src/morph_core", "ros2_ws/src/trainer")
-CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 LENGTHS = [*range(2, 11), 15, 20]  # morph-eval's default
 EPISODES, STEPS = 10, 1000
 
 
 def timed_eval(tree: Path, run: Path, chosen: list[Path], work: Path, processes: int) -> float:
     """Seconds ``morph-eval`` of the code in ``tree`` takes on a copy of ``run`` holding ``chosen``."""
-    copy = work / "run"
-    shutil.rmtree(copy, ignore_errors=True)
-    (copy / "checkpoints").mkdir(parents=True)
-    shutil.copy(run / "config.json", copy)
+    copy = RunDir(work / "run")
+    shutil.rmtree(copy.path, ignore_errors=True)
+    copy.checkpoints.mkdir(parents=True)
+    shutil.copy(RunDir(run).config, copy.config)
     for path in chosen:
         for part in (path, path.with_suffix(".json")):  # the weights and their config beside them
             if part.exists():
-                shutil.copy(part, copy / "checkpoints")
+                shutil.copy(part, copy.checkpoints)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(tree / p) for p in PACKAGES))
-    cmd = [sys.executable, "-m", "trainer.cli.eval", "--run", str(copy)]
+    cmd = [sys.executable, "-m", "trainer.cli.eval", "--run", str(copy.path)]
     if processes > 1:
         cmd += ["--processes", str(processes)]
     start = time.perf_counter()
@@ -61,9 +61,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10, help="evaluate every k-th checkpoint")
     ap.add_argument("--before", default="3f8114a", help="revision to compare with (default: the torch evaluation)")
     args = ap.parse_args()
-    ckpts = sorted(p for p in (args.run / "checkpoints").glob("policy_*.safetensors") if CKPT.search(p.name))
+    ckpts = [path for _, path in RunDir(args.run).saved_checkpoints()]
     if not ckpts:
-        ap.error(f"no checkpoints in {args.run / 'checkpoints'}")
+        ap.error(f"no checkpoints in {RunDir(args.run).checkpoints}")
     chosen = ckpts[:: args.every]
     physics = sum(EPISODES * STEPS * 4 / raw_step_rate(n, 0.6) for n in LENGTHS)
     rows = []

@@ -25,40 +25,17 @@ import csv
 import json
 import os
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.protocol.trust import public_key_path
+from morph_ros_util.processes import NodeProcess, start_node, stop_all, use_fastdds_profile
 from trainer.live.bringup import run_key_pair
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _proc(cmd: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(cmd, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
-
-
-def _node(module: str, ns: str, params: dict, log: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={ns}"]
-    for k, v in params.items():
-        cmd += ["-p", f"{k}:={v}"]
-    return _proc(cmd, log)
-
-
-def _stop(procs) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    for p in procs:
-        try:
-            p.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 class ClockCounter:
@@ -94,7 +71,7 @@ class ClockCounter:
 def _collected(run: Path, first: int = 1) -> tuple[float, float, int]:
     """(env-steps/s collected from the end of update ``first`` to the last one, mean seconds of the updates in
     that window, updates so far)."""
-    path = run / "progress.csv"
+    path = RunDir(run).progress
     rows = list(csv.DictReader(open(path))) if path.exists() else []
     window = rows[first - 1 :]
     if len(window) < 2:
@@ -132,10 +109,10 @@ def start_pairs(
         sim = {"lockstep": "true", "real_time_factor": real_time_factor, "effort_timeout": 2.0, "min_joints": 2,
                "max_joints": 10, "seed": i, "episode_steps": 1000}  # fmt: skip
         name = ns.strip("/")
-        procs.append(_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim_{name}.log"))
+        procs.append(start_node("swimmer_sim_node.sim_node", ns, sim, work / f"sim_{name}.log"))
         policy = {"deterministic": "false", "seed": i, "checkpoint": "''", "allow_untrained": "true",
                   "trusted_keys": json.dumps([str(public_key_path(key))])}  # fmt: skip
-        procs.append(_node("morph_policy_node.policy_node", ns, policy, work / f"policy_{name}.log"))
+        procs.append(start_node("morph_policy_node.policy_node", ns, policy, work / f"policy_{name}.log"))
     # Warm-up: every policy node up and the loops running (a lockstep sim alone re-sends a state every 2 s).
     deadline = time.monotonic() + 180
     while counter.rate(2.0) < 10 * len(namespaces) and time.monotonic() < deadline:
@@ -165,7 +142,7 @@ def bench(
         cmd += trainer_args
         if ingest_only:
             cmd += ["--num-envs", "1", "--num-steps", "100000000"]
-        trainer = _proc(cmd, work / f"trainer{k}.log")
+        trainer = NodeProcess(cmd, work / f"trainer{k}.log")
         procs.insert(0, trainer)
         if ingest_only:
             deadline = time.monotonic() + 20 * seconds
@@ -193,11 +170,11 @@ def bench(
             collected, update_s, total = _collected(run, warmup)
             updates = total - done  # in the window: fewer than asked if the deadline came first
         # The rate alone once more: the machine's speed drifts within minutes, so the cost is against both.
-        _stop([trainer])
+        trainer.stop()
         counter.rate(2.0)
         after = counter.rate(seconds)
     finally:
-        _stop(procs)
+        stop_all(procs)
     return {"K": k, "alone": alone, "with": with_trainer, "after": after, "collected": collected,
             "update_s": update_s, "updates": updates, "trainer_cpu": trainer_cpu}  # fmt: skip
 
@@ -219,7 +196,7 @@ def main() -> int:
 
     import morph_policy_node
 
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(morph_policy_node.FASTDDS_PROFILE))
+    use_fastdds_profile(morph_policy_node.FASTDDS_PROFILE)
     rclpy.init()
     counter = ClockCounter()
     work = Path(tempfile.mkdtemp(prefix="bench_live_"))

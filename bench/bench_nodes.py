@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -28,25 +27,19 @@ from morph_core.msgs.joint_state import validate_joint_state
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import chain_batch
 from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_ros_util.processes import NodeProcess, start_node
 
 BIN = Path(sys.executable).parent
 PROFILE = Path(__file__).resolve().parents[1] / "ros2_ws/src/morph_policy_node/morph_policy_node/fastdds_profile.xml"
 JOINTS = (2, 10, 20)
 
 
-def start(executable: str, **params) -> subprocess.Popen:
-    args = [str(BIN / executable), "--ros-args"]
-    for k, v in params.items():
-        args += ["-p", f"{k}:={v}"]
-    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def start(executable: str, **params) -> NodeProcess:
+    return start_node(str(BIN / executable), params=params, output=subprocess.DEVNULL)
 
 
-def stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
+def stop(proc: NodeProcess) -> None:
+    proc.stop(timeout=10)
 
 
 def spin_until(executor, condition, timeout: float) -> bool:

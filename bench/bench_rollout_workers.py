@@ -35,6 +35,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from morph_core.algo.data_parallel import SharedArrays, take_spinning
+from morph_core.algo.run_dir import RunDir
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 
 SETTINGS = {
@@ -56,7 +57,7 @@ def train_rate(options: list[str], iterations: int, compile: bool, out: Path) ->
     ray = f"{RAY_INIT}; " if options[0] == "--rollout-workers" and int(options[1]) > 1 else ""
     code = f"import sys; {ray}from trainer.cli.train import main; sys.exit(main({args!r}))"
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
-    with (out / "progress.csv").open() as f:
+    with RunDir(out).progress.open() as f:
         rows = list(csv.DictReader(f))
     first, last = rows[0], rows[-1]
     steps = int(last["global_step"]) - int(first["global_step"])

@@ -20,11 +20,12 @@ import os
 import signal
 import statistics
 import subprocess
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+
+from morph_ros_util.processes import node_command
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("ros2_ws/src/morph_core", "ros2_ws/src/swimmer_sim_node", "ros2_ws/src/morph_policy_node")
@@ -48,7 +49,7 @@ def measure(probe, tree: Path, node: str, index: int) -> dict:
 
     namespace = f"/bench{os.getpid()}_{index}"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(str(tree / p) for p in PACKAGES))
-    args = [sys.executable, "-m", NODES[node], "--ros-args", "-r", f"__ns:={namespace}"]
+    args = node_command(NODES[node], namespace)
     got: list[float] = []
     if node == "swimmer_sim_node":
         sub = probe.create_subscription(JointState, f"{namespace}/joint_states", lambda m: got.append(1), 10)

@@ -56,6 +56,7 @@ import mujoco
 import numpy as np
 from bench_env import rate, raw_step_rate
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.bodies import Centipede, body_label, is_walker, parse_bodies
 from morph_core.env.centipede import MorphCentipedeEnv
@@ -108,7 +109,7 @@ def run(iterations: int, torch_threads: int, env_threads: int, processes: int, b
     with tempfile.TemporaryDirectory() as d:
         start = time.time()  # the wall clock progress.csv's wall_time is taken by
         train(cfg, Path(d) / "run")
-        with (Path(d) / "run" / "progress.csv").open() as f:
+        with RunDir(Path(d) / "run").progress.open() as f:
             warmup, *rows = list(csv.DictReader(f))  # the first iteration compiles and warms caches
     # Overall rate by wall clock between the first and last timed rows: whole iterations,
     # logging and the checkpoint written after every iteration included.

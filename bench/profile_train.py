@@ -31,6 +31,8 @@ import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
+
 PACKAGES = ("morph_core", "trainer", "morph_policy_node", "swimmer_sim_node", "morph_ros_util")
 BATCH = 6 * 1024
 
@@ -157,7 +159,7 @@ def profile(
                "--processes", str(processes), "--total-timesteps", str((1 + iterations) * BATCH),
                "--tensorboard", "false", "--progress-bar", "false"]  # fmt: skip
         train = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        progress = run_dir / "progress.csv"
+        progress = RunDir(run_dir).progress
         while train.poll() is None and _rows(progress) < 1:  # the warm-up iteration (compiling) first
             time.sleep(0.2)
         if train.poll() is not None:

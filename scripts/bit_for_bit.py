@@ -27,6 +27,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
+
 PACKAGES = ("morph_core", "trainer", "morph_policy_node", "swimmer_sim_node", "morph_ros_util")
 TIMING = {"wall_time", "sps"}
 """wall-clock columns; any column ending in ``_s`` is a timing too"""
@@ -126,9 +128,9 @@ def other_machine(a: Path, b: Path) -> str | None:
 
 def compare(a: Path, b: Path) -> bool:
     same = True
-    for run in sorted(p.name for p in a.iterdir() if (p / "progress.csv").exists()):
-        cols_a, rows_a = _rows(a / run / "progress.csv")
-        cols_b, rows_b = _rows(b / run / "progress.csv")
+    for run in sorted(p.name for p in a.iterdir() if RunDir(p).progress.exists()):
+        cols_a, rows_a = _rows(RunDir(a / run).progress)
+        cols_b, rows_b = _rows(RunDir(b / run).progress)
         compared = [c for c in cols_a if c not in TIMING and not c.endswith("_s")]
         diffs = [] if cols_a == cols_b and len(rows_a) == len(rows_b) else ["columns or row count differ"]
         for i, (ra, rb) in enumerate(zip(rows_a, rows_b, strict=False)):

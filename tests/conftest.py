@@ -12,7 +12,6 @@ import itertools
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ import pytest
 import safetensors.numpy
 
 import morph_policy_node
+from morph_ros_util import processes
 
 BIN = Path(sys.executable).parent
 FASTDDS_PROFILE = morph_policy_node.FASTDDS_PROFILE
@@ -94,22 +94,12 @@ class RosProbe:
         self.context.try_shutdown()
 
 
-class NodeProcess:
-    """A node started through its console script; output goes to a log file the test can read."""
+class NodeProcess(processes.NodeProcess):
+    """A node started through its console script (``morph_ros_util.processes``, as the bring-ups start them);
+    output goes to a log file the test can read."""
 
     def __init__(self, executable: str, namespace: str, params: dict, log_path: Path):
-        args = [str(BIN / executable), "--ros-args", "-r", f"__ns:={namespace}"]
-        for k, v in params.items():
-            args += ["-p", f"{k}:={_param_text(v)}"]
-        self.log_path = log_path
-        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT)
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
+        super().__init__(processes.node_command(str(BIN / executable), namespace, params), log_path)
 
     def rss_kb(self) -> int:
         """The process's resident memory now [kB]."""
@@ -117,26 +107,6 @@ class NodeProcess:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1])
         raise AssertionError("no VmRSS")
-
-    def stop(self) -> int | None:
-        """SIGTERM (the nodes treat it as a normal end), then SIGKILL if it lingers. Returns the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._log.close()
-        return self.proc.returncode
-
-
-def _param_text(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return v if v else "''"
-    return repr(v)
 
 
 @pytest.fixture

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train_from_data import run_state
 
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
@@ -86,6 +87,6 @@ def test_rounds_of_centipedes_learn_from_whole_bags_at_the_walkers_settings(tmp_
     # One pass: every step of round 1's bag was learned from (6 envs x 64 steps a batch: several updates).
     assert int(rows[0]["steps"]) > 384
     assert rows[1]["checkpoint"] == f"train/checkpoints/policy_{int(rows[0]['steps']):08d}.safetensors"
-    config = json.loads((out / "train" / "config.json").read_text())
+    config = json.loads(RunDir(out / "train").config.read_text())
     assert (config["learning_rate"], config["gamma"], config["gae_lambda"]) == (0.0003, 0.99, 0.95)
     assert config["policy"]["global_features"] == 12

@@ -13,13 +13,15 @@ SCRIPT = ROOT / "scripts" / "bit_for_bit.py"
 sys.path.insert(0, str(SCRIPT.parent))
 import bit_for_bit  # noqa: E402
 
+from morph_core.algo.run_dir import RunDir  # noqa: E402
+
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 
 
 def _out(path: Path, machine: dict | None, returns: list[str]) -> Path:
     (path / "sim-p1").mkdir(parents=True)
     rows = ["global_step,return_mean,wall_time", *(f"{i},{r},{i * 0.5}" for i, r in enumerate(returns))]
-    (path / "sim-p1" / "progress.csv").write_text("\n".join(rows) + "\n")
+    RunDir(path / "sim-p1").progress.write_text("\n".join(rows) + "\n")
     if machine is not None:
         (path / bit_for_bit.MACHINE).write_text(json.dumps(machine))
     return path

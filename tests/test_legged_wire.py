@@ -14,6 +14,7 @@ import sys
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from trainer.bags.contents import bag_task, read_bags
 from trainer.bags.io import BagReader
 
@@ -28,7 +29,7 @@ LIVE = ["--num-envs", "1", "--num-steps", "64", "--minibatch-size", "32", "--upd
 
 
 def _rows(run) -> list[dict]:
-    with open(run / "progress.csv") as f:
+    with open(RunDir(run).progress) as f:
         return list(csv.DictReader(f))
 
 

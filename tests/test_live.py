@@ -23,6 +23,7 @@ from std_msgs.msg import Int64MultiArray, UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train import TrainConfig
 from morph_core.msgs.episode_start import unpack_episode_start
@@ -30,6 +31,7 @@ from morph_core.msgs.policy_weights import unpack_policy_weights
 from morph_core.msgs.stream_chunk import MAX_CHUNK_BYTES, unpack_stream_chunk
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.transitions import TransitionAssembler
+from morph_ros_util.processes import NodeProcess, node_command
 from trainer.live.learner import LIVE_LEARNING_RATE
 from trainer.live.trainer_node import (
     CHUNK_QOS,
@@ -48,30 +50,12 @@ SMALL = [*options_of(small(num_envs=1, num_steps=128, minibatch_size=64, update_
          "--episode-steps", "60", "--silence-timeout", "2"]  # fmt: skip
 
 
-class Proc:
-    """A process whose output goes to a log file."""
-
-    def __init__(self, cmd: list[str], log_path: Path):
-        self.log_path = log_path
-        self._log = open(log_path, "wb")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT)
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
+class Proc(NodeProcess):
+    """A process whose output goes to a log file (``morph_ros_util.processes``); the trainer may take a while
+    to save and end."""
 
     def stop(self, sig=signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._log.close()
-        return self.proc.returncode
+        return super().stop(sig, timeout=20)
 
 
 def same_record(a, b) -> bool:
@@ -95,10 +79,7 @@ def Trainer(namespaces: list[str], out: Path, log_path: Path, key, *extra: str, 
 
 
 def node(module: str, ns: str, params: dict, log_path: Path, prefix: list[str] = ()) -> Proc:
-    args = [*prefix, sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={ns}"]
-    for k, v in params.items():
-        args += ["-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}"]
-    return Proc(args, log_path)
+    return Proc(node_command(module, ns, params, prefix), log_path)
 
 
 def start_pair(ns: str, seed: int, checkpoint: Path, tmp_path: Path, key, which=("sim", "policy"), prefix=(),
@@ -136,7 +117,7 @@ class WeightsWatch:
 
 
 def progress(out: Path) -> list[dict]:
-    path = out / "progress.csv"
+    path = RunDir(out).progress
     return list(csv.DictReader(open(path))) if path.exists() else []
 
 
@@ -328,7 +309,7 @@ def test_live_training_survives_a_killed_sim_and_a_killed_trainer(
 
         # The trainer dies; the nodes keep running; --resume continues from its last state and re-publishes it.
         trainer.stop(signal.SIGKILL)
-        saved = load_training_state(out / "state.safetensors")[1]["counters"]
+        saved = load_training_state(RunDir(out).state)[1]["counters"]
         steps = [int(r["global_step"]) for r in progress(out) if int(r["global_step"]) <= saved["global_step"]]
         saved = saved["version"]
         probe.spin_for(1.0)  # what the killed trainer sent is in

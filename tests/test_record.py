@@ -30,6 +30,7 @@ from morph_core.msgs.records import (
 )
 from morph_core.policy.tree import read_urdf
 from morph_core.protocol.transitions import TransitionConfig
+from morph_ros_util.processes import NodeProcess, ros_arguments
 from trainer.bags.cli import main as bag_main
 from trainer.bags.contents import summarize_bag
 from trainer.bags.io import BagError, BagReader
@@ -299,19 +300,15 @@ def test_morph_record_out_writes_there_and_a_sigterm_stops_it_quietly(tmp_path, 
     """``morph-record --out DIR`` (the parameter output under every tool's name); SIGTERM closes the bag and
     says so, with no "Failed to publish log message to rosout" after the context was shut down."""
     log = tmp_path / "record.log"
-    with open(log, "wb") as out:
-        cmd = [str(Path(sys.executable).parent / "morph-record"), "--out", str(tmp_path / "bag"),
-               "--ros-args", "-r", f"__ns:={namespace}"]  # fmt: skip
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
-        try:
-            deadline = time.monotonic() + STARTUP
-            while "recording" not in log.read_text() and time.monotonic() < deadline and proc.poll() is None:
-                time.sleep(0.1)
-            proc.send_signal(signal.SIGTERM)
-            assert proc.wait(timeout=30) == 0
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    cmd = [str(Path(sys.executable).parent / "morph-record"), "--out", str(tmp_path / "bag"), *ros_arguments(namespace)]
+    proc = NodeProcess(cmd, log)
+    try:
+        deadline = time.monotonic() + STARTUP
+        while "recording" not in log.read_text() and time.monotonic() < deadline and proc.alive():
+            time.sleep(0.1)
+        assert proc.stop(signal.SIGTERM, timeout=30) == 0
+    finally:
+        proc.stop()
     text = log.read_text()
     assert f"into {tmp_path / 'bag'}" in text and "closed" in text, text
     assert "rosout" not in text and "Traceback" not in text, text

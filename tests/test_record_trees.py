@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import options_of, small
 from morph_core.env.reward import applied_action
 from morph_core.env.swimmer_env import MorphSwimmerEnv
@@ -113,6 +114,6 @@ def test_a_bag_of_branched_shuffled_swimmers_replays_on_its_trees_and_trains(
     assert train_main(["--from-bags", str(bag), "--namespace", namespace, "--out", str(run), "--iterations", "1",
                        *SMALL]) == 0  # fmt: skip
     assert "joints: " in capsys.readouterr().out  # the bodies named, not "chains of"
-    with (run / "progress.csv").open() as f:
+    with RunDir(run).progress.open() as f:
         (row,) = list(csv.DictReader(f))
     assert np.isfinite(float(row["return_trees"])) and np.isfinite(float(row["approx_kl"]))

@@ -23,6 +23,7 @@ from morph_core.msgs.policy_weights import pack_policy_weights, parse_policy_ver
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.trust import write_key_pair
 from morph_policy_node.policy_node import SHIPPED_MODEL
+from morph_ros_util.processes import FASTDDS_ENV, start_node, stop_all
 
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 
@@ -266,11 +267,9 @@ def test_the_loopback_only_profile_keeps_a_robot_off_the_network(two_hosts, name
     try:
         for ns, profile in ((closed, morph_policy_node.FASTDDS_PROFILE_LOOPBACK_ONLY),
                             (open_, morph_policy_node.FASTDDS_PROFILE)):  # fmt: skip
-            env = {**os.environ, "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}
-            cmd = [*robot, sys.executable, "-m", "swimmer_sim_node.sim_node", "--ros-args", "-r", f"__ns:={ns}",
-                   "-p", "num_joints:=3"]  # fmt: skip
-            log = open(tmp_path / f"sim{len(procs)}.log", "wb")  # noqa: SIM115 - closed with the process below
-            procs.append((subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT), log))
+            env = {**os.environ, FASTDDS_ENV: str(profile)}
+            log = tmp_path / f"sim{len(procs)}.log"
+            procs.append(start_node("swimmer_sim_node.sim_node", ns, {"num_joints": 3}, log, prefix=robot, env=env))
         heard = {}
         for host, prefix in (("robot", robot), ("other", other)):
             out = subprocess.run([*prefix, sys.executable, "-c", LISTENER, closed, open_], capture_output=True,
@@ -278,10 +277,7 @@ def test_the_loopback_only_profile_keeps_a_robot_off_the_network(two_hosts, name
             assert out.returncode == 0, out.stderr[-2000:]
             heard[host] = dict(kv.split("=") for kv in out.stdout.split())
     finally:
-        for proc, log in procs:
-            proc.terminate()
-            proc.wait(timeout=20)
-            log.close()
+        stop_all(procs)
     assert int(heard["robot"][closed]) > 50 and int(heard["robot"][open_]) > 50, heard
     assert int(heard["other"][open_]) > 50, heard  # the link carries DDS
     assert int(heard["other"][closed]) == 0, heard  # but not the robot's

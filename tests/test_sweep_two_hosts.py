@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import sets_of, small
 
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
@@ -100,7 +101,7 @@ def test_a_sweep_runs_on_a_ray_cluster_of_two_hosts(two_hosts, tmp_path):
         assert {s["node_ip"] for s in status.values()} == {HEAD, WORKER}
         assert len({s["netns"] for s in status.values()}) == 2
         for name in status:
-            assert (out / name / "eval.csv").exists()  # one run directory each, on the disk both hosts share
+            assert RunDir(out / name).evaluation.exists()  # one run directory each, on the disk both hosts share
     finally:
         for n in reversed(nodes):
             stop(n)

@@ -15,6 +15,7 @@ from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import part_sizes
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.rollout import collect
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, helper_spec, train
 from morph_core.algo.trust_region import get_rule
@@ -82,7 +83,7 @@ SMALL = small(num_envs=4, checkpoint_interval=256, processes=2)
 
 
 def _rows(run_dir):
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return list(csv.DictReader(f))
 
 
@@ -91,7 +92,7 @@ def test_a_two_process_run_resumes_exactly_as_an_uninterrupted_run(tmp_path):
     straight = train(TrainConfig(total_timesteps=768, seed=5, **SMALL), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=256, seed=5, **SMALL), tmp_path / "b")
     train(TrainConfig(total_timesteps=768, seed=5, **SMALL), part, resume=True)
-    (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
+    (wa, ma), (wb, mb) = (load_training_state(RunDir(run).state) for run in (straight, part))
     assert ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
     assert "rng.helper1" in wa and len(ma["sections"]["swimmers"]["envs"]) == 4
     assert wa.keys() == wb.keys()

@@ -10,6 +10,7 @@ import torch
 
 from morph_core.algo.fit import Fit, fit, new_learner, refuse_anneal
 from morph_core.algo.run import Run
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import Recorded, _Round, data_digest
@@ -38,7 +39,7 @@ def _start(run_dir, cfg, data):
 
 
 def _rows(run_dir):
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return [{k: v for k, v in r.items() if not k.endswith("_s") and k not in ("sps", "wall_time")}
                 for r in csv.DictReader(f)]  # fmt: skip
 
@@ -56,9 +57,9 @@ def test_the_pulled_loop_and_the_pushed_steps_train_alike(tmp_path, data):
     pulled, pushed = _rows(tmp_path / "pulled"), _rows(tmp_path / "pushed")
     assert len(pulled) == 4 and pulled == pushed
     assert [r["iteration"] for r in pulled] == ["1", "2", "3", "4"] and pulled[-1]["round_iteration"] == "4"
-    saved = sorted(p.name for p in (tmp_path / "pulled" / "checkpoints").glob("*.safetensors"))
-    assert saved == sorted(p.name for p in (tmp_path / "pushed" / "checkpoints").glob("*.safetensors"))
-    assert saved[-1] == f"policy_{int(pulled[-1]['global_step']):08d}.safetensors"  # the last step checkpoints
+    saved = sorted(p.name for p in RunDir(tmp_path / "pulled").checkpoints.glob("*.safetensors"))
+    assert saved == sorted(p.name for p in RunDir(tmp_path / "pushed").checkpoints.glob("*.safetensors"))
+    assert saved[-1] == RunDir(tmp_path).checkpoint(int(pulled[-1]["global_step"])).name  # the last step saves
 
 
 def test_annealing_is_refused_for_a_source_of_unknown_length_by_its_name(data, tmp_path):

@@ -14,6 +14,7 @@ import torch
 
 from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.evaluate import evaluate_policy
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.legged_model import LeggedBody
 from morph_core.env.vec_env import SwimmerVecEnv
@@ -150,7 +151,7 @@ def test_a_run_with_descriptions_trains_resumes_bit_for_bit_and_evaluates(tmp_pa
     straight = train(TrainConfig(total_timesteps=384, **cfg), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=128, **cfg), tmp_path / "b")
     train(TrainConfig(total_timesteps=384, **cfg), part, resume=True)
-    a, b = (load_checkpoint(sorted((d / "checkpoints").glob("*.safetensors"))[-1]) for d in (straight, part))
+    a, b = (load_checkpoint(sorted(RunDir(d).checkpoints.glob("*.safetensors"))[-1]) for d in (straight, part))
     assert a.config.joint_features == D and a.config.global_features == 12
     for key in a.arrays:
         np.testing.assert_array_equal(a.arrays[key], b.arrays[key])

@@ -11,6 +11,7 @@ from safetensors.torch import save as safetensors_bytes
 
 from morph_core.algo.checkpoint import TrainingStateError, _digest, load_training_state, previous_state_path
 from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, load_run_config, train
 from morph_core.algo.train_from_data import run_state, train_from_data
@@ -38,14 +39,14 @@ OLD_CONFIG = """{
 
 
 def _rows(run) -> list[dict]:
-    with (run / "progress.csv").open() as f:
+    with RunDir(run).progress.open() as f:
         return [{k: v for k, v in r.items() if k not in TIMINGS} for r in csv.DictReader(f)]
 
 
 def _as_state_before_sections(run, section: str) -> None:
     """Rewrite the run's state as the trainers wrote it before sections: the section under ``env`` (no
     version), its arrays as ``env.<key>``; the previous state removed, so that a resume has to read this one."""
-    path = run / "state.safetensors"
+    path = RunDir(run).state
     tensors, meta = load_training_state(path)
     old = meta.pop("sections")[section]
     old.pop("version")
@@ -59,18 +60,18 @@ def _as_state_before_sections(run, section: str) -> None:
 def test_an_old_run_config_and_state_resume_bit_for_bit(tmp_path):
     straight = train(TrainConfig(**{**TINY, "rule": "fixed", "total_timesteps": 768}), tmp_path / "straight")
     old = train(TrainConfig(**{**TINY, "rule": "fixed", "total_timesteps": 256}), tmp_path / "old")
-    (old / "config.json").write_text(OLD_CONFIG)
+    RunDir(old).config.write_text(OLD_CONFIG)
     _as_state_before_sections(old, "swimmers")
     with pytest.warns(DeprecationWarning, match="'clip_mode' is deprecated"):
         cfg = load_run_config(old, {"total_timesteps": 768})
     assert cfg.rule == "fixed" and cfg.batch_size == 256 and cfg.clip_mode == "fixed"
     train(cfg, old, resume=True)
     assert _rows(old) == _rows(straight) and len(_rows(old)) == 3
-    (ta, ma), (tb, mb) = (load_training_state(r / "state.safetensors") for r in (straight, old))
+    (ta, ma), (tb, mb) = (load_training_state(RunDir(r).state) for r in (straight, old))
     assert ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta)  # written in today's layout
     assert ma["sections"]["swimmers"]["version"] == 1 and "env" not in mb
     # and config.json keeps the old key beside the new one, for its older readers
-    written = json.loads((straight / "config.json").read_text())
+    written = json.loads(RunDir(straight).config.read_text())
     assert written["rule"] == written["clip_mode"] == "fixed" and written["batch_size"] == 256
     assert TrainConfig.from_dict(written) == TrainConfig(**{**TINY, "rule": "fixed", "total_timesteps": 768})
 
@@ -97,7 +98,7 @@ def test_another_trainers_state_and_a_newer_section_are_refused_clearly(tmp_path
     with pytest.raises(TrainingStateError, match=r"no 'data' section \(it holds: swimmers\)"):
         train_from_data(TrainConfig(**TINY), data, run, resume=True)
     newer = train(TrainConfig(**{**TINY, "total_timesteps": 256}), tmp_path / "newer")
-    path = newer / "state.safetensors"
+    path = RunDir(newer).state
     tensors, meta = load_training_state(path)
     meta["sections"]["swimmers"]["version"] = 2
     path.write_bytes(safetensors_bytes(tensors, metadata={"state": json.dumps(meta), "sha256": _digest(tensors)}))
@@ -110,7 +111,7 @@ def test_a_resume_trains_with_the_learning_rate_and_epsilon_given(tmp_path):
     run = train(TrainConfig(**{**TINY, "total_timesteps": 256}), tmp_path / "run")
     train(TrainConfig(**{**TINY, "total_timesteps": 512, "learning_rate": 0.003, "adam_eps": 1e-6}), run, resume=True)
     assert [float(r["learning_rate"]) for r in _rows(run)] == [0.01, 0.003]
-    groups = load_training_state(run / "state.safetensors")[1]["param_groups"]
+    groups = load_training_state(RunDir(run).state)[1]["param_groups"]
     assert [(g["lr"], g["eps"]) for g in groups] == [(0.003, 1e-6)]
 
 
@@ -124,7 +125,7 @@ def test_the_bag_trainer_takes_its_batch_from_ppo_config_hears_rows_and_resumes_
     assert [(r["global_step"], r["batch_size"], s) for r, s in heard] == [
         (25, 25, False), (50, 25, True), (75, 25, False), (100, 25, True), (125, 25, False), (150, 25, True)
     ]  # fmt: skip
-    assert json.loads((straight / "config.json").read_text())["batch_size"] == 25
+    assert json.loads(RunDir(straight).config.read_text())["batch_size"] == 25
     part = train_from_data(cfg, data, tmp_path / "b", iterations=3)  # mid-pass: the permutation is in the state
     _as_state_before_sections(part, "data")
     assert run_state(part)["done"] == 3

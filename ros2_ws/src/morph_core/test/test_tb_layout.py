@@ -9,6 +9,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.custom_scalar import layout_pb2, metadata
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.run_log import HISTOGRAM_BINS
 from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag
 from morph_core.algo.train import TrainConfig, log_columns, train
@@ -35,7 +36,7 @@ def _charts(acc: EventAccumulator) -> dict[str, list[str]]:
 
 
 def _rows(run_dir) -> list[dict]:
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return list(csv.DictReader(f))
 
 
@@ -49,7 +50,7 @@ def run(tmp_path_factory):
 
 
 def test_layout_charts_every_chain_length_and_each_line_is_a_logged_scalar(run):
-    acc = _events(run / "tb")
+    acc = _events(RunDir(run).tensorboard)
     charts = _charts(acc)
     dims = range(2, 5)
     assert charts["return per chain length"] == [f"^return/d{d}$" for d in dims]
@@ -75,7 +76,7 @@ def test_layout_charts_every_chain_length_and_each_line_is_a_logged_scalar(run):
 
 @pytest.mark.parametrize(("tag", "suffix", "epochs"), [("log_ratio", "", 2), ("log_ratio_last", "_last", 1)])
 def test_each_update_logs_log_ratio_histograms_per_dimension(run, tag, suffix, epochs):
-    acc = _events(run / "tb")
+    acc = _events(RunDir(run).tensorboard)
     rows = {int(r["global_step"]): r for r in _rows(run)}
     histograms = [t for t in acc.Tags()["histograms"] if t.startswith(f"{tag}/d")]
     assert histograms

@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.theory import clip_analysis as theory
-from trainer.cli.theory import TheoryConfig, load_run, main, parse_config
+from trainer.cli.theory import TheoryConfig, load_run_data, main, parse_config
 
 
 def phi_cdf(x: float) -> float:
@@ -178,7 +179,7 @@ def write_synthetic_run(run_dir, eps=0.111, dims=(2, 3, 5), rows=6, with_config=
     for d in dims:
         header += [f"in_eps_frac_d{d}", f"clip_frac_d{d}", f"logr_mean_d{d}", f"logr_std_d{d}"]
     header = [h for h in header if h != drop]
-    with (run_dir / "progress.csv").open("w", newline="") as fh:
+    with RunDir(run_dir).progress.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, header)
         writer.writeheader()
         for r in range(rows):
@@ -195,8 +196,8 @@ def write_synthetic_run(run_dir, eps=0.111, dims=(2, 3, 5), rows=6, with_config=
                 }
             writer.writerow({k: v for k, v in row.items() if k in header})
     if with_config:
-        (run_dir / "config.json").write_text(json.dumps({"clip_eps": eps, "clip_mode": "fixed"}))
-    return run_dir / "progress.csv"
+        RunDir(run_dir).config.write_text(json.dumps({"clip_eps": eps, "clip_mode": "fixed"}))
+    return RunDir(run_dir).progress
 
 
 def test_parser_is_generated_from_the_dataclass():
@@ -256,17 +257,17 @@ def test_run_csv_missing_columns_is_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     with pytest.raises(ValueError, match="no in_eps_frac"):
         (tmp_path / "empty.csv").write_text("global_step,return_mean\n1,2\n")
-        load_run(tmp_path / "empty.csv")
+        load_run_data(tmp_path / "empty.csv")
     with pytest.raises(ValueError, match="not found"):
-        load_run(tmp_path / "nowhere.csv")
+        load_run_data(tmp_path / "nowhere.csv")
 
 
 def test_run_without_config_falls_back_to_eps_with_a_warning(tmp_path, capsys):
     path = write_synthetic_run(tmp_path / "noconf", eps=0.2, with_config=False)
-    run = load_run(path, fallback_eps=0.2)
+    run = load_run_data(path, fallback_eps=0.2)
     assert run.clip_eps == 0.2 and "assuming clip_eps=0.2" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="config.json"):
-        load_run(path)
+    with pytest.raises(ValueError, match=RunDir(tmp_path).config.name):
+        load_run_data(path)
 
 
 def test_overlay_reads_the_first_or_last_epochs_statistics_of_a_real_run(tmp_path):
@@ -275,9 +276,9 @@ def test_overlay_reads_the_first_or_last_epochs_statistics_of_a_real_run(tmp_pat
     small = dict(num_envs=2, num_steps=64, minibatch_size=32, update_epochs=3, tensorboard=False,
                  progress_bar=False, compile=False, total_timesteps=256, clip_mode="fixed", seed=0)  # fmt: skip
     run = train(TrainConfig(**small), tmp_path / "r")
-    with (run / "progress.csv").open() as fh:
+    with RunDir(run).progress.open() as fh:
         rows = list(csv.DictReader(fh))
-    pooled, first, last = (load_run(run, epoch=e) for e in ("all", "first", "last"))
+    pooled, first, last = (load_run_data(run, epoch=e) for e in ("all", "first", "last"))
     assert first.name.endswith(", first epoch") and pooled.dims == first.dims == last.dims
     for d in first.dims:
         for k in ("in_eps_frac", "logr_std", "logr_mean"):
@@ -288,7 +289,7 @@ def test_overlay_reads_the_first_or_last_epochs_statistics_of_a_real_run(tmp_pat
     spread = [np.nanmean([np.nanmean(x.columns[f"logr_std_d{d}"]) for d in first.dims]) for x in (first, last)]
     assert spread[0] < spread[1]
     with pytest.raises(ValueError, match="run_epoch must be one of"):
-        load_run(run, epoch="middle")
+        load_run_data(run, epoch="middle")
     old = write_synthetic_run(tmp_path / "old")  # a run logged before the per-epoch statistics
     with pytest.raises(ValueError, match="missing columns in_eps_frac_first_d2"):
-        load_run(old, epoch="first")
+        load_run_data(old, epoch="first")

@@ -12,6 +12,7 @@ import torch
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.ppo import compute_gae
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import (
@@ -51,19 +52,19 @@ def behaviour(tmp_path_factory):
 
 
 def _rows(run):
-    with (run / "progress.csv").open() as f:
+    with RunDir(run).progress.open() as f:
         return list(csv.DictReader(f))
 
 
 def _state(run):
-    return load_training_state(run / "state.safetensors")
+    return load_training_state(RunDir(run).state)
 
 
 def test_ppo_from_data_changes_the_policy_and_logs_per_dimension(tmp_path, behaviour):
     init, data = behaviour
     run = train_from_data(TrainConfig(seed=2, **SMALL), data, tmp_path / "run", iterations=2, init=init)
     before = GraphActorCritic.load(init).state_dict()
-    after = GraphActorCritic.load(run / "checkpoints" / "policy_00000050.safetensors").state_dict()
+    after = GraphActorCritic.load(RunDir(run).checkpoints / "policy_00000050.safetensors").state_dict()
     assert any(not torch.equal(before[k], after[k]) for k in before), "the policy did not change"
     rows = _rows(run)
     assert [r["global_step"] for r in rows] == ["25", "50"]  # 100 steps in 4 parts of 25

@@ -2,6 +2,7 @@
 
 import csv
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig, train
 
 
@@ -12,9 +13,9 @@ def test_on_row_hears_every_logged_row_and_each_saved_step(tmp_path):
     )  # fmt: skip
     heard = []
     train(cfg, tmp_path, on_row=lambda row, saved: heard.append((row["global_step"], saved)))
-    with open(tmp_path / "progress.csv") as f:
+    with open(RunDir(tmp_path).progress) as f:
         logged = [int(r["global_step"]) for r in csv.DictReader(f)]
     assert [step for step, _ in heard] == logged == [256, 512, 768]
     assert [saved for _, saved in heard] == [False, True, True]  # the mark at 512, and the run's end
-    saved_steps = sorted(int(p.stem.split("_")[1]) for p in (tmp_path / "checkpoints").glob("policy_*.safetensors"))
+    saved_steps = [step for step, _ in RunDir(tmp_path).saved_checkpoints()]
     assert saved_steps == [step for step, saved in heard if saved]

@@ -9,6 +9,7 @@ import torch
 
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.rollout import Rollout, collect
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.bodies import parse_bodies
@@ -23,7 +24,7 @@ TREES = "2-4,random:3-6"
 
 
 def _rows(run_dir):
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return list(csv.DictReader(f))
 
 
@@ -76,7 +77,7 @@ def test_a_run_on_trees_resumes_exactly_as_an_uninterrupted_run(tmp_path, proces
     straight = train(TrainConfig(total_timesteps=768, **cfg), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=256, **cfg), tmp_path / "b")
     train(TrainConfig(total_timesteps=768, **cfg), part, resume=True)
-    (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
+    (wa, ma), (wb, mb) = (load_training_state(RunDir(run).state) for run in (straight, part))
     assert ma["sections"]["swimmers"] == mb["sections"]["swimmers"]  # the swimmers' bodies (a tree's parents), RNGs
     assert any("parents" in env for env in ma["sections"]["swimmers"]["envs"])  # a tree's state saved and restored
     for k in wa:
@@ -89,7 +90,7 @@ def test_a_run_on_trees_resumes_exactly_as_an_uninterrupted_run(tmp_path, proces
 def test_a_chain_spec_is_todays_run_bit_for_bit(tmp_path):
     chains = train(TrainConfig(total_timesteps=256, seed=2, **SMALL), tmp_path / "default")
     spelled = train(TrainConfig(total_timesteps=256, seed=2, bodies="2-10", **SMALL), tmp_path / "spelled")
-    a, b = (load_training_state(run / "state.safetensors")[0] for run in (chains, spelled))
+    a, b = (load_training_state(RunDir(run).state)[0] for run in (chains, spelled))
     assert all(torch.equal(a[k], b[k]) for k in a)  # "2-10" is the default chains, bit for bit
     assert "return_trees" not in _rows(chains)[0]  # chains-only logs keep their columns
 

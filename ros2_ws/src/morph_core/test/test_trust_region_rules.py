@@ -13,6 +13,7 @@ from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import load_training_state, save_training_state
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import proximal_log_probs
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.trust_region import LossContext, get_rule, joint_log_ratios, kl_per_joint
 from morph_core.algo.update import update
 from morph_core.algo.update_config import UpdateConfig
@@ -244,7 +245,7 @@ def test_kl_penalty_adapts_beta_to_the_exact_kl_of_the_update_and_checkpoints_it
     assert float(learner.rule_state["kl_beta"]) == expected
     # the learner state through a checkpoint, bit for bit, and into a fresh learner
     learner.rule_state["kl_beta"] = torch.tensor(0.1 * 3, dtype=torch.float64)  # not a power of two
-    path = tmp_path / "state.safetensors"
+    path = RunDir(tmp_path).state
     save_training_state(path, policy, learner.optimizer, torch.Generator(), {}, {}, {}, learner.state_tensors())
     tensors, _ = load_training_state(path)
     fresh = Learner.create(copy.deepcopy(before), 1e-2, 1e-5, compile=False)

@@ -23,35 +23,12 @@ chains and random trees: ``models/README.md``), and centipedes
 
 from __future__ import annotations
 
-import json
 import os
-import signal
-import subprocess
 import sys
 import time
 
 from morph_policy_node import FASTDDS_PROFILE
-
-
-def _start(module: str, params: dict) -> subprocess.Popen:
-    args = [sys.executable, "-m", module, "--ros-args"]
-    for k, v in params.items():
-        # A string goes quoted (JSON is YAML): a spec such as "6" or a path must stay a string.
-        text = ("true" if v else "false") if isinstance(v, bool) else json.dumps(v) if isinstance(v, str) else v
-        args += ["-p", f"{k}:={text}"]
-    return subprocess.Popen(args)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    for p in procs:
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+from morph_ros_util.processes import NodeProcess, start_node, stop_all, use_fastdds_profile, yaml_string
 
 
 class Posture:
@@ -81,15 +58,22 @@ def run(
     model_file: str | None = None,
 ) -> dict:
     # Nodes started together must find each other quickly: fast initial announcements.
-    os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(FASTDDS_PROFILE))
+    use_fastdds_profile(FASTDDS_PROFILE)
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
-    body = {"topology": bodies} if bodies else {"model_file": model_file} if model_file else {"num_joints": joints}
+    # Strings go quoted: a spec such as "6" or a path must stay a string.
+    body = (
+        {"topology": yaml_string(bodies)}
+        if bodies
+        else {"model_file": yaml_string(model_file)}
+        if model_file
+        else {"num_joints": joints}
+    )
     sim_params = {**body, "lockstep": True, "real_time_factor": 0.0, "effort_timeout": 2.0}
-    policy_params = {} if checkpoint is None else {"checkpoint": checkpoint}
+    policy_params = {} if checkpoint is None else {"checkpoint": yaml_string(checkpoint)}
     rclpy.init()
     node = rclpy.create_node("bringup")
     first, last, loop_start, joint_counts = [], [], [], set()
@@ -109,7 +93,7 @@ def run(
     node.create_subscription(Odometry, "odom", on_odom, qos)
     # A joint_states listener makes the lockstep sim publish its reset state before the policy is up.
     node.create_subscription(JointState, "joint_states", lambda msg: joint_counts.add(len(msg.name)), qos)
-    procs = [_start("swimmer_sim_node.sim_node", sim_params)]
+    procs: list[NodeProcess] = [start_node("swimmer_sim_node.sim_node", params=sim_params)]
     try:
         # Start the policy only once the reset state has reached us, so the measurement
         # surely starts from the swimmer's reset pose.
@@ -118,7 +102,7 @@ def run(
             if procs[0].poll() is not None or time.monotonic() - t_start > startup_timeout:
                 raise RuntimeError("the sim node did not come up (exited, or DDS discovery failed)")
             rclpy.spin_once(node, timeout_sec=0.05)
-        procs.append(_start("morph_policy_node.policy_node", policy_params))
+        procs.append(start_node("morph_policy_node.policy_node", params=policy_params))
         while not (last and last[0][0] >= sim_seconds):
             if any(p.poll() is not None for p in procs):
                 raise RuntimeError("a node exited early; see its output above")
@@ -127,7 +111,7 @@ def run(
             rclpy.spin_once(node, timeout_sec=0.1)
         rate = (last[0][0] - loop_start[0][1]) / (time.monotonic() - loop_start[0][0])
     finally:
-        _stop(procs)
+        stop_all(procs)
         node.destroy_node()
         rclpy.try_shutdown()
     (t0, x0, y0), (t1, x1, y1) = first[0], last[0]

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
+
 LIVE = [sys.executable, "-m", "trainer.live.bringup"]
 ROOT = Path(__file__).resolve().parents[4]
 
@@ -36,13 +38,13 @@ def _refused(cmd, cwd) -> list[str]:
 def test_live_on_a_run_without_resume_says_the_trainer_s_one_line(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
-    (run / "state.safetensors").write_bytes(b"")  # what the trainer looks for
+    RunDir(run).state.write_bytes(b"")  # what the trainer looks for
     assert _refused([*LIVE, "--out", str(run)], tmp_path) == [
         f"morph-train: error: {run} already holds a run; pass --resume to continue it or choose another --out",
         "see morph-train --help",
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
-    assert sorted(p.name for p in run.iterdir()) == ["state.safetensors"]
+    assert sorted(p.name for p in run.iterdir()) == [RunDir(run).state.name]
 
 
 @pytest.mark.slow
@@ -96,7 +98,7 @@ def test_the_wrappers_help_names_the_script_and_shows_defaults(tmp_path, script)
 @needs_setup
 def test_the_wrappers_take_a_relative_out_from_the_caller_s_folder(tmp_path):
     (tmp_path / "rel").mkdir()
-    (tmp_path / "rel" / "state.safetensors").write_bytes(b"")
+    RunDir(tmp_path / "rel").state.write_bytes(b"")
     live = subprocess.run(["bash", str(ROOT / "scripts" / "live.sh"), "--out", "rel"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert live.returncode == 2

@@ -14,6 +14,7 @@ import torch
 from PIL import Image
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.config import PolicyConfig
@@ -29,20 +30,20 @@ def centipede_run(tmp_path_factory):
 
 
 def test_a_centipede_run_has_twelve_globals_and_resumes_bit_for_bit(centipede_run, tmp_path):
-    policy = load_checkpoint(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    policy = load_checkpoint(RunDir(centipede_run).checkpoints / "policy_00000384.safetensors")
     assert policy.config.global_features == 12  # from the body mix, not the swimmer's default
     part = train(TrainConfig(total_timesteps=128, seed=3, **SMALL), tmp_path / "b")
     train(TrainConfig(total_timesteps=384, seed=3, **SMALL), part, resume=True)
     (wa, ma), (wb, mb) = (
-        load_training_state(centipede_run / "state.safetensors"),
-        load_training_state(part / "state.safetensors"),
+        load_training_state(RunDir(centipede_run).state),
+        load_training_state(RunDir(part).state),
     )
     assert wa.keys() == wb.keys() and ma["sections"]["swimmers"] == mb["sections"]["swimmers"]
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k  # weights, Adam, RNGs, MuJoCo states and root positions
-    with (centipede_run / "progress.csv").open() as f:
+    with RunDir(centipede_run).progress.open() as f:
         rows = list(csv.DictReader(f))
-    with (part / "progress.csv").open() as f:
+    with RunDir(part).progress.open() as f:
         assert [r["return_mean"] for r in csv.DictReader(f)] == [r["return_mean"] for r in rows]
     assert {"return_d8", "return_d12"} <= rows[0].keys()  # action dimensions 4 x leg pairs
     assert any(r["return_mean"] not in ("", "nan") for r in rows)  # centipedes fell or timed out: episodes ended
@@ -53,11 +54,11 @@ def test_morph_eval_on_trained_and_zero_shot_centipedes(centipede_run, capsys):
     from trainer.cli.eval import main
 
     assert main(["--run", str(centipede_run), "--bodies", "centipede:2,centipede:5", "--episodes", "2"]) == 0
-    with (centipede_run / "eval.csv").open() as f:
+    with RunDir(centipede_run).evaluation.open() as f:
         rows = list(csv.DictReader(f))
     assert {(r["body"], r["num_joints"]) for r in rows} == {("centipede-2", "8"), ("centipede-5", "20")}  # no chains
     assert len(rows) == 3 * 2 * 2  # 3 checkpoints x 2 bodies x 2 episodes
-    ckpt = str(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    ckpt = str(RunDir(centipede_run).checkpoints / "policy_00000384.safetensors")
     assert main(["--checkpoint", ckpt, "--bodies", "centipede:6", "--episodes", "1"]) == 0
     assert "| centipede-6 | 24 |" in capsys.readouterr().out
 
@@ -104,7 +105,7 @@ def test_an_evaluated_centipede_stops_where_it_fell_its_length_and_distance_the_
 @pytest.mark.timeout(300)
 def test_morph_render_films_a_centipede(centipede_run, tmp_path):
     gif = tmp_path / "c.gif"
-    ckpt = str(centipede_run / "checkpoints" / "policy_00000384.safetensors")
+    ckpt = str(RunDir(centipede_run).checkpoints / "policy_00000384.safetensors")
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
     args = ["--checkpoint", ckpt, "--bodies", "centipede:2", "--seconds", "0.8", "--width", "160", "--height", "96"]
     done = subprocess.run(
@@ -129,12 +130,12 @@ def test_a_two_process_centipede_run_resumes_exactly_as_an_uninterrupted_run(tmp
     straight = train(TrainConfig(total_timesteps=768, seed=5, **two), tmp_path / "a")
     part = train(TrainConfig(total_timesteps=256, seed=5, **two), tmp_path / "b")
     train(TrainConfig(total_timesteps=768, seed=5, **two), part, resume=True)
-    (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
+    (wa, ma), (wb, mb) = (load_training_state(RunDir(run).state) for run in (straight, part))
     assert "rng.helper1" in wa and ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
-    assert load_checkpoint(straight / "checkpoints" / "policy_00000768.safetensors").config.global_features == 12
+    assert load_checkpoint(RunDir(straight).checkpoints / "policy_00000768.safetensors").config.global_features == 12
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
-    with (straight / "progress.csv").open() as f, (part / "progress.csv").open() as g:
+    with RunDir(straight).progress.open() as f, RunDir(part).progress.open() as g:
         assert [r["policy_loss"] for r in csv.DictReader(f)] == [r["policy_loss"] for r in csv.DictReader(g)]
 
 
@@ -151,7 +152,7 @@ def test_morph_eval_run_on_a_centipede_run_evaluates_its_bodies_and_the_zero_sho
     assert run_eval_config(centipede_run, cfg, {"bodies"}) is cfg
     swimmers = tmp_path / "swimmers"
     swimmers.mkdir()
-    (swimmers / "config.json").write_text('{"bodies": "", "min_joints": 2, "max_joints": 10}')
+    RunDir(swimmers).config.write_text('{"bodies": "", "min_joints": 2, "max_joints": 10}')
     assert eval_bodies(run_eval_config(swimmers, cfg, set())) == [*range(2, 11), 15, 20]
 
 
@@ -165,7 +166,7 @@ def _train_cli(tmp_path, *options):
     assert run.returncode == 0, run.stderr
     import json
 
-    return json.loads((out / "config.json").read_text()), run.stdout
+    return json.loads(RunDir(out).config.read_text()), run.stdout
 
 
 @pytest.mark.slow

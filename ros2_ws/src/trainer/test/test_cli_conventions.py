@@ -9,6 +9,8 @@ import re
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
+
 # module, prog, arguments that parse, a truncated option of the tool (with its value, if it takes one)
 TOOLS = [
     ("cli.train", "morph-train", ["--out", "run"], ["--total-timestep", "5"]),
@@ -102,22 +104,22 @@ def test_no_tool_declares_a_boolean_another_way():
 def test_the_no_eval_flag_of_before_still_works_and_says_it_is_deprecated(tmp_path, capsys):
     from trainer.cli.eval import main
 
-    (tmp_path / "config.json").write_text("{}")
+    RunDir(tmp_path).config.write_text("{}")
     main(["--run", str(tmp_path), "--no-eval"])  # nothing to evaluate, nothing to plot
     assert capsys.readouterr().err == "morph-eval: warning: --no-eval is deprecated: write --eval false\n"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [RunDir(tmp_path).config.name]
 
 
 def test_renamed_options_keep_their_old_names_for_a_release(tmp_path, capsys):
     from trainer.cli import eval as eval_cli
     from trainer.live import bringup as live_bringup
 
-    (tmp_path / "config.json").write_text("{}")
+    RunDir(tmp_path).config.write_text("{}")
     eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--threads", "2"])  # as morph-train: --env-threads
     assert capsys.readouterr().err == "morph-eval: warning: --threads is deprecated: write --env-threads\n"
     run = tmp_path / "run"
     run.mkdir()
-    (run / "state.safetensors").write_bytes(b"")
+    RunDir(run).state.write_bytes(b"")
     with pytest.raises(SystemExit):  # refused (a run there), but --updates was read as --max-updates first
         live_bringup.main(["--out", str(run), "--updates", "3"])
     err = capsys.readouterr().err.splitlines()
@@ -151,7 +153,7 @@ def test_the_old_names_still_work_and_say_they_are_deprecated(tmp_path, capsys):
     from trainer.cli import eval as eval_cli
     from trainer.cli import render
 
-    (tmp_path / "config.json").write_text("{}")
+    RunDir(tmp_path).config.write_text("{}")
     eval_cli.main(["--run", str(tmp_path), "--eval", "false", "--lengths", "3"])
     assert capsys.readouterr().err == "morph-eval: warning: --lengths is deprecated: write --joints\n"
     with pytest.raises(SystemExit):  # 0 joints: refused after the alias was read as --joints
@@ -161,7 +163,7 @@ def test_the_old_names_still_work_and_say_they_are_deprecated(tmp_path, capsys):
     assert bringup.main(["--sim-seconds", "0"]) == 2  # read as --seconds 0: refused before any node
     out, err = capsys.readouterr()
     assert "--sim-seconds is deprecated: write --seconds" in err and "cannot start: --seconds 0" in out
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [RunDir(tmp_path).config.name]
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from morph_core.algo.evaluate import evaluate_episodes, evaluate_policy
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.env.swimmer_env import MorphSwimmerEnv
@@ -42,14 +43,14 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
             for m in ("compensated", "fixed")]  # fmt: skip
     cli = [sys.executable, "-m", "trainer.cli.eval", "--episodes", "2", "--joints", "2", "3"]
     subprocess.run([*cli, "--run", *map(str, runs), "--plots", str(tmp_path / "fig")], check=True)
-    with (runs[0] / "eval.csv").open() as f:
+    with RunDir(runs[0]).evaluation.open() as f:
         rows = list(csv.DictReader(f))
     assert {(r["global_step"], r["num_joints"]) for r in rows} == {(s, n) for s in ("128", "256") for n in ("2", "3")}
     assert len(rows) == 8
     assert all(int(r["steps"]) == 1000 and np.isfinite(float(r["distance"])) for r in rows)  # swimmers never end early
-    mtime = (runs[0] / "eval.csv").stat().st_mtime_ns
+    mtime = RunDir(runs[0]).evaluation.stat().st_mtime_ns
     out = subprocess.run([*cli, "--run", str(runs[0])], check=True, capture_output=True, text=True)
-    assert out.stdout == "" and (runs[0] / "eval.csv").stat().st_mtime_ns == mtime  # nothing redone
+    assert out.stdout == "" and RunDir(runs[0]).evaluation.stat().st_mtime_ns == mtime  # nothing redone
     for name in ("training_returns.png", "clip_fraction_per_dim.png", "eval_return_per_length.png"):
         assert (tmp_path / "fig" / name).read_bytes()[:4] == b"\x89PNG"
     table = (tmp_path / "fig" / "final_eval_table.md").read_text()
@@ -67,7 +68,7 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
 
     # Checkpoints signed with morph-keys stay signed when shipped (their bytes are copied as they are).
     assert keys_main(["new", str(tmp_path / "key")]) == 0
-    for checkpoint in sorted(p for run in runs for p in (run / "checkpoints").glob("*.safetensors")):
+    for checkpoint in sorted(p for run in runs for p in RunDir(run).checkpoints.glob("*.safetensors")):
         assert keys_main(["sign", str(checkpoint), "--key", str(tmp_path / "key")]) == 0
     # Ship the best evaluated checkpoint: it loads, and says where it came from and how it scored.
     dest = tmp_path / "models" / "swimmer_gnn.safetensors"
@@ -115,7 +116,7 @@ def test_eval_cli_writes_csv_skips_done_work_and_plots(tmp_path):
 
 
 def rows_of(run):
-    with (run / "eval.csv").open() as f:
+    with RunDir(run).evaluation.open() as f:
         return list(csv.DictReader(f))
 
 
@@ -136,7 +137,7 @@ def test_two_processes_evaluate_every_checkpoint_as_one_process_does(tmp_path):
     two = evaluate_run(copy, dataclasses.replace(cfg, processes=2), log=lambda _: None)
     assert len(one) == 4 * 3 * 2  # 4 checkpoints, 3 lengths, 2 episodes
     assert one == two
-    assert (run / "eval.csv").read_text() == (copy / "eval.csv").read_text()
+    assert RunDir(run).evaluation.read_text() == RunDir(copy).evaluation.read_text()
 
 
 def test_a_length_given_twice_is_evaluated_and_written_once(tmp_path):
@@ -264,16 +265,16 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
         (s, b, n) for s in (128, 256) for b, n in (("chain-2", 2), ("star-2x1", 2), ("y-1x1", 3))
     }
     # An eval.csv of before trees (no body column) reads as chains: nothing is evaluated again.
-    with (run / "eval.csv").open() as f:
+    with RunDir(run).evaluation.open() as f:
         old = [r for r in csv.DictReader(f) if r["body"].startswith("chain-")]
-    with (run / "eval.csv").open("w", newline="") as f:
+    with RunDir(run).evaluation.open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["global_step", "num_joints", "episode", "return"])
         w.writeheader()
         w.writerows({k: r[k] for k in w.fieldnames} for r in old)
     rows = evaluate_run(run, EvalConfig(lengths=[2], episodes=1), log=lambda _: None)
     assert sorted((int(r["global_step"]), r["body"]) for r in rows) == [(128, "chain-2"), (256, "chain-2")]
     evaluate_run(run, EvalConfig(lengths=[3], episodes=1), log=lambda _: None)  # rewrites it with today's columns
-    with (run / "eval.csv").open() as f:
+    with RunDir(run).evaluation.open() as f:
         got = {(r["body"], r["steps"] == "", r["distance"] == "") for r in csv.DictReader(f)}
     assert got == {("chain-2", True, True), ("chain-3", False, False)}  # the old rows kept, their new fields empty
     with pytest.raises(ValueError, match="random family"):
@@ -281,7 +282,7 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
     # One policy file (a shipped model): a table of the same returns, nothing written.
     from trainer.cli.eval import main
 
-    ckpt = run / "checkpoints" / "policy_00000256.safetensors"
+    ckpt = RunDir(run).checkpoints / "policy_00000256.safetensors"
     assert main(["--checkpoint", str(ckpt), "--joints", "--bodies", "y:1x1", "--episodes", "1"]) == 0
     table, said = capsys.readouterr()
     want = next(float(r["return"]) for r in evaluate_run(run, cfg, log=lambda _: None)
@@ -289,7 +290,7 @@ def test_eval_cli_evaluates_named_trees_beside_chains_and_reads_files_written_be
     assert f"| y-1x1 | 3 | {want:.1f} ± 0.0 |" in table and "chain-" not in table
     assert said == f"morph-eval: {ckpt}: 1 deterministic episodes (the policy's mean action) on each of 1 bodies\n"
     # A file that is no policy: one line, before any episode; options of --run: refused.
-    assert main(["--checkpoint", str(run / "config.json"), "--episodes", "1"]) == 1
+    assert main(["--checkpoint", str(RunDir(run).config), "--episodes", "1"]) == 1
     out, err = capsys.readouterr()
     assert out == "" and err.startswith("morph-eval: error: ") and len(err.splitlines()) == 1
     with pytest.raises(SystemExit):

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.env.sim import SwimmerSim
 from morph_core.msgs.records import EpisodeStartRecord, OdometryRecord
 from morph_core.policy.config import PolicyConfig
@@ -183,7 +184,7 @@ def test_walkers_learn_at_the_same_settings_from_bags_live_and_the_simulator(cen
     args = parser.parse_args(["--live", "--namespaces", "/a", "--out", str(tmp_path / "live"), "--bodies",
                               "centipede:2-4", *given])  # fmt: skip
     live, _, _ = live_config(args, parser)
-    from_bags = json.loads((bags / "config.json").read_text())
+    from_bags = json.loads(RunDir(bags).config.read_text())
     want = {**LEGGED_DEFAULTS, **({"learning_rate": 0.001} if given else {})}
     for key, value in want.items():
         assert from_bags[key] == getattr(live, key) == value, key

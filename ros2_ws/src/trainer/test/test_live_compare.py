@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from trainer.live.compare import plot, return_at, stability_table, table
-from trainer.reports.runs import Run
+from trainer.reports.runs import RunReport
 
 
-def run(name: str, steps: list[int], returns: list[float]) -> Run:
+def run(name: str, steps: list[int], returns: list[float]) -> RunReport:
     rows = [{"global_step": str(s), "return_mean": str(r)} for s, r in zip(steps, returns, strict=True)]
-    return Run(Path(name), {"clip_mode": "compensated"}, rows)
+    return RunReport(Path(name), {"clip_mode": "compensated"}, rows)
 
 
 def test_return_at_takes_the_last_update_before_each_mark_smoothed_over_five():
@@ -48,8 +48,8 @@ def test_stability_table_finds_the_first_diverged_update_and_the_reward_rate():
         return out
 
     groups = {
-        "live": [Run(Path("diverged"), {}, rows([0.1, 0.3, 2.5, 11.6, 0.4], [0.0, 0.01, 0.02, 0.03, 0.04]))],
-        "simulator": [Run(Path("steady"), {}, rows([0.05, 0.2, 0.9]))],
+        "live": [RunReport(Path("diverged"), {}, rows([0.1, 0.3, 2.5, 11.6, 0.4], [0.0, 0.01, 0.02, 0.03, 0.04]))],
+        "simulator": [RunReport(Path("steady"), {}, rows([0.05, 0.2, 0.9]))],
     }
     lines = stability_table(groups, last=2).splitlines()
     assert "| live | diverged | 5 | 11.6 | 21000 | 35.0 |" in lines

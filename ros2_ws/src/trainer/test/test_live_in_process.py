@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small_config
 from morph_core.algo.train import TrainConfig
 from trainer.live.in_process import InProcessOptions, main, train_in_process
@@ -19,7 +20,7 @@ TINY = small_config(
 
 
 def rows(run_dir) -> list[dict]:
-    with open(run_dir / "progress.csv") as f:
+    with open(RunDir(run_dir).progress) as f:
         return list(csv.DictReader(f))
 
 
@@ -54,7 +55,7 @@ def test_cli_refuses_bad_options_and_an_existing_run(tmp_path, capsys):
             main(["--out", str(tmp_path / "x"), *bad])
         assert "error" in capsys.readouterr().err
     (tmp_path / "run").mkdir()
-    (tmp_path / "run" / "config.json").write_text("{}")
+    RunDir(tmp_path / "run").config.write_text("{}")
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "run")])
     assert "already holds a run" in capsys.readouterr().err
@@ -67,7 +68,7 @@ def test_cli_starts_from_the_live_learning_rate_unless_given_one(tmp_path):
     for given, expected in (([], LIVE_LEARNING_RATE), (["--learning-rate", "0.01"], 0.01)):
         out = tmp_path / f"run{len(given)}"
         assert main(["--out", str(out), *tiny, *given]) == 0
-        assert json.loads((out / "config.json").read_text())["learning_rate"] == expected
+        assert json.loads(RunDir(out).config.read_text())["learning_rate"] == expected
         assert {float(r["learning_rate"]) for r in rows(out)} == {expected}
     assert LIVE_LEARNING_RATE < TrainConfig().learning_rate
 

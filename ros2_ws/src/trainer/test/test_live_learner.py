@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small_config
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import comb_parents, star_parents, swimmer_tree
@@ -50,7 +51,7 @@ def episodes():
 
 def test_update_needs_a_batch_then_makes_the_next_version(tmp_path, episodes):
     learner = LiveLearner(SMALL, tmp_path, max_staleness=1)
-    assert learner.version == 0 and (tmp_path / "state.safetensors").exists()
+    assert learner.version == 0 and RunDir(tmp_path).state.exists()
     assert learner.add_episode(episodes[0], [0] * 40) == 40
     assert not learner.ready()
     learner.add_episode(episodes[1], [None] * 40)  # a node that does not say its version: kept
@@ -61,9 +62,9 @@ def test_update_needs_a_batch_then_makes_the_next_version(tmp_path, episodes):
     assert row["version_lag_mean"] == 0.0 and row["pool_episodes"] == 2
     assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters(), strict=True))
     assert learner.pool_size == 0
-    rows = list(csv.DictReader(open(tmp_path / "progress.csv")))
+    rows = list(csv.DictReader(open(RunDir(tmp_path).progress)))
     assert len(rows) == 1 and int(rows[0]["version"]) == 1 and float(rows[0]["return_d3"]) == row["return_d3"]
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+    assert sorted(p.name for p in RunDir(tmp_path).checkpoints.iterdir()) == [
         "policy_00000080.json", "policy_00000080.safetensors"]  # fmt: skip
 
 
@@ -120,7 +121,7 @@ def test_weights_rebuild_the_policy_and_resume_continues(tmp_path, episodes):
     again.add_episode(episodes[2], [1] * 40)
     again.add_episode(episodes[0], [1] * 40)
     again.update()
-    steps = [int(r["global_step"]) for r in csv.DictReader(open(tmp_path / "progress.csv"))]
+    steps = [int(r["global_step"]) for r in csv.DictReader(open(RunDir(tmp_path).progress))]
     assert steps == [80, 160] and again.version == 2
     fresh = LiveLearner(SMALL, tmp_path / "other")
     assert fresh.run_id != run_id
@@ -144,7 +145,7 @@ def test_signed_weights_and_checkpoints_stay_in_order_across_resume_and_a_new_ru
     train(first, 0)
     assert (offer(first).outcome, node.current()) == ("pending", 1)
     # the checkpoint of version 1 carries the message's signature, over the same bytes
-    checkpoint = load_checkpoint(tmp_path / "run" / "checkpoints" / "policy_00000080.safetensors")
+    checkpoint = load_checkpoint(RunDir(tmp_path / "run").checkpoints / "policy_00000080.safetensors")
     trust = checkpoint_trust(checkpoint, node.keys)
     assert (trust.signer, trust.order) == (signer.fingerprint, (first.epoch, 1))
     old_message = first.weights_message()
@@ -187,7 +188,7 @@ def test_live_updates_log_the_log_ratio_histograms(tmp_path, episodes):
     learner.add_episode(episodes[1], [0] * 40)
     learner.update()
     learner.close()
-    acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"histograms": 0})
+    acc = EventAccumulator(str(RunDir(tmp_path).tensorboard), size_guidance={"histograms": 0})
     acc.Reload()
     tags = acc.Tags()["histograms"]
     assert {"log_ratio/d3", "log_ratio/d6"} <= set(tags), tags
@@ -200,7 +201,7 @@ def test_resume_skips_a_damaged_state_for_the_previous_one(tmp_path, episodes):
     learner.add_episode(episodes[1], [0] * 40)
     learner.update()
     learner.close()
-    state = tmp_path / "state.safetensors"
+    state = RunDir(tmp_path).state
     state.write_bytes(state.read_bytes()[: state.stat().st_size // 2])  # truncated on disk
     resumed = LiveLearner(SMALL, tmp_path, resume=True, max_staleness=1)
     assert resumed.resumed and resumed.version == 0  # the state before the update, whole
@@ -226,7 +227,7 @@ def test_a_diverged_update_is_refused_and_the_learner_kept_as_it_was(tmp_path, e
     a, b = blown.update(pool), fresh.update(pool)
     assert a["version"] == b["version"] == 1 and a["approx_kl"] == b["approx_kl"]
     assert torch.equal(blown.learner.params.theta, fresh.learner.params.theta)
-    assert len(list(csv.DictReader(open(tmp_path / "a" / "progress.csv")))) == 1  # the refused update not logged
+    assert len(list(csv.DictReader(open(RunDir(tmp_path / "a").progress)))) == 1  # the refused update not logged
 
 
 @pytest.mark.slow
@@ -324,8 +325,8 @@ def test_a_live_run_starts_from_init_as_a_simulator_run_does(tmp_path):
     assert learner.cfg.policy == start.config and learner.cfg.policy != SMALL.policy
     mine, theirs = learner.policy.state_dict(), start.state_dict()
     assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
-    assert (tmp_path / "run" / "init.json").exists()
+    assert RunDir(tmp_path / "run").init.exists()
     with pytest.raises(ValueError, match="init starts a new run"):
         LiveLearner(SMALL, tmp_path / "run", resume=True, init=tmp_path / "start.safetensors")
     fresh = LiveLearner(SMALL, tmp_path / "fresh")  # without it: the seed's fresh policy, as before
-    assert fresh.cfg.policy == SMALL.policy and not (tmp_path / "fresh" / "init.json").exists()
+    assert fresh.cfg.policy == SMALL.policy and not RunDir(tmp_path / "fresh").init.exists()

@@ -9,6 +9,7 @@ from safetensors.torch import save as safetensors_bytes
 
 from morph_core.algo.checkpoint import _digest, load_training_state, previous_state_path
 from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.run_dir import RunDir
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
 from morph_core.protocol.transitions import TransitionAssembler
@@ -22,7 +23,7 @@ def test_the_live_learner_resumes_an_old_state_with_a_new_learning_rate_and_hear
     run_id, epoch = first.run_id, first.epoch
     first.close()
     # The state as the live learner wrote it before sections: the run id and epoch under env.
-    path = tmp_path / "state.safetensors"
+    path = RunDir(tmp_path).state
     tensors, meta = load_training_state(path)
     live = meta.pop("sections")["live"]
     assert live.pop("version") == 1

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.policy.weights import load_checkpoint, untrained_weights
 from trainer.cli.render import VideoConfig, caption, training_rule
 
@@ -186,14 +187,14 @@ def test_training_rule_from_metadata_or_run_config(tmp_path):
 
     # A training checkpoint carries only its step; the rule is in its run's config.json.
     run = tmp_path / "run"
-    (run / "checkpoints").mkdir(parents=True)
-    ckpt = run / "checkpoints" / "policy_00006000.safetensors"
+    RunDir(run).checkpoints.mkdir(parents=True)
+    ckpt = RunDir(run).checkpoints / "policy_00006000.safetensors"
     ckpt.write_bytes(SHIPPED.read_bytes())
     meta = json.loads(SHIPPED.with_suffix(".json").read_text())
     meta["metadata"] = {"global_step": 6000}
     ckpt.with_suffix(".json").write_text(json.dumps(meta))
     assert training_rule(load_checkpoint(ckpt)) == "rule unknown"
-    (run / "config.json").write_text(json.dumps({"clip_mode": "fixed"}))
+    RunDir(run).config.write_text(json.dumps({"clip_mode": "fixed"}))
     assert training_rule(load_checkpoint(ckpt)) == "fixed clipping"
 
 

@@ -21,6 +21,7 @@ from morph_core.algo.rollout_workers import (  # noqa: E402
     RolloutWorkerError,  # noqa: E402
     worker_seed,
 )
+from morph_core.algo.run_dir import RunDir  # noqa: E402
 from morph_core.algo.small_runs import small  # noqa: E402
 from morph_core.algo.train import TrainConfig, rollout_spec, train  # noqa: E402
 from morph_core.policy.actor_critic import GraphActorCritic  # noqa: E402
@@ -40,7 +41,7 @@ def local_ray():
 
 
 def _rows(run_dir):
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return [{k: v for k, v in row.items() if k not in TIMES} for row in csv.DictReader(f)]
 
 
@@ -57,7 +58,7 @@ def test_a_two_worker_run_resumes_exactly_as_an_uninterrupted_run(local_ray, tmp
     train(TrainConfig(total_timesteps=768, seed=5, **SMALL), part, resume=True, rollout_pool=make)
     assert len(pools) == 3 and not any(pool.actors for pool in pools)  # each closed its actors
     assert pools[0].bounds == [(0, 2), (2, 4)]
-    (wa, ma), (wb, mb) = (load_training_state(run / "state.safetensors") for run in (straight, part))
+    (wa, ma), (wb, mb) = (load_training_state(RunDir(run).state) for run in (straight, part))
     assert ma["counters"]["global_step"] == mb["counters"]["global_step"] == 768
     assert {"rng.worker0", "rng.worker1"} <= wa.keys() and len(ma["sections"]["swimmers"]["envs"]) == 4
     assert wa.keys() == wb.keys()
@@ -67,7 +68,7 @@ def test_a_two_worker_run_resumes_exactly_as_an_uninterrupted_run(local_ray, tmp
     # Each worker draws its own noise, from worker_seed(seed, rank): not the run's generator, not each other's.
     g = torch.Generator().manual_seed(worker_seed(5, 1))
     fresh = train(TrainConfig(total_timesteps=256, seed=5, **SMALL), tmp_path / "c", rollout_pool=make)
-    w1, _ = load_training_state(fresh / "state.safetensors")
+    w1, _ = load_training_state(RunDir(fresh).state)
     for _ in range(64):
         torch.randn((2, 10), generator=g)  # what worker 1 drew over its 64 steps of 2 swimmers
     assert torch.equal(w1["rng.worker1"], g.get_state())
@@ -105,7 +106,7 @@ def test_a_worker_killed_mid_run_is_restarted_and_the_run_goes_on(local_ray, tmp
     assert (during[1], lost[1], lost[2]) in {("collect_columns", "0", "0"), ("get_state", "1", "128")}, message
     assert ("collected again" in message) == (during[1] == "collect_columns")
     assert pool.actors == [] and killed[0] > 0  # closed; the killed process was a worker's
-    _, meta = load_training_state(run / "state.safetensors")
+    _, meta = load_training_state(RunDir(run).state)
     assert meta["counters"]["global_step"] == 768
 
 
@@ -180,8 +181,8 @@ def test_centipedes_on_two_ray_workers_train_a_twelve_feature_policy(local_ray, 
 
     legged = {**SMALL, "bodies": "centipede:2-3"}
     run = train(TrainConfig(total_timesteps=512, seed=6, **legged), tmp_path / "a", rollout_pool=RayRolloutPool)
-    assert load_checkpoint(run / "checkpoints" / "policy_00000512.safetensors").config.global_features == 12
-    weights, meta = load_training_state(run / "state.safetensors")
+    assert load_checkpoint(RunDir(run).checkpoints / "policy_00000512.safetensors").config.global_features == 12
+    weights, meta = load_training_state(RunDir(run).state)
     assert {"rng.worker0", "rng.worker1"} <= weights.keys() and meta["counters"]["global_step"] == 512
     envs = meta["sections"]["swimmers"]["envs"]  # each worker's centipedes, saved for a resume
     assert len(envs) == 4 and all(e["leg_pairs"] in (2, 3) for e in envs)

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.util.config_cli import overrides_from_args
 from trainer.cli import train as train_cli
@@ -32,5 +33,5 @@ def test_a_generated_cli_keeps_the_old_option(tmp_path, capsys):
             "--tensorboard", "false", "--episode-steps", "64"]  # fmt: skip
     assert live_in_process.main(["--out", str(tmp_path / "run"), *tiny, "--clip-mode", "fixed"]) == 0
     assert "--clip-mode is deprecated: write --rule" in capsys.readouterr().err
-    cfg = TrainConfig.from_dict(json.loads((tmp_path / "run" / "config.json").read_text()))
+    cfg = TrainConfig.from_dict(json.loads(RunDir(tmp_path / "run").config.read_text()))
     assert cfg.rule == "fixed"

@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig, log_columns
 from morph_core.algo.trust_region import ClippedRatio, register, unregister
 from trainer.cli import eval as eval_cli
 from trainer.cli import train as train_cli
 from trainer.reports import plots, summary
-from trainer.reports.runs import load_run, load_runs, series, smooth
+from trainer.reports.runs import load_run_report, load_runs, series, smooth
 
 TEST_RULE = "eighth-root"
 
@@ -40,14 +41,14 @@ def write_run(run_dir, rule, seed, steps=(6144, 12288, 18432), scale=1.0):
     """A run directory as morph-train and morph-eval leave it, with made-up numbers (returns times ``scale``)."""
     cfg = TrainConfig(clip_mode=rule, seed=seed, total_timesteps=steps[-1], min_joints=2, max_joints=3)
     run_dir.mkdir(parents=True)
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
+    RunDir(run_dir).config.write_text(json.dumps(cfg.to_dict()))
     columns = log_columns(cfg)
-    with (run_dir / "progress.csv").open("w", newline="") as f:
+    with RunDir(run_dir).progress.open("w", newline="") as f:
         w = csv.DictWriter(f, columns)
         w.writeheader()
         for k, step in enumerate(steps):
             w.writerow({c: 0.1 * (k + 1) for c in columns} | {"global_step": step, "return_mean": 150 * k * scale})
-    with (run_dir / "eval.csv").open("w", newline="") as f:
+    with RunDir(run_dir).evaluation.open("w", newline="") as f:
         w = csv.DictWriter(f, ["global_step", "num_joints", "episode", "return"])
         w.writeheader()
         for step in steps:
@@ -67,25 +68,25 @@ def test_series_and_smoothing_of_progress_rows():
 
 def test_a_run_of_a_rule_the_table_does_not_know_is_an_error(tmp_path):
     run = write_run(tmp_path / "r", "fixed", 1)
-    cfg = json.loads((run / "config.json").read_text())
-    (run / "config.json").write_text(json.dumps({**cfg, "clip_mode": "adaptive"}))
+    cfg = json.loads(RunDir(run).config.read_text())
+    RunDir(run).config.write_text(json.dumps({**cfg, "clip_mode": "adaptive"}))
     with pytest.raises(ValueError, match="'adaptive' is not a rule"):
-        load_run(run)
+        load_run_report(run)
     with pytest.raises(ValueError, match="not a training run"):
-        load_run(tmp_path / "nowhere")
+        load_run_report(tmp_path / "nowhere")
 
 
 def edit_config(run_dir, **changes):
-    cfg = json.loads((run_dir / "config.json").read_text())
-    (run_dir / "config.json").write_text(json.dumps({**cfg, **changes}))
+    cfg = json.loads(RunDir(run_dir).config.read_text())
+    RunDir(run_dir).config.write_text(json.dumps({**cfg, **changes}))
 
 
 def test_runs_of_one_rule_trained_differently_are_not_pooled(tmp_path, capsys):
     runs = [write_run(tmp_path / f"fixed-s{s}", "fixed", s) for s in (1, 2, 3)]
     edit_config(runs[1], processes=2, torch_threads=2, compile=False)  # how it ran, not what it learned
-    cfg = json.loads((runs[2] / "config.json").read_text())
+    cfg = json.loads(RunDir(runs[2]).config.read_text())
     del cfg["kl_target"]  # an older run's config, from before the key existed: its default applied
-    (runs[2] / "config.json").write_text(json.dumps(cfg))
+    RunDir(runs[2]).config.write_text(json.dumps(cfg))
     assert [r.dir for r in load_runs(runs)["fixed"]] == runs
 
     edit_config(runs[2], anneal_lr=True, gamma=0.99)
@@ -159,16 +160,16 @@ def test_ship_needs_an_explicit_destination(tmp_path):
     assert out.returncode == 2 and not dest.exists()
     assert "best evaluated checkpoint is fixed-s1 at step 18432" in out.stderr
     assert "morph-train --clip-mode fixed --seed 1 " in out.stderr and "Traceback" not in out.stderr
-    assert np.isfinite(float(load_run(run).progress[0]["return_mean"]))
+    assert np.isfinite(float(load_run_report(run).progress[0]["return_mean"]))
 
 
 def test_the_body_tables_give_episode_lengths_and_distances_where_the_evaluation_recorded_them(tmp_path):
     runs = []
     for seed, distance in ((1, 1.0), (2, 3.0)):
         run = write_run(tmp_path / f"c{seed}", "compensated", seed)
-        with (run / "eval.csv").open() as f:
+        with RunDir(run).evaluation.open() as f:
             chains = list(csv.DictReader(f))
-        with (run / "eval.csv").open("w", newline="") as f:
+        with RunDir(run).evaluation.open("w", newline="") as f:
             w = csv.DictWriter(f, ["global_step", "num_joints", "episode", "return", "body", "steps", "distance"])
             w.writeheader()
             w.writerows(chains)
@@ -177,7 +178,7 @@ def test_the_body_tables_give_episode_lengths_and_distances_where_the_evaluation
                              "steps": 1000 - n, "distance": distance * n} for s in (12288, 18432))  # fmt: skip
         runs.append(run)
     old = write_run(tmp_path / "f1", "fixed", 1)  # an evaluation from before lengths and distances
-    with (old / "eval.csv").open("w", newline="") as f:
+    with RunDir(old).evaluation.open("w", newline="") as f:
         csv.writer(f).writerows(
             [["global_step", "num_joints", "episode", "return", "body"], [18432, 8, 0, 700, "centipede-2"]]
         )

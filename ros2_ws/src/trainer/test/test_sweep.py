@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from safetensors.numpy import load_file
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import sets_of, small
 from morph_core.algo.trust_region import rule_names
 from trainer.sweep.cli import main
@@ -45,7 +46,7 @@ def run_sweep(cmd: list[str], env=None, timeout=80) -> subprocess.CompletedProce
 
 
 def progress(run_dir: Path) -> list[dict]:
-    with open(run_dir / "progress.csv") as f:
+    with open(RunDir(run_dir).progress) as f:
         return [{k: v for k, v in r.items() if k not in WALL_CLOCK} for r in csv.DictReader(f)]
 
 
@@ -217,10 +218,10 @@ def test_a_trial_whose_process_dies_resumes_bit_for_bit(tmp_path):
     run = out / "seed=3"
     assert [r["global_step"] for r in progress(run)] == ["256", "512", "768", "1024"]
     assert progress(run) == progress(alone)
-    ckpts = sorted(p.name for p in (alone / "checkpoints").iterdir())
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ckpts
+    ckpts = sorted(p.name for p in RunDir(alone).checkpoints.iterdir())
+    assert sorted(p.name for p in RunDir(run).checkpoints.iterdir()) == ckpts
     for name in (n for n in ckpts if n.endswith(".safetensors")):
-        a, b = load_file(run / "checkpoints" / name), load_file(alone / "checkpoints" / name)
+        a, b = load_file(RunDir(run).checkpoints / name), load_file(RunDir(alone).checkpoints / name)
         assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
 
 
@@ -231,7 +232,7 @@ def test_a_sweep_stopped_as_a_whole_resumes_with_the_same_command(tmp_path):
     cmd = sweep_command(out, ["seed=1,2"], sets=sets, cpus=1)  # one trial at a time: the second waits
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ)
     deadline = time.monotonic() + 60
-    while not (out / "seed=1" / "state.safetensors").exists():
+    while not RunDir(out / "seed=1").state.exists():
         assert first.poll() is None and time.monotonic() < deadline, "the first trial never saved a state"
         time.sleep(0.05)
     first.send_signal(signal.SIGINT)  # Ctrl-C: Tune saves the experiment's state and stops

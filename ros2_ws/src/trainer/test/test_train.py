@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, train
 
@@ -20,12 +21,12 @@ SMALL = small(checkpoint_interval=128)
 
 
 def _final_weights(run_dir):
-    tensors, meta = load_training_state(run_dir / "state.safetensors")
+    tensors, meta = load_training_state(RunDir(run_dir).state)
     return tensors, meta["counters"]["global_step"]
 
 
 def _rows(run_dir):
-    with (run_dir / "progress.csv").open() as f:
+    with RunDir(run_dir).progress.open() as f:
         return list(csv.DictReader(f))
 
 
@@ -44,7 +45,7 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, compiled):
     ra, rb = _rows(straight), _rows(part)
     assert [r["global_step"] for r in ra] == [r["global_step"] for r in rb] == ["128", "256", "384"]
     assert [r["return_mean"] for r in ra] == [r["return_mean"] for r in rb]
-    ckpts = sorted(p.name for p in (straight / "checkpoints").glob("*.safetensors"))
+    ckpts = sorted(p.name for p in RunDir(straight).checkpoints.glob("*.safetensors"))
     assert ckpts == ["policy_00000128.safetensors", "policy_00000256.safetensors", "policy_00000384.safetensors"]
 
 
@@ -59,7 +60,7 @@ def test_cli_run_killed_at_any_moment_resumes_with_nothing_lost(tmp_path):
     deadline = time.monotonic() + 120
     # Kill it mid-run, once it has checkpointed twice: polling files the child writes (nothing to subscribe to).
     while time.monotonic() < deadline and proc.poll() is None:
-        if (run / "state.safetensors").exists() and len(_rows(run)) >= 2:
+        if RunDir(run).state.exists() and len(_rows(run)) >= 2:
             break
         time.sleep(0.005)
     os.kill(proc.pid, signal.SIGKILL)
@@ -95,7 +96,7 @@ def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_pat
     args = "--num-envs 2 --num-steps 64 --minibatch-size 32 --update-epochs 2 --checkpoint-interval 128 --seed 5"
     args = [*args.split(), "--tensorboard", "false", "--progress-bar", "false", "--compile", "false"]
     run = tmp_path / "run"
-    config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
+    config = lambda: json.loads(RunDir(run).config.read_text())  # noqa: E731
     assert main(["--out", str(run), "--total-timesteps", "128", "--kl-target", "1", *args]) == 0
     assert capsys.readouterr().out.splitlines() == [  # without the progress bar, still a summary
         f"morph-train: done: step 128 (update 1); no episode finished yet; last update's approximate KL "
@@ -103,17 +104,17 @@ def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_pat
         f"morph-train: files in {run}: config.json, progress.csv, checkpoints/ (1, the last "
         "policy_00000128.safetensors), state.safetensors (for --resume)",
     ]
-    rows = (run / "progress.csv").read_text()
+    rows = RunDir(run).progress.read_text()
     assert main(["--out", str(run), "--resume"]) == 0
     assert capsys.readouterr().out.splitlines()[0] == (
         f"morph-train: {run} already finished at step 128 (total_timesteps 128): nothing to do; "
         "raise --total-timesteps to go on"
     )
-    assert (run / "progress.csv").read_text() == rows
+    assert RunDir(run).progress.read_text() == rows
     assert main(["--out", str(run), "--resume", "--total-timesteps", "256", "--processes", "2"]) == 0
     said = capsys.readouterr().out
     assert (
-        f"morph-train: resumed with total_timesteps 128 -> 256, processes 1 -> 2 (written to {run / 'config.json'})"
+        f"morph-train: resumed with total_timesteps 128 -> 256, processes 1 -> 2 (written to {RunDir(run).config})"
         in said
     )
     assert config()["total_timesteps"] == 256 and config()["processes"] == 2
@@ -122,7 +123,7 @@ def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_pat
     assert main(["--out", str(run), "--resume"]) == 0
     assert "already finished at step 256 (total_timesteps 256)" in capsys.readouterr().out
     # Options given to a resume that fails before it trains (no usable state) are not kept.
-    for name in ("state.safetensors", "state.prev.safetensors"):
+    for name in (RunDir(run).state.name, RunDir(run).previous_state.name):
         (run / name).write_bytes(b"damaged")
     assert main(["--out", str(run), "--resume", "--total-timesteps", "512"]) == 1
     assert "morph-train: error:" in capsys.readouterr().err
@@ -131,7 +132,7 @@ def test_resume_writes_the_options_given_back_and_a_finished_run_says_so(tmp_pat
 
 def test_logs_hold_per_dimension_diagnostics(tmp_path):
     run = train(TrainConfig(total_timesteps=256, clip_mode="fixed", seed=0, **SMALL), tmp_path / "r")
-    cfg = json.loads((run / "config.json").read_text())
+    cfg = json.loads(RunDir(run).config.read_text())
     assert cfg["clip_mode"] == "fixed" and cfg["clip_eps"] == 0.111
     rows = _rows(run)
     seen = [d for d in range(2, 11) if rows[-1][f"clip_frac_d{d}"] != ""]
@@ -220,10 +221,10 @@ def test_init_fine_tunes_a_shipped_policy_on_a_users_mjcf(tmp_path):
             "--learning-rate", "0", "--compile", "false", "--tensorboard", "false",
             "--progress-bar", "false"]  # fmt: skip
     assert main(args) == 0
-    assert json.loads((run / "init.json").read_text())["init"] == os.path.realpath(init)
-    assert json.loads((run / "config.json").read_text())["policy"]["global_features"] == 12
+    assert json.loads(RunDir(run).init.read_text())["init"] == os.path.realpath(init)
+    assert json.loads(RunDir(run).config.read_text())["policy"]["global_features"] == 12
     start = load_checkpoint(init).arrays
-    (saved,) = sorted((run / "checkpoints").glob("*.safetensors"))
+    (saved,) = sorted(RunDir(run).checkpoints.glob("*.safetensors"))
     after = load_file(str(saved))
     assert all(np.array_equal(after[k], start[k]) for k in start if k != "log_std")  # learning rate 0
     with pytest.raises(SystemExit):

@@ -19,6 +19,7 @@ import torch
 from rosbags.typesys import Stores, get_typestore
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train_from_data import run_state
 from morph_core.env.bodies import star_parents, swimmer_tree, y_parents
@@ -79,12 +80,12 @@ def sampled(init):
 
 
 def _rows(run):
-    with (run / "progress.csv").open() as f:
+    with RunDir(run).progress.open() as f:
         return list(csv.DictReader(f))
 
 
 def _weights(run):
-    tensors, meta = load_training_state(run / "state.safetensors")
+    tensors, meta = load_training_state(RunDir(run).state)
     return tensors, meta["counters"]
 
 
@@ -123,9 +124,9 @@ def test_ppo_from_a_bag_changes_the_policy_and_logs_per_dimension(tmp_path, init
     # Recorded by the init policy: the first update is on-policy, the second sees an older policy's data.
     assert float(rows[0]["stale_frac"]) == 0.0 and float(rows[0]["is_weight_mean"]) == pytest.approx(1.0, abs=1e-5)
     assert float(rows[1]["stale_frac"]) == 1.0 and float(rows[1]["is_weight_mean"]) < 1.0
-    ckpts = sorted(p.name for p in (run / "checkpoints").glob("*.safetensors"))
+    ckpts = sorted(p.name for p in RunDir(run).checkpoints.glob("*.safetensors"))
     assert ckpts == ["policy_00000060.safetensors"]  # 30 did not reach the interval of 32 samples; 60 did
-    assert GraphActorCritic.load(run / "checkpoints" / ckpts[-1]) is not None  # loads as the policy node would
+    assert GraphActorCritic.load(RunDir(run).checkpoints / ckpts[-1]) is not None  # loads as the policy node would
 
 
 @pytest.mark.slow
@@ -140,7 +141,7 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
     deadline = time.monotonic() + 300
     # Kill it mid-run, once it has checkpointed a few times: polling files the child writes.
     while time.monotonic() < deadline and proc.poll() is None:
-        if (run / "state.safetensors").exists() and (run / "progress.csv").exists() and len(_rows(run)) >= 5:
+        if RunDir(run).state.exists() and RunDir(run).progress.exists() and len(_rows(run)) >= 5:
             break
         time.sleep(0.005)
     os.kill(proc.pid, signal.SIGKILL)
@@ -172,7 +173,7 @@ def test_killed_run_resumes_exactly_and_refuses_other_bags(tmp_path, init, sampl
 def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_path, init, sampled, capsys):
     bag = write_bag(tmp_path / "bag", sampled)
     run = tmp_path / "run"
-    config = lambda: json.loads((run / "config.json").read_text())  # noqa: E731
+    config = lambda: json.loads(RunDir(run).config.read_text())  # noqa: E731
     assert main(["--from-bags", str(bag), "--out", str(run), "--init", str(init), "--iterations", "2", *SMALL]) == 0
     capsys.readouterr()
     assert main(["--from-bags", str(bag), "--out", str(run), "--resume"]) == 0
@@ -191,7 +192,7 @@ def test_a_finished_run_resumed_says_so_and_options_given_are_written_back(tmp_p
     assert "morph-train: resumed with learning_rate 0.01 -> 0.003, adam_eps 1e-05 -> 1e-06" in capsys.readouterr().out
     assert config()["learning_rate"] == 0.003 and run_state(run)["done"] == 4
     assert [float(r["learning_rate"]) for r in _rows(run)] == [0.01, 0.01, 0.01, 0.003]
-    groups = load_training_state(run / "state.safetensors")[1]["param_groups"]
+    groups = load_training_state(RunDir(run).state)[1]["param_groups"]
     assert [(g["lr"], g["eps"]) for g in groups] == [(0.003, 1e-6)]
 
 
@@ -232,7 +233,7 @@ def test_a_bag_without_policy_info_is_refused_naming_what_is_missing(tmp_path, i
     assert main(["--from-bags", str(bag), "--out", str(run), *SMALL]) == 1
     line = _error(capsys)
     assert "20 of 20 steps have no policy_info" in line and "morph_policy_node deterministic:=false" in line
-    assert not (run / "state.safetensors").exists() and not (run / "progress.csv").exists()
+    assert not RunDir(run).state.exists() and not RunDir(run).progress.exists()
 
 
 def test_bad_bags_give_one_line_errors_naming_the_file(tmp_path, sampled, capsys):

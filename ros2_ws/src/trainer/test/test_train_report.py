@@ -7,6 +7,7 @@ import os
 
 import pytest
 
+from morph_core.algo.run_dir import RunDir
 from trainer.cli.train_report import MAX_WARNINGS, ProgressFollower
 
 COLUMNS = ["global_step", "iteration", "episodes", "return_mean", "approx_kl"]
@@ -22,7 +23,7 @@ def _write(path, rows, header=True, mode="a", end="\n"):
 
 
 def test_high_kl_updates_are_warned_about_as_they_are_logged(tmp_path, capsys):
-    csv_path = tmp_path / "progress.csv"
+    csv_path = RunDir(tmp_path).progress
     follower = ProgressFollower(tmp_path, kl_limit=0.1)
     follower.poll()  # no file yet: nothing
     _write(csv_path, [(100, 1, 2, 10.0, 0.01), (200, 2, 0, "", 0.5)], mode="w")
@@ -53,7 +54,7 @@ def test_high_kl_updates_are_warned_about_as_they_are_logged(tmp_path, capsys):
 
 
 def test_a_resumed_run_s_earlier_rows_are_not_warned_about_again(tmp_path, capsys):
-    csv_path = tmp_path / "progress.csv"
+    csv_path = RunDir(tmp_path).progress
     # A run killed at step 300, its last checkpoint at 200: the row at 300 is logged again after the resume.
     _write(csv_path, [(100, 1, 1, 5.0, 0.9), (200, 2, 1, 6.0, 0.9), (300, 3, 1, 7.0, 0.9)], mode="w")
     follower = ProgressFollower(tmp_path, kl_limit=0.1, start_step=200)
@@ -74,7 +75,7 @@ def test_a_resumed_run_s_earlier_rows_are_not_warned_about_again(tmp_path, capsy
 
 
 def test_the_follower_warns_while_the_run_goes_on(tmp_path, capsys):
-    csv_path = tmp_path / "progress.csv"
+    csv_path = RunDir(tmp_path).progress
     with ProgressFollower(tmp_path, kl_limit=0.1) as follower:
         _write(csv_path, [], mode="w")
         follower.on_row({}, False)  # the header read alone first

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from morph_core.algo.checkpoint import check_training_state, previous_state_path
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import options_of, small
 from morph_core.algo.train import TrainConfig, train
 from morph_core.policy.weights import load_checkpoint
@@ -50,20 +51,20 @@ def test_a_hand_edited_config_is_refused_before_anything_runs(tmp_path, edit, wo
     run = tmp_path / "run"
     run.mkdir()
     config = {**TrainConfig(**SMALL).to_dict(), **edit}
-    (run / "config.json").write_text(json.dumps(config))
+    RunDir(run).config.write_text(json.dumps(config))
     result = _cli("--resume", out=run)
     assert result.returncode == 1
-    assert words in result.stderr and "config.json" in result.stderr, result.stderr
+    assert words in result.stderr and RunDir(run).config.name in result.stderr, result.stderr
     assert "Traceback" not in result.stderr
-    assert sorted(p.name for p in run.iterdir()) == ["config.json"]  # nothing ran, nothing written
+    assert sorted(p.name for p in run.iterdir()) == [RunDir(run).config.name]  # nothing ran, nothing written
 
 
 def test_config_json_that_is_not_json_is_refused(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
-    (run / "config.json").write_text('{"seed": 1,')
+    RunDir(run).config.write_text('{"seed": 1,')
     result = _cli("--resume", out=run)
-    assert result.returncode == 1 and "config.json" in result.stderr and "Traceback" not in result.stderr
+    assert result.returncode == 1 and RunDir(run).config.name in result.stderr and "Traceback" not in result.stderr
 
 
 # -- damaged state and checkpoints --------------------------------------------------------------------------
@@ -81,7 +82,7 @@ def _flip_a_weight_byte(path):
 def test_resume_skips_a_damaged_state_and_continues_from_the_previous_one(tmp_path, damage):
     straight = train(TrainConfig(total_timesteps=512, seed=4, **SMALL), tmp_path / "straight")
     run = train(TrainConfig(total_timesteps=384, seed=4, **SMALL), tmp_path / "run")
-    state = run / "state.safetensors"
+    state = RunDir(run).state
     assert check_training_state(previous_state_path(state))[1]["counters"]["global_step"] == 256  # the last two
     damage(state)
     result = _cli("--resume", "--total-timesteps", "512", out=run)
@@ -89,22 +90,25 @@ def test_resume_skips_a_damaged_state_and_continues_from_the_previous_one(tmp_pa
     assert f"skipped {state}" in result.stderr and f"resuming from {previous_state_path(state)} (step 256)" in (
         result.stderr
     )
-    _same_state(state, straight / "state.safetensors")  # the fall-back lost nothing but time
+    _same_state(state, RunDir(straight).state)  # the fall-back lost nothing but time
 
 
 def test_resume_with_both_states_damaged_is_a_clear_error(tmp_path):
     run = train(TrainConfig(total_timesteps=256, seed=4, **SMALL), tmp_path / "run")
-    _truncate(run / "state.safetensors")
-    _flip_a_weight_byte(previous_state_path(run / "state.safetensors"))
+    _truncate(RunDir(run).state)
+    _flip_a_weight_byte(previous_state_path(RunDir(run).state))
     result = _cli("--resume", "--total-timesteps", "512", out=run)
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert "no usable training state" in result.stderr
-    assert "state.safetensors" in result.stderr and "checksum" in result.stderr
+    assert RunDir(run).state.name in result.stderr and "checksum" in result.stderr
 
 
 def test_resume_names_a_damaged_policy_checkpoint_and_rewrites_the_resumed_steps(tmp_path):
     run = train(TrainConfig(total_timesteps=384, seed=4, **SMALL), tmp_path / "run")
-    old, last = run / "checkpoints" / "policy_00000128.safetensors", run / "checkpoints" / "policy_00000384.safetensors"
+    old, last = (
+        RunDir(run).checkpoints / "policy_00000128.safetensors",
+        RunDir(run).checkpoints / "policy_00000384.safetensors",
+    )
     _truncate(old)
     _truncate(last)
     result = _cli("--resume", "--total-timesteps", "512", out=run)
@@ -132,12 +136,12 @@ def test_a_disk_that_fills_up_stops_the_run_and_keeps_the_last_checkpoint(tmp_pa
     assert result.returncode == 1, result.stderr
     assert "No space left on device" in result.stderr and "last complete checkpoint is kept" in result.stderr
     assert "Traceback" not in result.stderr
-    state = saved / "state.safetensors"
+    state = RunDir(saved).state
     _, meta = check_training_state(state)
     step = meta["counters"]["global_step"]
     assert 64 <= step < 100000
     check_training_state(previous_state_path(state))
-    ckpts = sorted((saved / "checkpoints").glob("policy_*.safetensors"))
+    ckpts = [path for _, path in RunDir(saved).saved_checkpoints()]
     assert ckpts and all(load_checkpoint(p) for p in ckpts)  # every one complete; a half-written one never appears
     assert not list(saved.rglob("*.tmp")), "a temporary file was left behind"
     # On a disk with room again the run resumes from that checkpoint.

@@ -9,6 +9,7 @@ import argparse
 from pathlib import Path
 
 from morph_core.algo.ppo_config import family_defaults
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.trust_region import RULES
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -155,12 +156,12 @@ def live_config(args, parser, say: bool = True) -> tuple[TrainConfig, LiveOption
         parser.error(error)
     try:
         if args.resume:
-            if not (args.out / "state.safetensors").exists():
-                parser.error(f"--resume: no live run to resume in {args.out} (state.safetensors missing)")
+            if not (state := RunDir(args.out).state).exists():
+                parser.error(f"--resume: no live run to resume in {args.out} ({state.name} missing)")
             resumed = ResumedConfig(args.out, overrides)
             cfg = resumed.cfg
         else:
-            if (args.out / "state.safetensors").exists():
+            if RunDir(args.out).state.exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
             cfg, resumed = new_run_config(live_train_config(), overrides, say), None
         options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,

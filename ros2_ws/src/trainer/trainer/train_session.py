@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from morph_core.algo.checkpoint import load_training_state
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import replace_nested
@@ -42,7 +43,7 @@ class ResumedConfig:
     sets them from the config after restoring its state)."""
 
     def __init__(self, run_dir: str | Path, overrides: dict):
-        self.path = Path(run_dir) / "config.json"
+        self.path = RunDir(run_dir).config
         self.text = self.path.read_text()
         stored = TrainConfig.from_dict(json.loads(self.text))  # a file without newer fields: their defaults
         self.cfg = replace_nested(stored, overrides)
@@ -87,7 +88,7 @@ def saved_counters(run_dir: str | Path) -> dict | None:
     """The counters of the run's newest training state (global_step, iteration, ...), None without a
     readable one (then training itself says why)."""
     try:
-        _, meta = load_training_state(Path(run_dir) / "state.safetensors")
+        _, meta = load_training_state(RunDir(run_dir).state)
         return dict(meta["counters"])
     except Exception:  # a damaged or missing state: the trainer's resume reports it
         return None

@@ -1,16 +1,16 @@
 """One training run's lifecycle, the same for every trainer (simulator, bags, live): ``Run``.
 
-A run is a directory: ``config.json`` (the config it trains with, written atomically as it starts),
-``progress.csv`` and ``tb/`` (``run_log.RunLog``: a row per update), ``checkpoints/policy_<step>.safetensors``
-(the policy every ``checkpoint_interval`` steps and at the end) and ``state.safetensors`` (everything a
-resume needs, ``algo.checkpoint``; the state it replaced is kept beside it). A trainer is a loop around it::
+A run is a directory, its files named by ``run_dir.RunDir``: the config it trains with (written atomically
+as it starts), the progress log (``run_log.RunLog``: a row per update), the policy checkpoints (every
+``checkpoint_interval`` steps and at the end) and the state (everything a resume needs, ``algo.checkpoint``;
+the state it replaced is kept beside it). A trainer is a loop around it::
 
     run = Run(run_dir, cfg, resume=resume, on_row=on_row)
     if run.resuming:
         state = run.restore(learner, gen)                 # policy, Adam (with cfg's lr/eps), rule state, RNG
         meta, arrays = state.section("swimmers", 1)       # the trainer's own, named and versioned
     else:
-        run.start()                                       # the directory and config.json
+        run.start()                                       # the directory and its config
     run.open_log(columns)
     while ...:
         ...                                               # collect, advantages, update
@@ -39,7 +39,6 @@ import torch
 
 from morph_core.algo.checkpoint import (
     ResumedState,
-    previous_state_path,
     restore_optimizer,
     resume_training_state,
     save_training_state,
@@ -48,6 +47,7 @@ from morph_core.algo.checkpoint import (
 )
 from morph_core.algo.learner import Learner
 from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.run_log import RunLog
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.util.atomic import atomic_writer
@@ -80,36 +80,30 @@ class Run:
     (``report``)."""
 
     def __init__(self, run_dir: str | Path, cfg: PPOConfig, *, resume: bool = False, on_row: RowHook | None = None):
-        self.dir = Path(run_dir)
+        self.files = RunDir(run_dir)
+        self.dir = self.files.path
         self.cfg = cfg
         self.resume = resume
         self.on_row = on_row
-        self.state_path = self.dir / "state.safetensors"
-        self.checkpoints = self.dir / "checkpoints"
-        self.resuming = resume and (self.state_path.exists() or previous_state_path(self.state_path).exists())
+        self.resuming = resume and self.files.has_state()
         self.counters: dict = {"global_step": 0, "iteration": 0, "last_ckpt": 0}
         self.progress: RunLog | None = None
 
     # -- start or resume -----------------------------------------------------------------------------
     def start(self, config: dict | None = None, init: str | Path | None = None) -> None:
-        """A new run: the directory and ``config.json`` (``config``: what to write, else the run's config); with
-        ``init``, the checkpoint it starts from in ``init.json`` (a run killed before its first state restarts
-        from it)."""
+        """A new run: the directory and its config (``config``: what to write, else the run's config); with
+        ``init``, the checkpoint it starts from in the run's ``init`` file (a run killed before its first state
+        restarts from it)."""
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.write_json("config.json", self.cfg.to_dict() if config is None else config)
+        _write_json(self.files.config, self.cfg.to_dict() if config is None else config)
         if init is not None:
-            self.write_json("init.json", {"init": str(Path(init).resolve())})
-
-    def write_json(self, name: str, data: dict) -> None:
-        """A JSON file of the run (atomically: a reader never sees half of one)."""
-        with atomic_writer(self.dir / name) as f:
-            json.dump(data, f, indent=2)
+            _write_json(self.files.init, {"init": str(Path(init).resolve())})
 
     def restore(self, learner: Learner, gen: torch.Generator) -> RestoredState:
         """The newest good state (``checkpoint.resume_training_state``: a damaged one is skipped, named in the
         log) into ``learner`` (policy, Adam, the rule's state) and ``gen``; the counters too. Adam's learning
         rate and epsilon are the config's: a run resumed with a new ``learning_rate`` trains with it."""
-        resumed = resume_training_state(self.state_path)
+        resumed = resume_training_state(self.files.state)
         tensors, meta = resumed.tensors, resumed.meta
         learner.policy.load_state_dict(sub_dict(tensors, "policy."))
         restore_optimizer(learner.optimizer, tensors, meta)
@@ -124,7 +118,7 @@ class Run:
     def open_log(self, columns: list[str]) -> RunLog:
         """The progress log; a resumed run's is cut at the step it resumes from (its later rows come again)."""
         resume_step = self.counters["global_step"] if self.resume else None
-        self.progress = RunLog(self.dir, columns, resume_step=resume_step, tensorboard=self.cfg.tensorboard)
+        self.progress = RunLog(self.files, columns, resume_step=resume_step, tensorboard=self.cfg.tensorboard)
         return self.progress
 
     def log(self, row: dict, stats=None) -> None:
@@ -142,7 +136,7 @@ class Run:
         """This step is checkpointed (``last_ckpt``); the path of its policy checkpoint."""
         step = self.counters["global_step"]
         self.counters["last_ckpt"] = step
-        return self.checkpoints / f"policy_{step:08d}.safetensors"
+        return self.files.checkpoint(step)
 
     def save_state(
         self,
@@ -152,9 +146,9 @@ class Run:
         arrays: dict | None = None,
         more_rngs: dict[str, torch.Tensor] | None = None,
     ) -> None:
-        """``state.safetensors`` (atomically, the one it replaces kept): the learner, ``gen``, the counters and
+        """The state file (atomically, the one it replaces kept): the learner, ``gen``, the counters and
         the trainer's ``sections`` (name -> JSON with its ``version``; ``arrays`` as ``<section>.<key>``)."""
-        save_training_state(self.state_path, learner.policy, learner.optimizer, gen, sections, arrays or {},
+        save_training_state(self.files.state, learner.policy, learner.optimizer, gen, sections, arrays or {},
                             dict(self.counters), learner.state_tensors(), more_rngs)  # fmt: skip
 
     def report(self, row: dict, saved: bool) -> None:
@@ -165,6 +159,12 @@ class Run:
     def close(self) -> None:
         if self.progress is not None:
             self.progress.close()
+
+
+def _write_json(path: Path, data: dict) -> None:
+    """A JSON file of the run (atomically: a reader never sees half of one)."""
+    with atomic_writer(path) as f:
+        json.dump(data, f, indent=2)
 
 
 def initial_policy(cfg, init: str | Path | None, resume: bool):

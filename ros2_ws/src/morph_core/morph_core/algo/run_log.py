@@ -13,6 +13,7 @@ import csv
 import math
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.tb_layout import custom_scalars_layout, scalar_tag, update_histograms
 from morph_core.util.atomic import atomic_writer
 
@@ -24,8 +25,11 @@ shows ~30 bins anyway."""
 
 
 class RunLog:
-    def __init__(self, run_dir: Path, columns: list[str], resume_step: int | None = None, tensorboard: bool = True):
-        self.path = run_dir / "progress.csv"
+    def __init__(
+        self, run_dir: RunDir | Path, columns: list[str], resume_step: int | None = None, tensorboard: bool = True
+    ):
+        run_dir = run_dir if isinstance(run_dir, RunDir) else RunDir(run_dir)
+        self.path = run_dir.progress
         self.columns = columns
         self._known = set(columns)
         if resume_step is not None and self.path.exists():
@@ -45,7 +49,7 @@ class RunLog:
 
             # TensorBoard hides events at steps >= purge_step: the checkpoint's own row stays (as in the CSV).
             purge = None if resume_step is None else resume_step + 1
-            self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=purge)
+            self.tb = SummaryWriter(str(run_dir.tensorboard), purge_step=purge)
             layout = custom_scalars_layout(columns)
             if layout:  # once per writer (a resumed run's new event file carries it again)
                 self.tb.add_custom_scalars(layout)

@@ -8,7 +8,6 @@ one PPO update every data source uses, ``algo.update``), log and checkpoint.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -28,6 +27,7 @@ from morph_core.algo.ppo import compute_gae
 from morph_core.algo.ppo_config import PPOConfig, SimConfig
 from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
 from morph_core.algo.run import RowHook, Run, initial_policy
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.update_stats import update_columns
 from morph_core.env.bodies import is_chain_label
 from morph_core.env.vec_env import Episode, merge_env_states, split_env_state
@@ -93,7 +93,7 @@ def train(
     rollout_pool: PoolFactory | None = None,
     init: str | Path | None = None,
 ) -> Path:
-    """Train into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors). ``on_row(row,
+    """Train into ``run_dir`` (its files: ``run_dir.RunDir``). ``on_row(row,
     saved)`` hears each progress row once it is written and, when ``saved``, the state of its step too (a Ray
     Tune trial reports it, with the run's own state files as its checkpoint). ``rollout_pool`` makes the
     workers of ``cfg.rollout_workers`` > 1. ``init``: a policy checkpoint (.safetensors beside its .json) a new
@@ -112,7 +112,7 @@ def train(
             env_parts = split_env_state(swimmers, {k: v.numpy() for k, v in arrays.items()}, pool.bounds)
             pool.set_states([WorkerState(*part, _saved_rng(state.tensors, name))
                              for part, name in zip(env_parts, pool.rng_names, strict=True)])  # fmt: skip
-            _check_policy_checkpoints(run.checkpoints, run.counters["global_step"], learner.policy)
+            _check_policy_checkpoints(run.files, run.counters["global_step"], learner.policy)
         else:
             run.start(init=init)
         fit(run, learner, gen, Rollouts(cfg, run.counters, pool, helpers))
@@ -234,15 +234,15 @@ def _saved_rng(tensors: dict[str, torch.Tensor], name: str | None) -> torch.Tens
     return state
 
 
-def _check_policy_checkpoints(ckpt_dir: Path, step: int, policy: GraphActorCritic) -> None:
+def _check_policy_checkpoints(files: RunDir, step: int, policy: GraphActorCritic) -> None:
     """On resume: say which weights-only checkpoints are damaged (a disk fault, a copy cut short). The one of
     the resumed step is written again from the restored policy (the same weights); later ones are rewritten
     as the run passes their steps again; earlier ones cannot be remade and are only named."""
-    for path in sorted(ckpt_dir.glob("policy_*.safetensors")):
+    for saved, path in files.saved_checkpoints():
         try:
             load_checkpoint(path)
         except CheckpointError as err:
-            if path.name == f"policy_{step:08d}.safetensors":
+            if saved == step:
                 policy.save(path, metadata={"global_step": step})
                 log.warning("resume: %s; written again from the resumed state", err)
             else:
@@ -250,5 +250,5 @@ def _check_policy_checkpoints(ckpt_dir: Path, step: int, policy: GraphActorCriti
 
 
 def load_run_config(run_dir: str | Path, overrides: dict | None = None) -> TrainConfig:
-    cfg = TrainConfig.from_dict(json.loads((Path(run_dir) / "config.json").read_text()))
+    cfg = TrainConfig.from_dict(RunDir(run_dir).read_config())
     return replace_nested(cfg, overrides or {})

@@ -89,6 +89,7 @@ from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import compute_gae
 from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run import RowHook, Run, initial_policy
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.update_stats import update_columns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.chains import ChainBatch
@@ -382,7 +383,7 @@ def train_from_data(
     source: list[str] | None = None,
     on_row: RowHook | None = None,
 ) -> Path:
-    """PPO updates on ``data`` into ``run_dir`` (config.json, progress.csv, tb/, checkpoints/, state.safetensors).
+    """PPO updates on ``data`` into ``run_dir`` (its files: ``run_dir.RunDir``).
 
     ``iterations``: updates on these data (default: one pass, ceil(usable steps / batch_size); on ``resume`` the
     number the data set was started with). ``init``: a policy checkpoint (.safetensors beside its .json) to
@@ -391,7 +392,7 @@ def train_from_data(
     new data (the next round). ``source`` names the data (bag paths), for the record. ``on_row(row, saved)``:
     the row hook (``run.Run.report``).
     """
-    run_dir = Path(run_dir)
+    files = RunDir(run_dir)
     refuse_anneal(cfg, Recorded)
     if iterations is not None and iterations < 1:
         raise ValueError(f"iterations must be >= 1, got {iterations}")
@@ -399,8 +400,8 @@ def train_from_data(
         raise ValueError("new_data continues a run: it needs resume")
     if init is not None and resume:
         raise ValueError("init starts a new run; a resumed run continues from its own state")
-    if resume and not (run_dir / "state.safetensors").exists() and (run_dir / "init.json").exists():
-        init = json.loads((run_dir / "init.json").read_text())["init"]  # killed before its first checkpoint
+    if resume and not files.state.exists() and files.init.exists():
+        init = json.loads(files.init.read_text())["init"]  # killed before its first checkpoint
     check_data(data, cfg)
     digest = data_digest(data)
     usable = torch.from_numpy(np.flatnonzero(data.has_policy_info))  # the steps an update may take
@@ -443,9 +444,9 @@ def train_from_data(
         counters["data_round"] += 1
         counters["env_steps"] += len(data)
     # Trees in the data, the run's bodies or a log resumed: the returns over chains and trees apart, kept for the run.
-    trees = not data.is_chains or not cfg.body_mix.chains_only or (run.resuming and _logs_trees(run_dir))
+    trees = not data.is_chains or not cfg.body_mix.chains_only or (run.resuming and _logs_trees(files))
     fit(run, learner, gen, Recorded(cfg, data, usable, current, run.counters, gen, trees))
-    return run_dir
+    return files.path
 
 
 class Recorded:
@@ -520,10 +521,10 @@ class Recorded:
         return 1, {"kl": f"{row['approx_kl']:.3f}", "w": f"{row['is_weight_mean']:.3f}"}
 
 
-def _logs_trees(run_dir: Path) -> bool:
-    """Whether the run's progress.csv has the returns over chains and trees (an earlier round had trees)."""
+def _logs_trees(files: RunDir) -> bool:
+    """Whether the run's progress log has the returns over chains and trees (an earlier round had trees)."""
     try:
-        with (run_dir / "progress.csv").open() as f:
+        with files.progress.open() as f:
             return "return_trees" in f.readline().strip().split(",")
     except OSError:
         return False
@@ -532,7 +533,7 @@ def _logs_trees(run_dir: Path) -> bool:
 def run_state(run_dir: str | Path) -> dict | None:
     """What a run trained from data holds (its counters and current data set: digest, steps, source,
     iterations, done), or None before its first checkpoint."""
-    path = Path(run_dir) / "state.safetensors"
+    path = RunDir(run_dir).state
     if not path.exists():
         return None
     tensors, meta = load_training_state(path)

@@ -16,16 +16,20 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 from morph_core.util.config_cli import CommandLineParser, DefaultsHelpFormatter
-
-
-class BringupError(RuntimeError):
-    """A node of the bring-up exited or never came up: said in one line (its own error is above), no traceback."""
+from morph_ros_util.processes import (
+    BringupError,
+    NodeProcess,
+    has_parameter,
+    start_node,
+    stop_all,
+    use_fastdds_profile,
+    wait_for_subscriber,
+)
 
 
 def fastdds_profile() -> str | None:
@@ -35,61 +39,6 @@ def fastdds_profile() -> str | None:
     except ImportError:
         return None
     return str(morph_policy_node.FASTDDS_PROFILE)
-
-
-def _start(module: str, namespace: str, params: dict) -> subprocess.Popen:
-    args = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={namespace or '/'}"]
-    for k, v in params.items():
-        args += ["-p", f"{k}:={v}"]
-    return subprocess.Popen(args)
-
-
-def _stop(procs: list[subprocess.Popen], sig=signal.SIGTERM) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(sig)
-    for p in procs:
-        try:
-            p.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
-def _has_parameter(node, target: str, name: str, timeout: float) -> bool:
-    """Whether node ``target`` declares parameter ``name`` (asked over its parameter service)."""
-    import rclpy
-    from rcl_interfaces.srv import ListParameters
-
-    client = node.create_client(ListParameters, f"{target}/list_parameters")
-    if not client.wait_for_service(timeout_sec=timeout):
-        raise BringupError(f"{target} did not come up within {timeout} s (exited, or DDS discovery failed)")
-    future = client.call_async(ListParameters.Request(names=[name]))
-    rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
-    if future.result() is None:
-        raise BringupError(f"no answer from {target}/list_parameters")
-    return name in future.result().result.names
-
-
-def _wait_for_subscriber(node, proc, alternatives: list[list[str]], name: str, timeout: float) -> None:
-    """Until node ``name`` subscribes to every topic of one of ``alternatives`` (as the ROS graph shows it)."""
-    import rclpy
-
-    def missing(topics: list[str]) -> list[str]:
-        return [t for t in topics if not any(i.node_name == name for i in node.get_subscriptions_info_by_topic(t))]
-
-    deadline = time.monotonic() + timeout
-    while True:
-        left = [missing(topics) for topics in alternatives]
-        if not all(left):
-            return
-        said = " or ".join(str(m) for m in left)
-        if proc.poll() is not None:
-            raise BringupError(f"{name} exited (code {proc.returncode}) before it subscribed to {said}: see its "
-                               "error above")  # fmt: skip
-        if time.monotonic() > deadline:
-            raise BringupError(f"{name} did not subscribe to {said} within {timeout} s (DDS discovery failed?)")
-        rclpy.spin_once(node, timeout_sec=0.05)
 
 
 def _legged(spec: str | None) -> bool:
@@ -103,9 +52,7 @@ def _legged(spec: str | None) -> bool:
 
 
 def run(args) -> int:
-    profile = fastdds_profile()
-    if profile:
-        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    use_fastdds_profile(fastdds_profile())
     import rclpy
 
     out = Path(args.out)
@@ -133,10 +80,10 @@ def run(args) -> int:
 
     rclpy.init()
     node = rclpy.create_node("record_bringup", namespace=ns or "/")
-    procs: list[subprocess.Popen] = []
+    procs: list[NodeProcess] = []
     try:
-        procs.append(_start("swimmer_sim_node.sim_node", ns, sim_params))
-        episodes = _has_parameter(node, f"{ns}/swimmer_sim", "episode_steps", args.startup_timeout)
+        procs.append(start_node("swimmer_sim_node.sim_node", ns, sim_params))
+        episodes = has_parameter(node, f"{ns}/swimmer_sim", "episode_steps", args.startup_timeout)
         if episodes:
             recorder_params["max_episodes"] = args.episodes
             what = f"{args.episodes} episodes of {args.steps_per_episode} steps"
@@ -148,11 +95,11 @@ def run(args) -> int:
         # recorder, started now, so the bag begins with the reset state. The policy starts once the
         # recorder listens to everything (its own topics are subscribed in advance), or the loop
         # could run many steps before the recorder hears of the policy.
-        recorder = _start("trainer.bags.record", ns, recorder_params)
+        recorder = start_node("trainer.bags.record", ns, recorder_params)
         procs.insert(0, recorder)
         topics = ["joint_states", "effort_commands", "policy_info"] + (["episode_start"] if episodes else [])
-        _wait_for_subscriber(node, recorder, [[f"{ns}/{t}" for t in topics]], "morph_record", args.startup_timeout)
-        procs.append(_start("morph_policy_node.policy_node", ns, policy_params))
+        wait_for_subscriber(node, recorder, [[f"{ns}/{t}" for t in topics]], "morph_record", args.startup_timeout)
+        procs.append(start_node("morph_policy_node.policy_node", ns, policy_params))
         body = f"{args.joints} joints" if args.bodies is None else f"bodies {args.bodies}"
         print(f"record_bringup: recording {what}, {body}, into {out}", flush=True)
         deadline = time.monotonic() + args.timeout
@@ -161,11 +108,11 @@ def run(args) -> int:
                 raise BringupError("a node exited early; see its output above")
             if time.monotonic() > deadline:
                 print(f"record_bringup: timed out after {args.timeout} s: closing the bag early", flush=True)
-                _stop([recorder], signal.SIGINT)
+                recorder.stop(signal.SIGINT)
                 break
             time.sleep(0.2)
     finally:
-        _stop(procs)
+        stop_all(procs)
         node.destroy_node()
         rclpy.try_shutdown()
     if recorder.returncode not in (0, None):

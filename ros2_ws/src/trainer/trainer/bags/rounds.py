@@ -38,7 +38,6 @@ import csv
 import glob
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -47,8 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import BoolAction, CommandLineParser
+from morph_ros_util.processes import NodeProcess, has_endpoint, start_node, stop_all, use_fastdds_profile
 from trainer.bags.record_bringup import fastdds_profile
 
 DIMS = range(2, 11)
@@ -115,19 +116,14 @@ class Bringup:
         self._rclpy = rclpy
         log_path.parent.mkdir(parents=True, exist_ok=True)
         self.log = open(log_path, "ab")  # noqa: SIM115 - closed in stop()
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, NodeProcess] = {}
         self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node("bag_rounds", context=self.context)
 
     def start(self, name: str, module: str, params: dict) -> None:
-        args = [sys.executable, "-m", module, "--ros-args", "-r", f"__ns:={self.namespace or '/'}"]
-        for k, v in params.items():
-            args += ["-p", f"{k}:={v}"]
-        self.log.write(f"$ {' '.join(args)}\n".encode())
-        self.log.flush()
-        self.procs[name] = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT)
+        self.procs[name] = start_node(module, self.namespace, params, output=self.log, echo=True)
 
     def check_alive(self, but: str = "") -> None:
         for name, p in self.procs.items():
@@ -150,23 +146,10 @@ class Bringup:
             executor.shutdown()
 
     def stop(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_all(self.procs.values())
         self.node.destroy_node()
         self.context.try_shutdown()
         self.log.close()
-
-
-def _endpoints(node, topic: str, node_name: str, kind: str) -> bool:
-    infos = node.get_subscriptions_info_by_topic(topic) if kind == "sub" else node.get_publishers_info_by_topic(topic)
-    return any(i.node_name == node_name for i in infos)
 
 
 def record_round(cfg: RoundsConfig, r: int, checkpoint: Path) -> None:
@@ -191,7 +174,7 @@ def record_round(cfg: RoundsConfig, r: int, checkpoint: Path) -> None:
             ("policy_info", "morph_record", "sub"), ("joint_states", "morph_policy", "sub"),
             ("effort_commands", "morph_policy", "pub"), ("policy_info", "morph_policy", "pub"),
         )]  # fmt: skip
-        up.wait_for("the recorder and the policy node", lambda n: all(_endpoints(n, *w) for w in wanted),
+        up.wait_for("the recorder and the policy node", lambda n: all(has_endpoint(n, *w) for w in wanted),
                     cfg.startup_timeout)  # fmt: skip
         bodies = (
             {"topology": cfg.bodies}
@@ -286,9 +269,10 @@ def train_round(cfg: RoundsConfig, r: int, data: RoundData, init: Path) -> None:
 
     state = run_state(cfg.train_dir)
     if state is None:
-        if r != 1 and not (cfg.train_dir / "config.json").exists():
+        started = RunDir(cfg.train_dir).config.exists()
+        if r != 1 and not started:
             raise RoundFailed(f"round {r}: {cfg.train_dir} holds no trained state from the rounds before")
-        mode = ["--resume"] if (cfg.train_dir / "config.json").exists() else ["--init", str(init)]
+        mode = ["--resume"] if started else ["--init", str(init)]
     elif state["digest"] == data.digest:
         if state["done"] >= state["iterations"]:
             return  # trained already (the round was cut after training)
@@ -314,11 +298,11 @@ def latest_checkpoint(cfg: RoundsConfig) -> Path:
     from morph_core.algo.train_from_data import run_state
 
     state = run_state(cfg.train_dir)
-    return cfg.train_dir / "checkpoints" / f"policy_{state['global_step']:08d}.safetensors"
+    return RunDir(cfg.train_dir).checkpoint(state["global_step"])
 
 
 def last_update(cfg: RoundsConfig) -> dict:
-    with (cfg.train_dir / "progress.csv").open() as f:
+    with RunDir(cfg.train_dir).progress.open() as f:
         rows = list(csv.DictReader(f))
     return rows[-1]
 
@@ -423,7 +407,7 @@ def compare(out: Path, pattern: str) -> list[dict]:
     """``comparison.csv`` (and ``comparison.png``): each round's return beside the simulator runs' at the same
     env steps (mean, min and max over the runs matching ``pattern``/progress.csv)."""
     rows = read_rows(out / "rounds.csv")
-    paths = sorted(Path(p) / "progress.csv" for p in glob.glob(pattern))
+    paths = sorted(RunDir(p).progress for p in glob.glob(pattern))
     paths = [p for p in paths if p.exists()]
     if not rows:
         return []
@@ -546,9 +530,7 @@ def main(argv: list[str] | None = None) -> int:
         )  # fmt: skip
         if cfg.out.exists() and (cfg.out / "rounds.csv").exists():
             print(f"bag_rounds: continuing {cfg.out} ({len(read_rows(cfg.out / 'rounds.csv'))} rounds done)")
-        profile = fastdds_profile()
-        if profile:
-            os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+        use_fastdds_profile(fastdds_profile())
         try:
             run_rounds(cfg)
         except RoundFailed as err:

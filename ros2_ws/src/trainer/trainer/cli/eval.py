@@ -32,6 +32,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.policy.weights import CheckpointError, load_checkpoint
 from morph_core.util.config_cli import (
     BoolAction,
@@ -96,8 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         print(checkpoint_table(args.checkpoint, cfg))
         return 0
     for run in args.run:
-        if not (run / "config.json").exists():
-            parser.error(f"{run} is not a training run (config.json missing)")
+        if not (config := RunDir(run).config).exists():
+            parser.error(f"{run} is not a training run ({config.name} missing)")
     if args.plots is not None:
         from trainer.reports.runs import load_runs
 

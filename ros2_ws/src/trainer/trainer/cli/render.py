@@ -31,11 +31,11 @@ OSMesa (``morph_core.env.render.choose_gl_backend``).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.constants import MAX_JOINTS, MIN_JOINTS
 from morph_core.env.bodies import is_chain_label, parse_bodies
 from morph_core.policy.weights import CheckpointError, PolicyWeights, load_checkpoint, untrained_weights
@@ -123,10 +123,9 @@ def training_rule(weights: PolicyWeights) -> str:
         return "untrained"
     rule = weights.metadata.get("clip_mode")
     if rule is None:
-        # A training checkpoint: <run>/checkpoints/policy_*.safetensors, the run's config two levels up.
-        config = Path(weights.source).parent.parent / "config.json"
+        # A training checkpoint: the config of the run it belongs to.
         try:
-            rule = json.loads(config.read_text()).get("clip_mode")
+            rule = RunDir.of_checkpoint(weights.source).read_config().get("clip_mode")
         except (OSError, ValueError, AttributeError):
             rule = None
     return f"{rule} clipping" if isinstance(rule, str) and rule else "rule unknown"

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.algo import trust_region
+from morph_core.algo.run_dir import RunDir
 from morph_core.theory import clip_analysis as theory
 from morph_core.theory import fisher_scaling
 from morph_core.util.config_cli import BoolAction, CommandLineParser
@@ -461,8 +462,8 @@ RUN_EPOCHS = {"all": "", "first": "_first", "last": "_last"}
 """``run_epoch`` -> the column tag of those statistics (``algo.update_stats.EPOCH_TAGS``)"""
 
 
-def load_run(path: Path, fallback_eps: float | None = None, epoch: str = "all") -> RunData:
-    """Read ``progress.csv`` (or the one inside a run dir) and the run's ``config.json``.
+def load_run_data(path: Path, fallback_eps: float | None = None, epoch: str = "all") -> RunData:
+    """Read a run's progress log (a run directory, or the CSV itself) and its config (``algo.run_dir.RunDir``).
 
     ``epoch``: the statistics of all epochs pooled, or of each update's first or last epoch alone,
     returned under the pooled names (``in_eps_frac_d<d>`` ...). Raises ``ValueError`` naming the
@@ -471,7 +472,8 @@ def load_run(path: Path, fallback_eps: float | None = None, epoch: str = "all") 
     if epoch not in RUN_EPOCHS:
         raise ValueError(f"run_epoch must be one of {list(RUN_EPOCHS)}, got {epoch!r}")
     tag = RUN_EPOCHS[epoch]
-    csv_path = path / "progress.csv" if path.is_dir() else path
+    files = RunDir(path if path.is_dir() else path.parent)
+    csv_path = files.progress if path.is_dir() else path
     if not csv_path.is_file():
         raise ValueError(f"run CSV not found: {csv_path}")
     with csv_path.open(newline="") as fh:
@@ -491,7 +493,7 @@ def load_run(path: Path, fallback_eps: float | None = None, epoch: str = "all") 
         return np.array([float(r[name]) if r.get(name, "") not in ("", None) else np.nan for r in records])
 
     columns = {f"{k}_d{d}": column(f"{k}{tag}_d{d}") for d in dims for k in RUN_COLUMNS}
-    config_path = csv_path.parent / "config.json"
+    config_path = files.config
     if config_path.is_file():
         config = json.loads(config_path.read_text())
         if "clip_eps" not in config:
@@ -541,7 +543,7 @@ def run_overlay_rows(run: RunData, tail: float) -> list[dict[str, float]]:
 
 
 def figure5(cfg: TheoryConfig, plt) -> dict[str, float]:
-    runs = [load_run(p, fallback_eps=cfg.eps, epoch=cfg.run_epoch) for p in cfg.run_csv]
+    runs = [load_run_data(p, fallback_eps=cfg.eps, epoch=cfg.run_epoch) for p in cfg.run_csv]
     fig, (ax_p, ax_m) = plt.subplots(1, 2, figsize=(11.0, 4.4))
     all_rows, summary = [], {}
     for k, run in enumerate(runs):
@@ -594,7 +596,7 @@ def check_inputs(cfg: TheoryConfig) -> None:
     if not 0 < cfg.run_tail <= 1:
         raise ValueError(f"run_tail must be in (0, 1], got {cfg.run_tail}")
     for path in cfg.run_csv:
-        run = load_run(path, fallback_eps=cfg.eps, epoch=cfg.run_epoch)
+        run = load_run_data(path, fallback_eps=cfg.eps, epoch=cfg.run_epoch)
         if not run_overlay_rows(run, cfg.run_tail):
             raise ValueError(f"{run.name}: every row of every dimension is empty")
 

@@ -57,6 +57,7 @@ from pathlib import Path
 
 from morph_core.algo.checkpoint import TrainingStateError
 from morph_core.algo.rollout_workers import RolloutWorkerError
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig, train
 from morph_core.algo.train_from_data import describe_bodies, passes_cut, train_from_data
 from morph_core.protocol.transition_batch import MissingPolicyInfoError
@@ -95,15 +96,15 @@ def _train_from_bags(args) -> None:
     source = [str(Path(b).resolve()) for b in args.from_bags]
     resumed = None
     if args.resume:
-        if not (args.out / "config.json").exists():
-            raise CliError(f"--resume: no run to resume in {args.out} (config.json missing)")
+        if not (config := RunDir(args.out).config).exists():
+            raise CliError(f"--resume: no run to resume in {args.out} ({config.name} missing)")
         resumed = ResumedConfig(args.out, overrides)
         cfg = resumed.cfg
         if not args.new_data and (done := finished_data_message(args.out, source, args.iterations)):
             print(f"morph-train: {done}")
             return
     else:
-        if (args.out / "state.safetensors").exists():
+        if RunDir(args.out).state.exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         cfg = new_run_config(TrainConfig(), overrides)
     if (error := descriptions_error(cfg, args.init)) is not None:
@@ -141,7 +142,7 @@ def _train_from_bags(args) -> None:
         print(f"morph-train: progress bar: kl = the update's approximate KL (warned above {follower.kl_limit:g}), "
               "w = its samples' mean importance weight min(pi_prox / pi_behav, proximal_weight_cap): 1 on the "
               "policy's own data, lower as it moves away from the policy that acted", file=sys.stderr)  # fmt: skip
-    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+    with resumed.kept_unless_trained(RunDir(args.out).state) if resumed else contextlib.nullcontext():
         if resumed:
             resumed.write_back()
         with follower:
@@ -168,7 +169,7 @@ def _train_live(args, parser) -> int:
     except ValueError as err:  # KeyFileError is a ValueError
         parser.error(str(err))
     follower = _follower(args.out, cfg, args.resume)
-    with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+    with resumed.kept_unless_trained(RunDir(args.out).state) if resumed else contextlib.nullcontext():
         if resumed:
             resumed.write_back()
         with follower:
@@ -219,21 +220,21 @@ def main(argv: list[str] | None = None) -> int:
     overrides = overrides_from_args(args, TrainConfig)
     resumed = None
     if args.resume:
-        if not (args.out / "config.json").exists():
-            parser.error(f"--resume: no run to resume in {args.out} (config.json missing)")
+        if not (config := RunDir(args.out).config).exists():
+            parser.error(f"--resume: no run to resume in {args.out} ({config.name} missing)")
         try:
             resumed = ResumedConfig(args.out, overrides)
         except ResumeError as err:
             parser.error(str(err))
         except (OSError, TypeError, ValueError) as err:  # a hand-edited config.json: said before anything runs
-            print(f"morph-train: error: {args.out / 'config.json'}: {err}", file=sys.stderr)
+            print(f"morph-train: error: {RunDir(args.out).config}: {err}", file=sys.stderr)
             return 1
         cfg = resumed.cfg
         if done := finished_message(args.out, cfg):
             print(f"morph-train: {done}")
             return 0
     else:
-        if (args.out / "state.safetensors").exists():
+        if RunDir(args.out).state.exists():
             parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         try:
             cfg = new_run_config(TrainConfig(), overrides)
@@ -254,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
               f"kl = the last update's approximate KL (warned above {follower.kl_limit:g})",
               file=sys.stderr)  # fmt: skip
     try:
-        with resumed.kept_unless_trained(args.out / "state.safetensors") if resumed else contextlib.nullcontext():
+        with resumed.kept_unless_trained(RunDir(args.out).state) if resumed else contextlib.nullcontext():
             if resumed:
                 resumed.write_back()
             with follower:

@@ -19,6 +19,8 @@ import math
 import sys
 from pathlib import Path
 
+from morph_core.algo.run_dir import RunDir
+
 KL_WARN_FACTOR = 10.0
 """an update's approximate KL above KL_WARN_FACTOR x kl_target is warned about"""
 MAX_WARNINGS = 3
@@ -48,7 +50,8 @@ class ProgressFollower:
         tool: str = "morph-train",
         hint: str = "a lower --learning-rate keeps it closer",
     ):
-        self.path = Path(run_dir) / "progress.csv"
+        self.files = RunDir(run_dir)
+        self.path = self.files.progress
         self.kl_limit = kl_limit
         self.hint = hint
         self.start_step = start_step
@@ -154,14 +157,15 @@ class ProgressFollower:
                 head += (
                     f"; {len(self.high_kl)} of {len(self.session)} updates above KL {self.kl_limit:g} (max {top:.3g})"
                 )
-        where = f"{self.tool}: files in {run_dir}: config.json, progress.csv"
-        if (run_dir / "tb").is_dir():
-            where += ", tb/"
-        checkpoints = sorted((run_dir / "checkpoints").glob("policy_*.safetensors"))
+        files = RunDir(run_dir)
+        where = f"{self.tool}: files in {run_dir}: {files.config.name}, {files.progress.name}"
+        if files.tensorboard.is_dir():
+            where += f", {files.tensorboard.name}/"
+        checkpoints = [path for _, path in files.saved_checkpoints()]
         if checkpoints:
-            where += f", checkpoints/ ({len(checkpoints)}, the last {checkpoints[-1].name})"
-        if (run_dir / "state.safetensors").exists():
-            where += ", state.safetensors (for --resume)"
+            where += f", {files.checkpoints.name}/ ({len(checkpoints)}, the last {checkpoints[-1].name})"
+        if files.state.exists():
+            where += f", {files.state.name} (for --resume)"
         return [head, where]
 
     def training_return(self) -> tuple[float, int]:

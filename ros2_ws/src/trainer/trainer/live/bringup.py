@@ -33,7 +33,15 @@ from pathlib import Path
 from morph_core.msgs.stream_chunk import TOPIC as CHUNK_TOPIC
 from morph_core.protocol.trust import load_public_key, load_signing_key, public_key_path, write_key_pair
 from morph_core.util.config_cli import BoolAction, CommandLineParser, DefaultsHelpFormatter
-from trainer.bags.record_bringup import PROG_ENV, BringupError, _start, _stop, _wait_for_subscriber, fastdds_profile
+from morph_ros_util.processes import (
+    BringupError,
+    NodeProcess,
+    start_node,
+    stop_all,
+    use_fastdds_profile,
+    wait_for_subscriber,
+)
+from trainer.bags.record_bringup import PROG_ENV, fastdds_profile
 from trainer.codec import DATA_TOPIC_TYPES
 
 TRAINER_NODE = "morph_live_trainer"
@@ -131,17 +139,13 @@ def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: 
 
 
 def run(args, extra: list[str]) -> int:
-    import subprocess
-
     from trainer.train_options import check_live
 
     namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
     # What the trainer would refuse (an --out that holds a run, no run to --resume, a bad option after --) it
     # refuses here, with its own one-line error, before any process starts.
     check_live(trainer_arguments(namespaces, args, extra))
-    profile = fastdds_profile()
-    if profile:
-        os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", profile)
+    use_fastdds_profile(fastdds_profile())
     import rclpy
 
     if args.signing_key is not None:  # the user's own key: the nodes trust its public half
@@ -151,8 +155,8 @@ def run(args, extra: list[str]) -> int:
         key = run_key_pair(keys)
     rclpy.init()
     node = rclpy.create_node("live_bringup")
-    trainer = subprocess.Popen(trainer_command(namespaces, args, extra, key))
-    procs: list[subprocess.Popen] = []
+    trainer = NodeProcess(trainer_command(namespaces, args, extra, key))
+    procs: list[NodeProcess] = []
     specs: list[tuple[str, str, dict]] = []
     interrupted = False
     try:
@@ -161,11 +165,11 @@ def run(args, extra: list[str]) -> int:
             sim, policy = pair_params(i, args.min_joints, args.max_joints, nodes_start, args.real_time_factor,
                                       public_key_path(key), args.bodies)  # fmt: skip
             specs.append(("swimmer_sim_node.sim_node", ns, sim))
-            procs.append(_start(*specs[-1]))
+            procs.append(start_node(*specs[-1]))
             inputs = [[f"{ns}/{t}" for t in topics] for topics in TRAINER_INPUTS]
-            _wait_for_subscriber(node, trainer, inputs, TRAINER_NODE, args.startup_timeout)
+            wait_for_subscriber(node, trainer, inputs, TRAINER_NODE, args.startup_timeout)
             specs.append(("morph_policy_node.policy_node", ns, policy))
-            procs.append(_start(*specs[-1]))
+            procs.append(start_node(*specs[-1]))
         print(f"live_bringup: {args.pairs} pairs running, trainer writing to {args.out}", flush=True)
         deadline = time.monotonic() + args.timeout
         try:
@@ -174,8 +178,8 @@ def run(args, extra: list[str]) -> int:
             print("live_bringup: interrupted: stopping the trainer and the pairs", flush=True)
             interrupted = True
     finally:
-        _stop([trainer])
-        _stop(procs)
+        trainer.stop()
+        stop_all(procs)
         node.destroy_node()
         rclpy.try_shutdown()
         if keys is not None:
@@ -197,7 +201,7 @@ def _watch(trainer, procs: list, specs: list, deadline: float, timeout: float) -
         for k in ended:
             module, ns, _ = specs[k]
             print(f"live_bringup: {module} in {ns} ended ({procs[k].returncode}): restarting it", flush=True)
-            procs[k] = _start(*specs[k])
+            procs[k] = start_node(*specs[k])
         time.sleep(0.5)
 
 

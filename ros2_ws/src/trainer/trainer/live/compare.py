@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from morph_core.util.config_cli import CommandLineParser
-from trainer.reports.runs import Run, load_run, series, smooth
+from trainer.reports.runs import RunReport, load_run_report, series, smooth
 
 SMOOTHING = 5  # updates, as trainer.reports.summary
 
 
-def return_at(run: Run, steps: np.ndarray) -> np.ndarray:
+def return_at(run: RunReport, steps: np.ndarray) -> np.ndarray:
     """The run's smoothed training return at each of ``steps`` (its last update at or before; NaN before any)."""
     at, ret = series(run.progress, "return_mean")
     smoothed = smooth(ret, SMOOTHING)
@@ -35,7 +35,7 @@ def return_at(run: Run, steps: np.ndarray) -> np.ndarray:
     return np.where(steps <= at[-1], out, np.nan) if len(at) else np.full(len(steps), np.nan)
 
 
-def table(groups: dict[str, list[Run]], marks: list[int]) -> str:
+def table(groups: dict[str, list[RunReport]], marks: list[int]) -> str:
     """Markdown: per source and seed, the return at each mark, the mean of the last 10 updates, and the steps."""
     head = " | ".join(f"at {m // 1000}k" for m in marks)
     lines = [f"| source | run | {head} | last 10 updates | steps |", "|---|---|" + "---:|" * (len(marks) + 2)]
@@ -59,7 +59,7 @@ KL_DIVERGED = 1.0
 """an update whose approximate KL exceeds this moved the policy far outside any trust region"""
 
 
-def stability_table(groups: dict[str, list[Run]], last: int = 5) -> str:
+def stability_table(groups: dict[str, list[RunReport]], last: int = 5) -> str:
     """Markdown: per run, the largest approximate KL of an update, the step of the first update above
     ``KL_DIVERGED``, and 1000 x reward per step over the ``last`` updates (a measure that, unlike returns,
     does not depend on how episodes were cut; "-" for runs that do not log it)."""
@@ -78,7 +78,7 @@ def stability_table(groups: dict[str, list[Run]], last: int = 5) -> str:
     return "\n".join(lines)
 
 
-def plot(groups: dict[str, list[Run]], path: Path) -> Path:
+def plot(groups: dict[str, list[RunReport]], path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -121,9 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plot", type=Path, default=None, help="write the curves to this .png")
     args = ap.parse_args(argv)
     try:
-        groups = {"live": [load_run(d) for d in args.live]}
+        groups = {"live": [load_run_report(d) for d in args.live]}
         if args.simulator:
-            groups["simulator"] = [load_run(d) for d in args.simulator]
+            groups["simulator"] = [load_run_report(d) for d in args.simulator]
     except (OSError, ValueError, KeyError) as err:
         ap.error(str(err))
     for runs in groups.values():

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.msgs.records import JointStateRecord
 from morph_core.protocol.loopback import SamplingController, record_episodes
@@ -115,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     add_dataclass_options(parser, InProcessOptions)
     add_dataclass_options(parser, TrainConfig, skip=("anneal_lr",), defaults=live_train_config())
     args = parser.parse_args(argv)
-    if (args.out / "config.json").exists():
+    if RunDir(args.out).config.exists():
         parser.error(f"{args.out} already holds a run")
     try:
         options = replace_nested(InProcessOptions(), overrides_from_args(args, InProcessOptions))

@@ -9,9 +9,7 @@ after every checkpoint.
 from __future__ import annotations
 
 import csv
-import json
 import multiprocessing
-import re
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,13 +17,13 @@ from pathlib import Path
 from threadpoolctl import threadpool_limits
 
 from morph_core.algo.evaluate import Body, Episodes, evaluate_episodes
+from morph_core.algo.run_dir import RunDir
 from morph_core.env.bodies import body_label, chain_label, parse_bodies
 from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import load_checkpoint
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import replace_nested
 
-CKPT = re.compile(r"policy_(\d+)\.safetensors$")
 EVAL_COLUMNS = ["global_step", "num_joints", "episode", "return", "body", "steps", "distance"]
 """A row per episode. ``steps``: how long it lasted; ``distance``: the root's x displacement, metres (empty in
 rows written before they were recorded)."""
@@ -61,7 +59,7 @@ CENTIPEDE_ZERO_SHOT = (5, 6, 8, 10)
 def run_bodies(run_dir: Path) -> str:
     """The ``bodies`` spec the run in ``run_dir`` trained on ('' for chains of min_joints..max_joints)."""
     try:
-        return str(json.loads((run_dir / "config.json").read_text()).get("bodies", "") or "")
+        return str(RunDir(run_dir).read_config().get("bodies", "") or "")
     except (OSError, ValueError, AttributeError):
         return ""  # no readable config: the defaults (a run without one is refused where it is read)
 
@@ -77,17 +75,8 @@ def run_eval_config(run_dir: Path, cfg: EvalConfig, given: set[str]) -> EvalConf
     return replace_nested(cfg, {"lengths": [], "bodies": f"{trained},{zero_shot}"})
 
 
-def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
-    found = []
-    for p in (run_dir / "checkpoints").glob("policy_*.safetensors"):
-        m = CKPT.search(p.name)
-        if m:
-            found.append((int(m.group(1)), p))
-    return sorted(found)
-
-
 def read_eval(run_dir: Path) -> list[dict]:
-    path = run_dir / "eval.csv"
+    path = RunDir(run_dir).evaluation
     if not path.exists():
         return []
     with path.open() as f:
@@ -116,9 +105,9 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
     rows = read_eval(run_dir)
     done = {(int(r["global_step"]), r["body"]) for r in rows}
     bodies = eval_bodies(cfg)
-    ckpts = checkpoints(run_dir)
+    ckpts = RunDir(run_dir).saved_checkpoints()
     if not ckpts:
-        raise FileNotFoundError(f"no checkpoints in {run_dir / 'checkpoints'}")
+        raise FileNotFoundError(f"no checkpoints in {RunDir(run_dir).checkpoints}")
     chosen = [(step, path) for step, path in ckpts[:: cfg.stride] if step >= cfg.from_step]
     if not chosen or chosen[-1] != ckpts[-1]:
         chosen.append(ckpts[-1])
@@ -136,7 +125,7 @@ def evaluate_run(run_dir: Path, cfg: EvalConfig, log=print) -> list[dict]:
             ]  # fmt: skip
         rows.sort(key=lambda r: (int(r["global_step"]), int(r["num_joints"]), r["body"], int(r["episode"])))
         # Rewrite the whole file atomically after every checkpoint: an interrupted run loses nothing.
-        with atomic_writer(run_dir / "eval.csv") as f:
+        with atomic_writer(RunDir(run_dir).evaluation) as f:
             w = csv.DictWriter(f, fieldnames=EVAL_COLUMNS)
             w.writeheader()
             w.writerows(rows)

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from morph_core.algo.trust_region import rule_names  # noqa: E402
 from morph_core.util.atomic import atomic_writer  # noqa: E402
-from trainer.reports.runs import Run, eval_means, load_runs, series, smooth  # noqa: E402
+from trainer.reports.runs import RunReport, eval_means, load_runs, series, smooth  # noqa: E402
 
 
 def rule_color(rule: str) -> str:
@@ -26,7 +26,7 @@ def rule_color(rule: str) -> str:
     return f"C{rule_names().index(rule) % 10}"
 
 
-def _panels(groups: dict[str, list[Run]], width: float = 5.5, per_row: int = 4):
+def _panels(groups: dict[str, list[RunReport]], width: float = 5.5, per_row: int = 4):
     """One panel per rule with runs (at least one panel), ``per_row`` to a row, sharing the y axis."""
     rules = list(groups) or [""]
     cols = min(per_row, len(rules))

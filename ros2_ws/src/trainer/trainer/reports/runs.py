@@ -1,4 +1,4 @@
-"""Training run directories as data: config.json, progress.csv, eval.csv, grouped by trust-region rule.
+"""Training run directories as data (``RunReport``: config, progress and eval rows), grouped by trust-region rule.
 
 What the figures (``plots``), the tables (``summary``) and the model picker
 (``ship``) read. Runs are grouped under their ``clip_mode`` in the order of
@@ -11,7 +11,6 @@ seeds would read as one rule's spread.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import re
 from collections import defaultdict
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.trust_region import rule_names
 from morph_core.env.bodies import chain_label, is_chain_label
@@ -30,8 +30,9 @@ HOW_RUN = frozenset({"seed", "torch_threads", "env_threads", "processes", "compi
 
 
 @dataclass
-class Run:
-    """One run directory's files: its config, progress rows and eval rows (empty without eval.csv)."""
+class RunReport:
+    """What a report reads of one run directory (``algo.run_dir.RunDir``): its config, progress rows and eval
+    rows (empty before ``morph-eval``). Not the run that trains: that is ``algo.run.Run``."""
 
     dir: Path
     config: dict
@@ -56,28 +57,27 @@ class Run:
         return range(self.config["min_joints"], self.config["max_joints"] + 1)
 
 
-def load_run(run_dir: Path) -> Run:
-    run_dir = Path(run_dir)
-    config_path = run_dir / "config.json"
-    if not config_path.is_file():
-        raise ValueError(f"{run_dir} is not a training run (config.json missing)")
-    config = json.loads(config_path.read_text())
+def load_run_report(run_dir: Path) -> RunReport:
+    files = RunDir(run_dir)
+    if not files.config.is_file():
+        raise ValueError(f"{run_dir} is not a training run ({files.config.name} missing)")
+    config = files.read_config()
     if config.get("clip_mode") not in rule_names():
         raise ValueError(f"{run_dir}: clip_mode {config.get('clip_mode')!r} is not a rule of {rule_names()}")
-    with (run_dir / "progress.csv").open() as f:
+    with files.progress.open() as f:
         progress = list(csv.DictReader(f))
     evals = []
-    if (run_dir / "eval.csv").exists():
-        with (run_dir / "eval.csv").open() as f:
+    if files.evaluation.exists():
+        with files.evaluation.open() as f:
             evals = list(csv.DictReader(f))
-    return Run(run_dir, config, progress, evals)
+    return RunReport(files.path, config, progress, evals)
 
 
-def load_runs(run_dirs: list[Path]) -> dict[str, list[Run]]:
+def load_runs(run_dirs: list[Path]) -> dict[str, list[RunReport]]:
     """Runs grouped by trust-region rule, rules in the table's order (only rules with runs appear)."""
-    groups: dict[str, list[Run]] = defaultdict(list)
+    groups: dict[str, list[RunReport]] = defaultdict(list)
     for d in run_dirs:
-        run = load_run(d)
+        run = load_run_report(d)
         groups[run.rule].append(run)
     for name, runs in groups.items():
         first, ours = runs[0], runs[0].setup
@@ -113,7 +113,7 @@ def smooth(y: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def eval_means(run: Run) -> dict[int, dict[int, float]]:
+def eval_means(run: RunReport) -> dict[int, dict[int, float]]:
     """{num_joints: {global_step: mean return over episodes}} of one run's chains (trees: ``body_eval_means``)."""
     acc: dict[int, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in run.eval:
@@ -128,7 +128,7 @@ def label_order(label: str) -> list:
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", label)]
 
 
-def body_eval_means(run: Run, column: str = "return") -> dict[str, dict[int, float]]:
+def body_eval_means(run: RunReport, column: str = "return") -> dict[str, dict[int, float]]:
     """{body label: {global_step: mean of ``column`` over episodes}} of one run, chains (``chain-N``) and trees.
     ``column``: ``return``, ``steps`` or ``distance`` (rows that did not record it are left out)."""
     acc: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))

@@ -28,17 +28,17 @@ and the shipped policy need not come from a run whose checkpoints are kept.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 
+from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.env.bodies import Centipede, is_chain_label, parse_bodies
 from morph_core.policy.tree import KinematicTree
 from morph_core.policy.weights import CheckpointError, load_checkpoint, write_checkpoint
 from morph_core.util.config_cli import BoolAction, CommandLineParser
-from trainer.reports.runs import body_eval_means, label_order, load_run
+from trainer.reports.runs import body_eval_means, label_order, load_run_report
 
 
 def body_key(label: str) -> str:
@@ -50,7 +50,7 @@ def body_key(label: str) -> str:
 def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[str, float]]:
     """{global_step: {body key: mean return}} of every evaluated checkpoint of a run (``body_key``)."""
     by_step: dict[int, dict[str, float]] = {}
-    for label, steps in body_eval_means(load_run(run_dir)).items():
+    for label, steps in body_eval_means(load_run_report(run_dir)).items():
         for step, ret in steps.items():
             by_step.setdefault(step, {})[body_key(label)] = ret
     if not by_step:
@@ -60,7 +60,7 @@ def evaluated_checkpoints(run_dir: Path) -> dict[int, dict[str, float]]:
 
 def episodes_per_body(run_dir: Path, step: int) -> int:
     """How many episodes per body the run's evaluation of the checkpoint at ``step`` holds."""
-    rows = [r for r in load_run(run_dir).eval if int(r["global_step"]) == step]
+    rows = [r for r in load_run_report(run_dir).eval if int(r["global_step"]) == step]
     return max(sum(r["body"] == b for r in rows) for b in {r["body"] for r in rows})
 
 
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     scored = []
     for run in args.run:
-        cfg = json.loads((run / "config.json").read_text())
+        cfg = RunDir(run).read_config()
         for step, table in evaluated_checkpoints(run).items():
             bodies = scored_bodies(cfg, table)
             scored.append((float(np.mean([table[b] for b in bodies])), run, cfg, step, table, bodies))
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"kept {args.dest} ({shipped[1]} step {shipped[2]}, score {shipped[0]:.1f}): the best evaluated "
               f"checkpoint of the runs, {run.name} step {step}, scores {score:.1f}")  # fmt: skip
         return
-    checkpoint = run / "checkpoints" / f"policy_{step:08d}.safetensors"
+    checkpoint = RunDir(run).checkpoint(step)
     if not checkpoint.is_file():  # e.g. a run kept as data only (docs/results_data keeps no checkpoints)
         parser.error(f"the best evaluated checkpoint is {run.name} at step {step} (score {score:.1f}), but "
                      f"{checkpoint} is missing; train the run again (`{training_command(cfg, run.name)}`, "

@@ -28,7 +28,7 @@ import numpy as np
 
 from morph_core.env.bodies import is_chain_label
 from morph_core.util.config_cli import CommandLineParser
-from trainer.reports.runs import Run, body_eval_means, eval_means, label_order, load_runs, series, smooth
+from trainer.reports.runs import RunReport, body_eval_means, eval_means, label_order, load_runs, series, smooth
 
 COLLAPSE = 0.5
 """a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
         print(report(groups))
 
 
-def report(groups: dict[str, list[Run]]) -> str:
+def report(groups: dict[str, list[RunReport]]) -> str:
     """Every table of the runs in ``groups`` (rule -> runs), each under a heading with a legend; a table with no
     rows is left out, a value a run does not have is '–' (never 'nan')."""
     rows = []
@@ -102,7 +102,7 @@ def _section(title: str, header: str, rows: list[str], legend: str) -> str:
     return f"\n### {title}\n\n{header}\n" + "\n".join(rows) + f"\n\n{legend}.\n"
 
 
-def per_rule_lines(groups: dict[str, list[Run]]) -> str:
+def per_rule_lines(groups: dict[str, list[RunReport]]) -> str:
     """Per rule: the clip fraction and KL per trained action dimension, the epochs per update a KL stop left, the
     KL penalty's final beta, the late eval return over the trained lengths (each only where measured)."""
     lines = []
@@ -137,13 +137,13 @@ def per_rule_lines(groups: dict[str, list[Run]]) -> str:
     return "\n### Per rule: clipping and KL per action dimension\n\n" + "\n\n".join(lines) + f"\n\n{legend}.\n"
 
 
-def per_dimension(runs: list[Run], key: str) -> np.ndarray:
+def per_dimension(runs: list[RunReport], key: str) -> np.ndarray:
     """Progress column ``key`` per trained action dimension, averaged over all updates and runs."""
     return np.array([np.mean([np.nanmean(series(r.progress, f"{key}_d{d}")[1]) for r in runs])
                      for d in runs[0].trained_lengths])  # fmt: skip
 
 
-def late_tree_means(run: Run, column: str = "return") -> dict[str, float]:
+def late_tree_means(run: RunReport, column: str = "return") -> dict[str, float]:
     """{tree label: mean eval ``column`` over the run's checkpoints from half its steps on}; chains left out."""
     half = 0.5 * run.config["total_timesteps"]
     by_body = {b: steps for b, steps in body_eval_means(run, column).items() if not is_chain_label(b)}
@@ -151,7 +151,7 @@ def late_tree_means(run: Run, column: str = "return") -> dict[str, float]:
     return {b: float(np.mean(v)) for b, v in late.items() if v}
 
 
-def tree_table(groups: dict[str, list[Run]]) -> str:
+def tree_table(groups: dict[str, list[RunReport]]) -> str:
     """Late eval return per rule on every tree (or centipede) evaluated (mean +- std over runs), then the
     episodes' length and the root's forward travel where the evaluation recorded them, and the training return
     of the last 10 updates on chains and on trees for runs that trained on both."""
@@ -186,7 +186,7 @@ def tree_table(groups: dict[str, list[Run]]) -> str:
     return "\n".join(part for part in parts if part)
 
 
-def _trains_chains_and_trees(run: Run) -> bool:
+def _trains_chains_and_trees(run: RunReport) -> bool:
     """A run whose progress has training returns of chains and of other bodies (centipedes alone have none of
     chains: their row would be a '–' beside a figure filed under trees)."""
     if "return_trees" not in run.progress[0]:
@@ -194,14 +194,14 @@ def _trains_chains_and_trees(run: Run) -> bool:
     return all(np.isfinite(series(run.progress, k)[1]).any() for k in ("return_chains", "return_trees"))
 
 
-def late_means(run: Run) -> dict[int, float]:
+def late_means(run: RunReport) -> dict[int, float]:
     """{num_joints: mean eval return over the run's checkpoints from half its steps on}."""
     half = 0.5 * run.config["total_timesteps"]
     late = {n: [r for s, r in by_step.items() if s >= half] for n, by_step in eval_means(run).items()}
     return {n: float(np.mean(v)) for n, v in late.items() if v}
 
 
-def late_trained_mean(run: Run) -> float:
+def late_trained_mean(run: RunReport) -> float:
     """Late eval return averaged over the trained chain lengths (NaN if they were not all evaluated)."""
     late = late_means(run)
     if not all(n in late for n in run.trained_lengths):
@@ -209,7 +209,7 @@ def late_trained_mean(run: Run) -> float:
     return float(np.mean([late[n] for n in run.trained_lengths]))
 
 
-def training_marks(run: Run) -> dict[str, float]:
+def training_marks(run: RunReport) -> dict[str, float]:
     """First step at which the trailing mean (5 updates) of the training return reached 200 (inf if never),
     the mean of the last 10 updates, and whether the run collapsed (last 10 below COLLAPSE x its best)."""
     steps, ret = series(run.progress, "return_mean")
@@ -221,7 +221,7 @@ def training_marks(run: Run) -> dict[str, float]:
     return {"to_100": first[100], "to_200": first[200], "last": last, "best": best, "collapsed": collapsed}
 
 
-def training_table(groups: dict[str, list[Run]]) -> str:
+def training_table(groups: dict[str, list[RunReport]]) -> str:
     """Per rule: runs that reached 200, median steps to 100 and 200, the last 10 updates (mean [min..max])
     and the best trailing mean, averaged over runs."""
     header = ("| rule | reached 200 | steps to 100, median | steps to 200, median | last 10 updates, mean [min..max] "
@@ -241,7 +241,7 @@ def training_table(groups: dict[str, list[Run]]) -> str:
                     "100, 200: the median over the runs (k = 1000 steps; never: the median run did not)")  # fmt: skip
 
 
-def zero_shot_table(groups: dict[str, list[Run]]) -> str:
+def zero_shot_table(groups: dict[str, list[RunReport]]) -> str:
     """Late eval return per rule: the trained lengths' mean, then every unseen length (mean +- std over runs)."""
     unseen = sorted({n for runs in groups.values() for r in runs for n in late_means(r) if n > r.config["max_joints"]})
     if not unseen:
@@ -264,7 +264,7 @@ def _mean_std(values: list[float], digits: int = 0) -> str:
     return f"{v.mean():.{digits}f} ± {v.std():.{digits}f}" if v.size and np.isfinite(v).all() else "–"
 
 
-def ranking_table(groups: dict[str, list[Run]]) -> str:
+def ranking_table(groups: dict[str, list[RunReport]]) -> str:
     """The rules ranked claim by claim (1 = best; means over runs, the median for steps to 200). Zero-shot is
     compared on one length for all rules: the longest evaluated late in every run, if no run trained on it."""
     runs_all = [r for runs in groups.values() for r in runs]

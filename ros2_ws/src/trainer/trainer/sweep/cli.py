@@ -190,13 +190,13 @@ def summary(out: Path, trials: list[Trial], status: dict) -> str:
     import warnings
 
     from trainer.reports import summary as tables
-    from trainer.reports.runs import load_run
+    from trainer.reports.runs import load_run_report
 
     warnings.simplefilter("ignore", RuntimeWarning)  # NumPy's "mean of empty slice": a '–' in a cell
     lines = [f"# Sweep {out}\n", "## Trials\n", "| trial | node | steps | last 10 updates | late eval, trained "
              "lengths | late eval per length |", "|---|---|---:|---:|---:|---|"]  # fmt: skip
     for t in trials:
-        run = load_run(out / t.name)
+        run = load_run_report(out / t.name)
         late = tables.late_means(run)
         per_length = " ".join(f"{n}:{r:.0f}" for n, r in sorted(late.items()))
         trained = tables.late_trained_mean(run)

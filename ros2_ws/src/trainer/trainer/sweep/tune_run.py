@@ -83,9 +83,9 @@ def run_trial(config: dict) -> None:
     one_blas_thread()
     eval_cfg = trial.eval_config(cfg.total_timesteps)
     evaluate_run(run_dir, eval_cfg, log=lambda _: None)  # checkpoints already in eval.csv are skipped
-    from trainer.reports.runs import load_run
+    from trainer.reports.runs import load_run_report
 
-    run = load_run(run_dir)
+    run = load_run_report(run_dir)
     late = late_means(run)
     trained = [late[n] for n in range(cfg.min_joints, cfg.max_joints + 1) if n in late]
     final = {f"late_eval_{n}": r for n, r in late.items()}
