@@ -228,3 +228,14 @@ def test_summary_tables_have_headings_and_legends_and_no_nan(tmp_path, capsys, d
     assert "(1) the best" in ranking[2] and all("(1)" in r or "(2)" in r for r in ranking[1][2:])
     if data == "centipedes":
         assert "late eval, no joints" not in out and "| – | " not in ranking[1][2]  # unmeasured claims left out
+
+
+def test_the_marks_of_the_per_run_table_are_chosen(tmp_path, capsys):
+    # returns 0, 1500, 3000 at steps 6144, 12288, 18432 (scale 10): trailing means 0, 750, 1500
+    write_run(tmp_path / "walker", "compensated", 1, scale=10.0)
+    summary.main(["--run", str(tmp_path / "walker"), "--marks", "700", "1000", "2000"])
+    out = capsys.readouterr().out
+    assert "| run | >= 700 | >= 1000 | >= 2000 | mean of the last 10 updates |" in out
+    assert "| walker | 12k | 18k | never | 1500 |" in out
+    summary.main(["--run", str(tmp_path / "walker")])  # the swimmers' marks by default
+    assert "| run | >= 100 | >= 200 |" in capsys.readouterr().out

@@ -30,6 +30,8 @@ from morph_core.env.bodies import is_chain_label
 from morph_core.util.config_cli import CommandLineParser
 from trainer.reports.runs import RunReport, body_eval_means, eval_means, label_order, load_runs, series, smooth
 
+MARKS = (100.0, 200.0)
+"""the training returns the swimmer tables mark (walkers earn about 1,000 by standing: ``--marks 1000 2000 3000``)"""
 COLLAPSE = 0.5
 """a run has collapsed when the mean of its last 10 updates is below this share of its best trailing mean"""
 
@@ -37,6 +39,13 @@ COLLAPSE = 0.5
 def main(argv: list[str] | None = None) -> None:
     parser = CommandLineParser(prog="python -m trainer.reports.summary", description=__doc__)
     parser.add_argument("--run", type=Path, nargs="+", required=True)
+    parser.add_argument(
+        "--marks",
+        type=float,
+        nargs="+",
+        default=list(MARKS),
+        help="training returns whose first step each run's table gives (walkers: 1000 2000 3000)",
+    )
     args = parser.parse_args(argv)
     try:
         groups = load_runs(args.run)
@@ -44,22 +53,26 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(str(e))
     with warnings.catch_warnings():  # NumPy's "mean of empty slice": a '–' in a cell, said by the legends
         warnings.simplefilter("ignore", RuntimeWarning)
-        print(report(groups))
+        print(report(groups, tuple(args.marks)))
 
 
-def report(groups: dict[str, list[RunReport]]) -> str:
+def report(groups: dict[str, list[RunReport]], marks: tuple[float, ...] = None) -> str:
     """Every table of the runs in ``groups`` (rule -> runs), each under a heading with a legend; a table with no
-    rows is left out, a value a run does not have is '–' (never 'nan')."""
+    rows is left out, a value a run does not have is '–' (never 'nan'). The first table gives the first step
+    at which each run's training return reached each of ``marks`` (default ``MARKS``)."""
+    marks = MARKS if marks is None else marks
+    names = [f"{t:g}" for t in marks]
     rows = []
     for runs in groups.values():
         for run in runs:
-            marks = training_marks(run)
-            first = ["never" if marks[k] == np.inf else f"{int(marks[k]) // 1000}k" for k in ("to_100", "to_200")]
-            rows.append(f"| {run.dir.name} | {first[0]} | {first[1]} | {_num(marks['last'])} |")
-    parts = [_section("Training return per run", "| run | >= 100 | >= 200 | mean of the last 10 updates |\n"
-                      "|---|---:|---:|---:|", rows,
-                      ">= 100, >= 200: the first step at which the training return (trailing mean over 5 updates) "
-                      "reached it (k = 1000 steps); never: not in the run")]  # fmt: skip
+            got = training_marks(run, marks)
+            first = ["never" if got[f"to_{n}"] == np.inf else f"{int(got[f'to_{n}']) // 1000}k" for n in names]
+            rows.append(f"| {run.dir.name} | {' | '.join(first)} | {_num(got['last'])} |")
+    header = (f"| run | {' | '.join(f'>= {n}' for n in names)} | mean of the last 10 updates |\n"
+              f"|---|{'---:|' * len(names)}---:|")  # fmt: skip
+    parts = [_section("Training return per run", header, rows,
+                      f"{', '.join(f'>= {n}' for n in names)}: the first step at which the training return "
+                      "(trailing mean over 5 updates) reached it (k = 1000 steps); never: not in the run")]  # fmt: skip
     parts.append(per_rule_lines(groups))
     rows = []
     for runs in groups.values():
@@ -209,16 +222,18 @@ def late_trained_mean(run: RunReport) -> float:
     return float(np.mean([late[n] for n in run.trained_lengths]))
 
 
-def training_marks(run: RunReport) -> dict[str, float]:
-    """First step at which the trailing mean (5 updates) of the training return reached 200 (inf if never),
-    the mean of the last 10 updates, and whether the run collapsed (last 10 below COLLAPSE x its best)."""
+def training_marks(run: RunReport, marks: tuple[float, ...] = None) -> dict[str, float]:
+    """First step at which the trailing mean (5 updates) of the training return reached each of ``marks``
+    (``to_100``, ``to_200`` for the default ``MARKS``; inf if never), the mean of the last 10 updates, and
+    whether the run collapsed (last 10 below COLLAPSE x its best)."""
+    marks = MARKS if marks is None else marks
     steps, ret = series(run.progress, "return_mean")
     smoothed = smooth(ret, 5)
     last = float(np.nanmean(ret[-10:]))
-    first = {t: next((float(s) for s, v in zip(steps, smoothed, strict=True) if v >= t), np.inf) for t in (100, 200)}
+    first = {t: next((float(s) for s, v in zip(steps, smoothed, strict=True) if v >= t), np.inf) for t in marks}
     best = float(np.nanmax(smoothed)) if np.isfinite(smoothed).any() else np.nan
     collapsed = float(last < COLLAPSE * best)
-    return {"to_100": first[100], "to_200": first[200], "last": last, "best": best, "collapsed": collapsed}
+    return {**{f"to_{t:g}": first[t] for t in marks}, "last": last, "best": best, "collapsed": collapsed}
 
 
 def training_table(groups: dict[str, list[RunReport]]) -> str:
