@@ -82,7 +82,7 @@ def test_a_spec_file_and_the_command_line_make_named_trials(tmp_path):
 
 def test_the_results_sweeps_make_the_runs_of_docs_results():
     """sweeps/*.yaml: the configs the results scripts ran, so that their figures stay reproducible."""
-    sweeps = Path(__file__).resolve().parents[4] / "sweeps"
+    sweeps = Path(__file__).resolve().parents[5] / "sweeps"
     trials = {p.stem: load_spec(p).expand() for p in sorted(sweeps.glob("*.yaml"))}
     assert {k: len(v) for k, v in trials.items()} == {
         "centipedes": 10, "centipedes_long": 3, "families": 2, "rules": 70, "train": 10, "trees": 10, "two_joint": 8

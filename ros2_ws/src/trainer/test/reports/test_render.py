@@ -24,7 +24,7 @@ from trainer.cli.render import VideoConfig, caption, training_rule
 BIN = Path(sys.executable).parent
 # The shipped policy swims from its first steps, so consecutive frames surely differ.
 SHIPPED = (
-    Path(__file__).resolve().parents[2]
+    Path(__file__).resolve().parents[3]
     / "morph_policy_node"
     / "morph_policy_node"
     / "models"

@@ -214,7 +214,7 @@ def test_summary_tables_have_headings_and_legends_and_no_nan(tmp_path, capsys, d
         runs = [write_run(tmp_path / f"fixed-s{s}", "fixed", s) for s in (1, 2)]
         runs.append(write_run(tmp_path / "kl-stop-s1", "kl-stop", 1, scale=2.0))
     else:
-        runs = sorted((Path(__file__).resolve().parents[4] / "docs/results_data/centipedes").glob("*-s*"))
+        runs = sorted((Path(__file__).resolve().parents[5] / "docs/results_data/centipedes").glob("*-s*"))
         assert len(runs) >= 2
     summary.main(["--run", *map(str, runs)])
     out, err = capsys.readouterr()

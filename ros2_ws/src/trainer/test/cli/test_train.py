@@ -213,7 +213,7 @@ def test_init_fine_tunes_a_shipped_policy_on_a_users_mjcf(tmp_path):
     from trainer.cli.train import main
 
     ant = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
-    init = os.path.join(os.path.dirname(__file__), "..", "..", "morph_policy_node", "morph_policy_node", "models",
+    init = os.path.join(os.path.dirname(__file__), "..", "..", "..", "morph_policy_node", "morph_policy_node", "models",
                         "centipede_gnn.safetensors")  # fmt: skip
     run = tmp_path / "ant"
     args = ["--out", str(run), "--bodies", f"mjcf:{ant}", "--init", init, "--total-timesteps", "256",

@@ -37,7 +37,7 @@ from trainer.cli.keys import main as keys_main
 
 pytestmark = pytest.mark.slow  # its fixtures train and export policies
 
-SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
+SHIPPED = Path(__file__).resolve().parents[3] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
 CLI = [sys.executable, "-m", "trainer.cli.export"]
 
 

@@ -12,7 +12,7 @@ import pytest
 from morph_core.algo.run_dir import RunDir
 
 LIVE = [sys.executable, "-m", "trainer.live.bringup"]
-ROOT = Path(__file__).resolve().parents[4]
+ROOT = Path(__file__).resolve().parents[5]
 
 
 def _set_up() -> bool:

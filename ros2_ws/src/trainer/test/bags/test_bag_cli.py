@@ -269,7 +269,7 @@ def test_states_recorded_before_the_bags_first_description_are_read_on_it(tmp_pa
 
 def test_a_bag_of_a_body_in_3d_is_read_as_a_legged_bodys(tmp_path, sampled_records, capsys):
     """A body whose odometry leaves the plane is a legged one (``bag_task``): its steps are Ant-v5's, with 12
-    global features (``trainer/test/test_legged_bags.py`` trains on a centipede's)."""
+    global features (``trainer/test/bags/test_legged_bags.py`` trains on a centipede's)."""
     tilt = (0.05, -0.02, 0.3, float(np.sqrt(1 - 0.05**2 - 0.02**2 - 0.3**2)))
     records = [dataclasses.replace(r, orientation_xyzw=tilt) if isinstance(r, OdometryRecord) else r
                for r in sampled_records]  # fmt: skip
