@@ -397,3 +397,42 @@ def test_the_trainer_s_library_never_imports_its_command_lines():
     assert library_imports_of_command_lines([planted]) == ["trainer.live.bringup imports trainer.cli.train (line 7)"]
     offenders = library_imports_of_command_lines(all_imports(modules))
     assert offenders == [], "library modules that import a command line:\n" + "\n".join(offenders)
+
+
+def _import_runs(body: list[ast.stmt]) -> list[list[ast.stmt]]:
+    """The runs of consecutive import statements in one body of statements."""
+    runs, run = [], []
+    for stmt in body:
+        if isinstance(stmt, ast.Import | ast.ImportFrom):
+            run.append(stmt)
+        elif run:
+            runs, run = [*runs, run], []
+    return [*runs, run] if run else runs
+
+
+def unexplained_function_imports(path: Path) -> list[int]:
+    """Lines that start a run of imports inside a function with no comment on it or on the line above: an
+    import there hides an edge of the graph, so it needs its reason (an optional or heavy dependency, the
+    order a library must load in)."""
+    lines = path.read_text().splitlines()
+    out = []
+    for func in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(func, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        for node in ast.walk(func):
+            for field in ("body", "orelse", "finalbody"):
+                body = getattr(node, field, None)
+                for run in _import_runs(body if isinstance(body, list) else []):
+                    if not any("#" in text for text in lines[run[0].lineno - 2 : run[-1].end_lineno]):
+                        out.append(run[0].lineno)
+    return sorted(set(out))
+
+
+def test_an_import_inside_a_function_says_why(tmp_path):
+    planted = tmp_path / "planted.py"
+    planted.write_text("def f():\n    import json\n\n    return json\n\n\ndef g():\n    # json only here\n"
+                       "    import json\n\n    return json\n")  # fmt: skip
+    assert unexplained_function_imports(planted) == [2]
+    offenders = [f"{path.relative_to(ROOT)}:{line}" for path in workspace_modules().values()
+                 for line in unexplained_function_imports(path)]  # fmt: skip
+    assert offenders == [], "imports inside functions without a reason:\n" + "\n".join(offenders)

@@ -27,6 +27,8 @@ import os
 import sys
 import time
 
+from morph_core.constants import MAX_JOINTS
+from morph_core.util.config_cli import CommandLineParser
 from morph_policy_node import FASTDDS_PROFILE
 from morph_ros_util.processes import NodeProcess, start_node, stop_all, use_fastdds_profile, yaml_string
 
@@ -59,6 +61,7 @@ def run(
 ) -> dict:
     # Nodes started together must find each other quickly: fast initial announcements.
     use_fastdds_profile(FASTDDS_PROFILE)
+    # ROS loads after the line above has pointed Fast DDS at the profile
     import rclpy
     from nav_msgs.msg import Odometry
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -138,6 +141,7 @@ CENTIPEDE_MODEL = "centipede_gnn.safetensors"
 def _family(spec: str | None) -> str:
     """What a body spec draws: ``chains``, ``trees`` or ``centipedes`` (which picks the shipped model). A bad
     spec reads as chains here: it is the sim node's to refuse, with its reason."""
+    # `env` is the sim extra's: the policy node's package installs and imports without it
     from morph_core.env.bodies import parse_bodies
 
     try:
@@ -154,9 +158,6 @@ PROG_ENV = "MORPH_PROG"
 
 
 def main(argv=None) -> int:
-    from morph_core.constants import MAX_JOINTS
-    from morph_core.util.config_cli import CommandLineParser
-
     ap = CommandLineParser(prog=os.environ.get(PROG_ENV, "python -m morph_policy_node.bringup"),
                            description=__doc__.split("\n\n")[0])  # fmt: skip
     body = ap.add_mutually_exclusive_group()
@@ -177,6 +178,7 @@ def main(argv=None) -> int:
     if not args.seconds > 0:
         print(f"{ap.prog}: cannot start: --seconds {args.seconds:g}: the run needs some sim time", flush=True)
         return 2
+    # the node module loads rclpy: only once the arguments are checked, so a bad one is refused without ROS
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
     family = _family(args.bodies)

@@ -161,6 +161,7 @@ def stop_all(procs: Iterable[NodeProcess], sig: int = signal.SIGTERM, timeout: f
 # -- waits on the ROS graph (the caller's rclpy node) ------------------------------------------------------
 def has_parameter(node, target: str, name: str, timeout: float) -> bool:
     """Whether node ``target`` declares parameter ``name`` (asked over its parameter service)."""
+    # no ROS at module level: a bring-up sets the Fast DDS profile before rclpy loads
     import rclpy
     from rcl_interfaces.srv import ListParameters
 
@@ -177,6 +178,7 @@ def has_parameter(node, target: str, name: str, timeout: float) -> bool:
 def wait_for_subscriber(node, proc: NodeProcess, alternatives: list[list[str]], name: str, timeout: float) -> None:
     """Until node ``name`` (the process ``proc``) subscribes to every topic of one of ``alternatives``, as the
     ROS graph shows it."""
+    # no ROS at module level: a bring-up sets the Fast DDS profile before rclpy loads
     import rclpy
 
     def missing(topics: list[str]) -> list[str]:

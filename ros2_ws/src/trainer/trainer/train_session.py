@@ -17,6 +17,7 @@ from pathlib import Path
 from morph_core.algo.checkpoint import load_training_state
 from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
+from morph_core.algo.train_from_data import run_state
 from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import replace_nested
 
@@ -108,8 +109,6 @@ def finished_message(run_dir: str | Path, cfg: TrainConfig) -> str | None:
 def finished_data_message(run_dir: str | Path, sources: list[str], iterations: int | None) -> str | None:
     """What to say instead of resuming a run trained from data that did all its updates on these data already
     (``sources``: the resolved bag paths; ``iterations``: ``--iterations`` if given), else None."""
-    from morph_core.algo.train_from_data import run_state
-
     try:
         state = run_state(run_dir)
     except Exception:  # a damaged state: the trainer's resume reports it

@@ -140,6 +140,7 @@ def _msg_file(msgtype: str) -> Path:
     pkg, kind, name = msgtype.split("/")
     candidates = [Path(sys.prefix) / "share" / pkg]
     if os.environ.get("AMENT_PREFIX_PATH"):
+        # a sourced ROS install's index, only when there is one (the PyPI wheels have none)
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
         try:
@@ -157,6 +158,7 @@ def ensure_type(typestore, msgtype: str) -> None:
     ``.msg`` files (share/<pkg>/msg/<Type>.msg), with the types they use."""
     if msgtype in typestore.fielddefs:
         return
+    # the .msg parser only for a type the Jazzy store lacks
     from rosbags.typesys import get_types_from_msg
     from rosbags.typesys.base import Nodetype
 

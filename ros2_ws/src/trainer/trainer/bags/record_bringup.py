@@ -35,6 +35,7 @@ from morph_ros_util.processes import (
 def fastdds_profile() -> str | None:
     """morph_policy_node's Fast DDS profile (quick discovery for nodes started together), if installed."""
     try:
+        # optional: the profile is a speed-up, the recorder runs without the policy node's package
         import morph_policy_node
     except ImportError:
         return None
@@ -43,6 +44,7 @@ def fastdds_profile() -> str | None:
 
 def _legged(spec: str | None) -> bool:
     """Whether the body spec draws centipedes (a bad spec: no; the sim refuses it, with its reason)."""
+    # `env` (MuJoCo, the sim extra) only to read a --bodies spec
     from morph_core.env.bodies import parse_bodies
 
     try:
@@ -53,6 +55,7 @@ def _legged(spec: str | None) -> bool:
 
 def run(args) -> int:
     use_fastdds_profile(fastdds_profile())
+    # ROS loads after the line above has pointed Fast DDS at the profile
     import rclpy
 
     out = Path(args.out)
@@ -73,6 +76,7 @@ def run(args) -> int:
     if args.checkpoint:
         policy_params["checkpoint"] = args.checkpoint
     elif _legged(args.bodies):
+        # the node modules load rclpy: only once the profile is set (run())
         from morph_policy_node.bringup import CENTIPEDE_MODEL
         from morph_policy_node.policy_node import SHIPPED_MODEL
 
@@ -122,6 +126,7 @@ def run(args) -> int:
 
 
 def _summarise(out: Path, ns: str) -> int:
+    # the bag reader only for the summary, after the nodes have stopped
     from morph_core.msgs.records import EpisodeStartRecord, JointStateRecord, PolicyInfoRecord
     from trainer.bags.io import BagError, BagReader
 

@@ -91,6 +91,7 @@ class RoundsConfig:
     def walkers(self) -> bool:
         """Bodies whose episodes end early at a fall (``env.bodies``' walkers): a round counts the steps its bag
         holds, not episodes x episode_steps."""
+        # `env` (MuJoCo, the sim extra) only to read a --bodies spec
         from morph_core.env.bodies import parse_bodies
 
         return bool(self.bodies) and parse_bodies(self.bodies).has_walkers
@@ -111,6 +112,7 @@ class Bringup:
     """Sim, sampling policy and recorder as processes; output to one log file per round."""
 
     def __init__(self, log_path: Path, namespace: str = ""):
+        # ROS loads once the driver has set the Fast DDS profile (main)
         import rclpy
 
         self._rclpy = rclpy
@@ -215,6 +217,7 @@ class RoundData:
 
 
 def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> RoundData:
+    # the bag reader and the data's digest (torch) only when a round's bag is read
     from ruamel.yaml import YAML
 
     from morph_core.algo.train_from_data import EpisodeReturns, data_digest
@@ -246,6 +249,7 @@ def read_round(bag: Path, episode_steps: int, namespace: str | None = None) -> R
 def initial_policy(cfg: RoundsConfig) -> Path:
     """Round 1's policy: fresh, seeded as the simulator trainer seeds it (``algo.train``), reading the bodies'
     global features."""
+    # the rounds' driver loads torch only for round 1's policy; training runs in morph-train's process
     import torch
 
     from morph_core.algo.train import TrainConfig
@@ -265,6 +269,7 @@ def initial_policy(cfg: RoundsConfig) -> Path:
 
 def train_round(cfg: RoundsConfig, r: int, data: RoundData, init: Path) -> None:
     """One round's ``morph-train --from-bags``: a new run, its resume, or the next round of the run."""
+    # torch only when a round reads its run's state
     from morph_core.algo.train_from_data import run_state
 
     state = run_state(cfg.train_dir)
@@ -295,6 +300,7 @@ def train_round(cfg: RoundsConfig, r: int, data: RoundData, init: Path) -> None:
 
 
 def latest_checkpoint(cfg: RoundsConfig) -> Path:
+    # torch only when a round reads its run's state
     from morph_core.algo.train_from_data import run_state
 
     state = run_state(cfg.train_dir)
@@ -431,10 +437,11 @@ def compare(out: Path, pattern: str) -> list[dict]:
 
 
 def _plot(path: Path, table: list[dict], runs: int, pattern: str) -> None:
+    # Matplotlib only for the figure
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after the backend is chosen
 
     def col(key):
         return np.array([float(t[key]) if t[key] != "" else np.nan for t in table])
@@ -510,6 +517,7 @@ def main(argv: list[str] | None = None) -> int:
         if not 1 <= args.min_joints <= args.max_joints <= 64:
             ap.error("need 1 <= --min-joints <= --max-joints <= 64")
         if args.bodies is not None:
+            # `env` (MuJoCo, the sim extra) only to read a --bodies spec
             from morph_core.env.bodies import parse_bodies
 
             try:

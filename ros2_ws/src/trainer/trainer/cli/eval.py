@@ -100,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (config := RunDir(run).config).exists():
             parser.error(f"{run} is not a training run ({config.name} missing)")
     if args.plots is not None:
+        # the reports (torch) only when plots are asked
         from trainer.reports.runs import load_runs
 
         try:  # the runs' grouping is checked before an evaluation that may take an hour
@@ -118,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"morph-eval: error: {err}", file=sys.stderr)
                 return 1
     if args.plots is not None:
+        # Matplotlib only when plots are asked
         from trainer.reports.plots import plot_all
 
         for path in plot_all(args.run, args.plots):

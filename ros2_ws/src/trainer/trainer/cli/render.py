@@ -149,6 +149,7 @@ def _name(take) -> str:
 def render_video(weights: PolicyWeights, cfg: VideoConfig, gif: Path | None, mp4: Path | None, log=print) -> int:
     """Film ``weights`` as ``cfg`` says into ``gif`` and/or ``mp4``; returns the number of frames.
     ``choose_gl_backend`` must have run (before MuJoCo was imported)."""
+    # MuJoCo and the envs load after choose_gl_backend (MUJOCO_GL is read when MuJoCo loads)
     import numpy as np
 
     from morph_core.env.bodies import is_walker

@@ -139,6 +139,7 @@ def parse_config(argv: Sequence[str] | None = None) -> TheoryConfig:
 
 
 def _pyplot():
+    # Matplotlib only for the figures
     import matplotlib
 
     matplotlib.use("Agg")  # headless: figures go to files only
@@ -603,6 +604,7 @@ def check_inputs(cfg: TheoryConfig) -> None:
 
 def run(cfg: TheoryConfig) -> dict[str, float]:
     """Make every figure of ``cfg``; returns (and writes) the summary numbers."""
+    # torch only when figures are made, not for --help
     import torch
 
     torch.set_num_threads(1)  # the machine is shared with training runs

@@ -120,6 +120,7 @@ class ProgressFollower:
 
     @staticmethod
     def _say(text: str) -> None:
+        # the bar only when asked
         from tqdm import tqdm
 
         tqdm.write(text, file=sys.stderr)  # above a progress bar, which is drawn again below it

@@ -139,6 +139,7 @@ def trainer_command(namespaces: list[str], args, extra: list[str], signing_key: 
 
 
 def run(args, extra: list[str]) -> int:
+    # the training stack (torch) only to check the trainer's options
     from trainer.train_options import check_live
 
     namespaces = [f"/swimmer{i}" for i in range(args.pairs)]
@@ -146,6 +147,7 @@ def run(args, extra: list[str]) -> int:
     # refuses here, with its own one-line error, before any process starts.
     check_live(trainer_arguments(namespaces, args, extra))
     use_fastdds_profile(fastdds_profile())
+    # ROS loads after the line above has pointed Fast DDS at the profile
     import rclpy
 
     if args.signing_key is not None:  # the user's own key: the nodes trust its public half

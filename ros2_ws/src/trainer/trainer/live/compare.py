@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from morph_core.util.atomic import atomic_writer
 from morph_core.util.config_cli import CommandLineParser
 from trainer.reports.runs import RunReport, load_run_report, series, smooth
 
@@ -79,12 +80,11 @@ def stability_table(groups: dict[str, list[RunReport]], last: int = 5) -> str:
 
 
 def plot(groups: dict[str, list[RunReport]], path: Path) -> Path:
+    # Matplotlib only for the figure
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from morph_core.util.atomic import atomic_writer
+    import matplotlib.pyplot as plt  # after the backend is chosen
 
     end = min(int(r.progress[-1]["global_step"]) for runs in groups.values() for r in runs)
     grid = np.linspace(0, end, 200)

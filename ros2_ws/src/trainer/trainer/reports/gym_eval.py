@@ -24,6 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES
+from morph_core.msgs.records import JointStateRecord, OdometryRecord
+from morph_core.policy.config import NUM_GLOBAL_FEATURES
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.tree import TreeError
+from morph_core.policy.weights import CheckpointError, load_checkpoint
+from morph_core.protocol.controller import Controller, policy_error
 from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
 
 CONTROL_PERIOD_NS = 50_000_000
@@ -59,10 +66,8 @@ class GymEvalError(ValueError):
 def body_global_features(model) -> int:
     """The global features a controller builds for a body: a walker's 12 when its root body hangs from a free
     joint (a 3-D pose), a swimmer's 4 otherwise (planar)."""
+    # MuJoCo and Gymnasium (the sim extra) load when an env runs, not for --help
     import mujoco
-
-    from morph_core.msgs.joint_state import LEGGED_GLOBAL_FEATURES
-    from morph_core.policy.config import NUM_GLOBAL_FEATURES
 
     free = any(model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE for j in range(model.njnt))
     return LEGGED_GLOBAL_FEATURES if free else NUM_GLOBAL_FEATURES
@@ -72,13 +77,11 @@ class GymRun:
     """One Gymnasium env and one policy node's controller over it (module docstring)."""
 
     def __init__(self, weights, env_id: str):
+        # MuJoCo and Gymnasium (the sim extra) load when an env runs, not for --help
         import gymnasium
 
         from morph_core.env.mjcf_robot import MjcfRobot
         from morph_core.env.urdf import robot_urdf
-        from morph_core.policy.numpy_actor import NumpyPolicy
-        from morph_core.policy.tree import TreeError
-        from morph_core.protocol.controller import Controller, policy_error
 
         error = policy_error(weights.config)
         if error is not None:
@@ -112,8 +115,6 @@ class GymRun:
 
     def records(self):
         """The odometry and joint state of the env's state now, as the sim node publishes them."""
-        from morph_core.msgs.records import JointStateRecord, OdometryRecord
-
         root = self.robot.root_state()
         odom = OdometryRecord.of(0, self.stamp_ns, root.position, root.orientation, root.linear, root.angular)
         pos, vel = self.robot.joint_positions.copy(), self.robot.joint_velocities.copy()
@@ -147,8 +148,6 @@ class GymRun:
 
 
 def run(cfg: GymEvalConfig, out=sys.stdout) -> list[Episode]:
-    from morph_core.policy.weights import CheckpointError, load_checkpoint
-
     if not cfg.policy:
         raise GymEvalError("give --policy PATH (a .safetensors checkpoint)")
     if cfg.episodes < 1 or cfg.max_steps < 1:

@@ -66,6 +66,7 @@ def tile(frames: list[np.ndarray], columns: int, gap: int = 2) -> np.ndarray:
 def ffmpeg_exe() -> str:
     """Path of imageio-ffmpeg's ffmpeg; VideoError when it is not installed."""
     try:
+        # the ffmpeg binary's package only when a video is written
         import imageio_ffmpeg
 
         return imageio_ffmpeg.get_ffmpeg_exe()
@@ -118,6 +119,7 @@ class VideoWriter:
         self.frames += 1
 
     def _start_mp4(self) -> None:
+        # the ffmpeg binary's package only when a video is written
         import imageio_ffmpeg
 
         self._tmp = tempfile.TemporaryDirectory(prefix="morph-render-")

@@ -25,7 +25,9 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import sys
+import warnings
 from pathlib import Path
 
 from morph_core.util.atomic import atomic_writer
@@ -81,13 +83,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(err))
 
     quiet_ray_env()
-    import ray
+    import ray  # Ray (the trainer[ray] extra) loads after quiet_ray_env() has set its environment
 
     if args.address:
         ray.init(address=args.address, logging_level="WARNING")
     else:
-        import os
-
         ray.init(num_cpus=args.cpus or os.cpu_count(), include_dashboard=False,
                  object_store_memory=200 * 1024**2, logging_level="WARNING")  # fmt: skip
     try:
@@ -132,6 +132,7 @@ def _claim(out: Path, trials: list[Trial]) -> None:
 
 
 def _said_class():
+    # Ray, the trainer[ray] extra, only when a sweep runs
     from ray.tune import Callback
 
     class Said(Callback):
@@ -176,6 +177,7 @@ def _status(trials: list[Trial], results) -> dict:
 def groups(trials: list[Trial]) -> dict[str, list[Trial]]:
     """Trials that differ only in how they ran (seed, threads ...) and their rule, under a label of what the
     rest of their overrides says; trainer.reports.summary refuses to pool runs of one rule trained differently."""
+    # the reports (torch) stay out of the driver until the trials are grouped
     from trainer.reports.runs import HOW_RUN
 
     out: dict[str, list[Trial]] = {}
@@ -187,8 +189,7 @@ def groups(trials: list[Trial]) -> dict[str, list[Trial]]:
 
 def summary(out: Path, trials: list[Trial], status: dict) -> str:
     """The sweep's Markdown: its trials, then trainer.reports.summary's tables for each group of trials."""
-    import warnings
-
+    # the reports (torch) stay out of the driver until the sweep is summed up
     from trainer.reports import summary as tables
     from trainer.reports.runs import load_run_report
 

@@ -53,7 +53,10 @@ def numeric(row: dict) -> dict:
 def run_trial(config: dict) -> None:
     """Tune's function trainable: train the trial into its run directory (resuming what is there), evaluate
     its late checkpoints, report each progress row and, last, the evaluation."""
+    # in the trial's process: Ray ships the function, and its worker imports what it runs
     import ray
+
+    # in the trial's process, as in run_trial
     from ray import tune
 
     from morph_core.algo.train import train
@@ -107,6 +110,7 @@ def trial_dirname(trial) -> str:
 
 def make_tuner(trials: list[Trial], sweep_dir: Path, cpus_per_trial: float, max_failures: int, callbacks=()):
     """A new ``Tuner`` of ``trials`` into ``sweep_dir``, or the one stopped there (``Tuner.restore``)."""
+    # in the trial's process, as in run_trial
     from ray import tune
 
     sweep_dir = sweep_dir.resolve()
