@@ -29,6 +29,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save as safetensors_bytes
 
+from morph_core.algo.run_dir import previous_state_path
 from morph_core.util.atomic import atomic_write_bytes
 
 log = logging.getLogger(__name__)
@@ -36,12 +37,6 @@ log = logging.getLogger(__name__)
 
 class TrainingStateError(ValueError):
     """No usable training state; ``str(err)`` names each file tried and why it is unusable."""
-
-
-def previous_state_path(path: str | Path) -> Path:
-    """Where the state a new one replaced is kept: ``state.safetensors`` -> ``state.prev.safetensors``."""
-    path = Path(path)
-    return path.with_name(f"{path.stem}.prev{path.suffix}")
 
 
 def _digest(tensors: dict[str, torch.Tensor]) -> str:

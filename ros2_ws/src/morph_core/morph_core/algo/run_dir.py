@@ -21,6 +21,13 @@ import json
 import re
 from pathlib import Path
 
+
+def previous_state_path(path: str | Path) -> Path:
+    """Where the state a new one replaced is kept: ``state.safetensors`` -> ``state.prev.safetensors``."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
 CHECKPOINT_NAME = re.compile(r"policy_(\d+)\.safetensors$")
 """a policy checkpoint's file name, its step in group 1"""
 
@@ -70,8 +77,8 @@ class RunDir:
 
     @property
     def previous_state(self) -> Path:
-        """where the state a new one replaced is kept (``algo.checkpoint.previous_state_path`` of ``state``)"""
-        return self.path / "state.prev.safetensors"
+        """where the state a new one replaced is kept (``previous_state_path`` of ``state``)"""
+        return previous_state_path(self.state)
 
     @property
     def evaluation(self) -> Path:
