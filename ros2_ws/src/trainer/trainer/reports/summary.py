@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> None:
         print(report(groups, tuple(args.marks)))
 
 
-def report(groups: dict[str, list[RunReport]], marks: tuple[float, ...] = None) -> str:
+def report(groups: dict[str, list[RunReport]], marks: tuple[float, ...] | None = None) -> str:
     """Every table of the runs in ``groups`` (rule -> runs), each under a heading with a legend; a table with no
     rows is left out, a value a run does not have is '–' (never 'nan'). The first table gives the first step
     at which each run's training return reached each of ``marks`` (default ``MARKS``)."""
@@ -222,7 +222,7 @@ def late_trained_mean(run: RunReport) -> float:
     return float(np.mean([late[n] for n in run.trained_lengths]))
 
 
-def training_marks(run: RunReport, marks: tuple[float, ...] = None) -> dict[str, float]:
+def training_marks(run: RunReport, marks: tuple[float, ...] | None = None) -> dict[str, float]:
     """First step at which the trailing mean (5 updates) of the training return reached each of ``marks``
     (``to_100``, ``to_200`` for the default ``MARKS``; inf if never), the mean of the last 10 updates, and
     whether the run collapsed (last 10 below COLLAPSE x its best)."""
