@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import faulthandler
 import os
-import signal
 import sys
 import threading
 import time
@@ -40,7 +39,8 @@ from rclpy.exceptions import (
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
+
+from morph_ros_util.stop_signals import init_stopping_on_signals
 
 STOP_GRACE = 1.2
 """seconds from a signal to the end of the clean stop (executor, node, context); the process exits at
@@ -65,10 +65,7 @@ def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tup
     line ("cannot start: <error>") and exit code 1, no traceback; an exception in a callback ends the node with its
     traceback and exit code 1.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = init_stopping_on_signals(args)
     logger = get_logger(name)
     try:
         node = make_node()

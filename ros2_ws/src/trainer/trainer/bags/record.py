@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
 import textwrap
 import time
@@ -51,10 +50,10 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
 from morph_core.util.config_cli import CommandLineParser
+from morph_ros_util.stop_signals import init_stopping_on_signals
 from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 from trainer.codec import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES, message_class
 
@@ -383,27 +382,19 @@ def main(args=None) -> int:
         parser.error(str(err))
     # SIGINT/SIGTERM end the loop here, not rclpy's handler: that one shut the context down first, and the
     # bag's closing line then failed to reach rosout ("publisher's context is invalid") on every stop.
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    stop: list[int] = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda number, _frame: stop.append(number))
+    stop = init_stopping_on_signals(argv)
     node = None
     executor = SingleThreadedExecutor()  # one for the run: rclpy.spin_once(node) rebuilds the wait set per call
     try:
         node = RecorderNode()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished and not stop:
+        while rclpy.ok() and not node.finished and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         pass
     except BagWriterError as err:
         print(f"morph-record: error: {err}", file=sys.stderr)
         return 1
-    except Exception:
-        # SIGINT/SIGTERM can shut the context down between rclpy.ok() and the wait in
-        # spin_once, which then fails on the dead context: still a normal end.
-        if rclpy.ok():
-            raise
     finally:
         executor.shutdown()
         if node is not None:

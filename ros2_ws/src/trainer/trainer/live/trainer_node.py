@@ -95,6 +95,7 @@ from morph_core.protocol.transitions import (
 )
 from morph_core.protocol.trust import Signer
 from morph_ros_util.diagnostics import InputDiagnostics
+from morph_ros_util.stop_signals import init_stopping_on_signals
 from trainer.codec import (
     DATA_TOPIC_TYPES,
     DECODERS,
@@ -488,7 +489,7 @@ def run_live(cfg: PPOConfig, options: LiveOptions, args=None, signer: Signer | N
     (``algo.run.Run``)."""
     # Before any thread starts (DDS, torch): they inherit it.
     os.setpriority(os.PRIO_PROCESS, 0, max(os.getpriority(os.PRIO_PROCESS, 0), options.nice))
-    rclpy.init(args=args)
+    stop = init_stopping_on_signals(args)
     node = None
     # One executor for the whole run: rclpy.spin_once(node) adds and removes the node on every call, which
     # rebuilds the wait set for every message (4 per step per pair). (rclpy's experimental EventsExecutor
@@ -497,16 +498,16 @@ def run_live(cfg: PPOConfig, options: LiveOptions, args=None, signer: Signer | N
     try:
         node = LiveTrainer(cfg, options, signer, on_row)
         executor.add_node(node)
-        while rclpy.ok() and not node.done:
+        while not stop.is_set() and not node.done:
             executor.spin_once(timeout_sec=0.1)
         if node.done:
             node.get_logger().info(
                 f"done: version {node.learner.version}, {node.learner.counters['global_step']} steps"
             )
             end = time.monotonic() + 1.0  # let reliable readers fetch the last weights
-            while rclpy.ok() and time.monotonic() < end:
+            while not stop.is_set() and time.monotonic() < end:
                 executor.spin_once(timeout_sec=0.05)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:  # the context shut down by another hand (a test's)
         pass
     finally:
         executor.shutdown()
