@@ -129,6 +129,10 @@ def other_machine(a: Path, b: Path) -> str | None:
 def compare(a: Path, b: Path) -> bool:
     same = True
     for run in sorted(p.name for p in a.iterdir() if RunDir(p).progress.exists()):
+        if not RunDir(b / run).progress.exists():  # e.g. B's make still running, or stopped by an error
+            print(f"{run}: MISSING in {b}")
+            same = False
+            continue
         cols_a, rows_a = _rows(RunDir(a / run).progress)
         cols_b, rows_b = _rows(RunDir(b / run).progress)
         compared = [c for c in cols_a if c not in TIMING and not c.endswith("_s")]

@@ -11,4 +11,5 @@ bash scripts/setup.sh
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
 # Integration tests start real nodes on real DDS: keep them in a private netns.
-bash scripts/in_netns.sh .venv/bin/python -m pytest "$@"
+# --durations: the slowest tests in every CI log, where the suite's time budget (CONTRIBUTING.md) is kept.
+bash scripts/in_netns.sh .venv/bin/python -m pytest --durations=25 "$@"

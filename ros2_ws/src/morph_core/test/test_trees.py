@@ -9,7 +9,8 @@ import torch
 
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.chains import ChainBatch
-from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.graph_forward import link_embeddings
+from morph_core.policy.numpy_actor import NUMPY_OPS, NumpyPolicy
 
 SHIPPED = Path(__file__).resolve().parents[2] / "morph_policy_node/morph_policy_node/models/swimmer_gnn.safetensors"
 
@@ -161,7 +162,9 @@ def test_shipped_model_on_chains_is_unchanged_by_the_tree_path():
     np.testing.assert_allclose(np_value, value.numpy(), atol=1e-5, rtol=1e-5)
     coef = np.ones((64, 3), np.float32)
     coef[:, 0], coef[:, 1] = pos[-1], vel[-1]  # the 64-joint chain: the links by both paths
-    chain_links, tree_links = numpy_policy._links(coef), numpy_policy._links(coef, np.arange(64))
+    convs = numpy_policy.net.convs
+    chain_links = link_embeddings(NUMPY_OPS, convs, coef, None)
+    tree_links = link_embeddings(NUMPY_OPS, convs, coef, np.arange(64))
     assert np.abs(chain_links - tree_links).max() <= 1e-6 and np.abs(chain_links).max() > 0
 
 

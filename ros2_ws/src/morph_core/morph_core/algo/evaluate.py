@@ -83,7 +83,7 @@ def evaluate_episodes(
     # The swimmers' observations, padded, one row each; a body's swimmers are rows g*episodes.. of group g.
     count, width = len(bodies) * episodes, max(g.num_joints for g in groups)
     pos, vel = np.zeros((count, width), np.float32), np.zeros((count, width), np.float32)
-    global_width = actor.global_mlp[0][0].shape[0]  # the policy's; a swimmer's 4 features padded to it
+    global_width = actor.global_features  # the policy's; a swimmer's 4 features padded to it
     if global_width < 12 and any(is_walker(b) for b in bodies):
         raise ValueError(f"this policy reads {global_width} global features, a walker 12: train it on walkers")
     glob = np.zeros((count, global_width), np.float32)

@@ -23,12 +23,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
-from morph_core.policy.chain_conv import BACKENDS, ChainConv
+from morph_core.policy import graph_forward
+from morph_core.policy.chain_conv import BACKENDS, TORCH_OPS, ChainConv, slot_coefficients
 from morph_core.policy.chains import ChainBatch
 from morph_core.policy.config import PolicyConfig
 from morph_core.policy.gaussian import entropy_per_joint, log_density_per_joint
@@ -61,16 +61,12 @@ class TanhMLP(nn.Sequential):
         super().__init__(*layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        linears = [m for m in self if isinstance(m, nn.Linear)]
-        for i, lin in enumerate(linears):
-            w, b = lin.weight, lin.bias
-            if i > 0:  # the input is s = sigmoid(2u), the layer wants tanh(u) = 2s - 1
-                w, b = 2.0 * w, b - w.sum(1)
-            if i < len(linears) - 1:  # a tanh follows: compute sigmoid(2u)
-                x = torch.sigmoid(F.linear(x, 2.0 * w, 2.0 * b))
-            else:
-                x = F.linear(x, w, b)
-        return x
+        return TORCH_OPS.tanh_mlp(linear_layers(self), x)
+
+
+def linear_layers(module: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(weight, bias) of each linear layer of ``module``, in order: its layers as ``graph_forward.Net`` holds them."""
+    return [(m.weight, m.bias) for m in module if isinstance(m, nn.Linear)]
 
 
 class GraphFeatureExtractor(nn.Module):
@@ -86,6 +82,10 @@ class GraphFeatureExtractor(nn.Module):
 
     def forward(self, batch: ChainBatch) -> torch.Tensor:
         """[V, embed_channels]: one row per joint of the batch, in the padded batch's row-major order."""
+        return self.embeddings(batch, self.net(), torch_graph(batch))
+
+    def embeddings(self, batch: ChainBatch, net: graph_forward.Net, graph: graph_forward.Graph) -> torch.Tensor:
+        """``forward`` with the network and the graph given (``GraphActorCritic`` reads both once)."""
         if batch.global_feats.shape[1] != self.config.global_features:  # else a matmul's shape error
             raise ValueError(
                 f"this policy reads {self.config.global_features} global features, the batch has "
@@ -97,12 +97,29 @@ class GraphFeatureExtractor(nn.Module):
                 f"this policy reads {self.config.joint_features} joint description features per joint, the batch "
                 f"has {chains.edge_attr.shape[1] - 2} (ChainBatch joint_desc)"
             )
-        e, m, s = chains.edge_attr, chains.slot_mask, chains.sender
-        x = e.new_ones(chains.num_links, 1)  # links carry no state of their own
-        x = torch.relu(self.conv1(x, e, m, s))
-        x = torch.relu(self.conv2(x, e, m, s))
-        joint_embed = x[chains.joint_link]  # joint j reads the link behind it (link j+1 of its chain)
-        return joint_embed + self.global_mlp(batch.global_feats)[chains.joint_chain]
+        links = None
+        if self.conv1.backend == "pyg":  # the reference: PyG's own NNConv on an edge list
+            e, m, s = chains.edge_attr, chains.slot_mask, chains.sender
+            links = e.new_ones(chains.num_links, 1)  # links carry no state of their own
+            for conv in (self.conv1, self.conv2):
+                links = torch.relu(conv(links, e, m, s))
+        return graph_forward.joint_embeddings(TORCH_OPS, net, graph, batch.global_feats, links)
+
+    def net(self, actor: nn.Sequential | None = None, critic: nn.Sequential | None = None) -> graph_forward.Net:
+        """The extractor's weights (with the heads ``actor`` and ``critic``) as the forward pass reads them."""
+        return graph_forward.Net(
+            [self.conv1.weights(), self.conv2.weights()],
+            linear_layers(self.global_mlp),
+            [] if actor is None else linear_layers(actor),
+            [] if critic is None else linear_layers(critic),
+        )
+
+
+def torch_graph(batch: ChainBatch) -> graph_forward.Graph:
+    """The batch's packed chains as ``graph_forward.Graph``."""
+    chains = batch.packed
+    coef = slot_coefficients(chains.edge_attr, chains.slot_mask)
+    return graph_forward.Graph(coef, chains.sender, chains.joint_link, chains.joint_chain, batch.num_joints)
 
 
 class GraphActorCritic(nn.Module):
@@ -142,12 +159,15 @@ class GraphActorCritic(nn.Module):
 
     def forward(self, batch: ChainBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns mean [B, J] (zero at padding), log_std (scalar), value [B]."""
-        z = self.features(batch)  # [V, C], real joints only
-        chains = batch.packed
-        mean = z.new_zeros(batch.mask.numel()).index_copy(0, chains.joint_padded, self.actor_head(z).squeeze(1))
-        pooled = z.new_zeros(batch.batch_size, z.shape[1]).index_add(0, chains.joint_chain, z)
-        value = self.critic_head(pooled / batch.num_joints.unsqueeze(1)).squeeze(1)
-        return mean.view(batch.mask.shape), self.log_std, value
+        net, graph = self.net(), torch_graph(batch)
+        z = self.features.embeddings(batch, net, graph)  # [V, C], real joints only
+        joint_mean = graph_forward.mean_action(TORCH_OPS, net, z)
+        mean = z.new_zeros(batch.mask.numel()).index_copy(0, batch.packed.joint_padded, joint_mean)
+        return mean.view(batch.mask.shape), self.log_std, graph_forward.value(TORCH_OPS, net, z, graph)
+
+    def net(self) -> graph_forward.Net:
+        """The policy's weights as ``graph_forward`` reads them (views of the parameters: gradients flow)."""
+        return self.features.net(self.actor_head, self.critic_head)
 
     def log_prob(self, batch: ChainBatch, actions: torch.Tensor, mean: torch.Tensor | None = None) -> torch.Tensor:
         """[B] log-density of padded actions [B, J] over each sample's own joints."""

@@ -50,11 +50,14 @@ import sys
 import tempfile
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 from torch_geometric.nn import NNConv
 
 from morph_core.constants import NUM_EDGE_FEATURES
+from morph_core.policy import graph_forward
 from morph_core.policy.config import BACKENDS
+from morph_core.policy.graph_forward import ConvWeights, Graph
 
 
 def _nnconv(in_channels: int, out_channels: int, root: bool, edge_features: int = NUM_EDGE_FEATURES) -> NNConv:
@@ -96,25 +99,17 @@ class ChainConv(nn.Module):
         self.fwd = _nnconv(in_channels, out_channels, True, edge_features)  # torso-to-tail, root weight and bias
         self.bwd = _nnconv(in_channels, out_channels, False, edge_features) if bidirectional else None
 
+    def weights(self) -> ConvWeights:
+        """This layer in message form (``graph_forward``), from its parameters: gradients flow through."""
+        bwd = None if self.bwd is None else message_weights(self.bwd)
+        return ConvWeights(self.fwd.lin.weight.T, self.fwd.bias, message_weights(self.fwd), bwd)
+
     def forward(
         self, x: torch.Tensor, edge_attr: torch.Tensor, slot_mask: torch.Tensor, sender: torch.Tensor | None = None
     ) -> torch.Tensor:
         if self.backend == "pyg":
             return self._pyg(x, edge_attr, slot_mask, sender)
-        keep = slot_mask.unsqueeze(1).to(x.dtype)
-        coef = torch.cat([edge_attr * keep, keep], dim=1)  # [e, 1] per slot; zero at cuts
-        out = torch.addmm(self.fwd.bias, x, self.fwd.lin.weight.T)
-        parent = x[:-1] if sender is None else x[sender]
-        # Parent link -> child link k+1 across slot k.
-        out[1:] += _outer(coef, parent) @ message_weights(self.fwd)
-        if self.bwd is not None:
-            # Child link k+1 -> parent link across slot k.
-            messages = _outer(coef, x[1:]) @ message_weights(self.bwd)
-            if sender is None:
-                out[:-1] += messages
-            else:
-                out = out.index_add(0, sender, messages)
-        return out
+        return graph_forward.conv(TORCH_OPS, self.weights(), x, slot_coefficients(edge_attr, slot_mask), sender)
 
     def _pyg(
         self, x: torch.Tensor, edge_attr: torch.Tensor, slot_mask: torch.Tensor, sender: torch.Tensor | None
@@ -129,17 +124,74 @@ class ChainConv(nn.Module):
         return out
 
 
-def _outer(coef: torch.Tensor, src: torch.Tensor) -> torch.Tensor:
-    """[S, (E+1) * C_in]: the sender's features scaled by each edge coefficient, [e_0 x, e_1 x, x]."""
-    # Column by column: scaling rows of a contiguous block is ~2x faster, both ways, than one
-    # broadcast product over [S, E+1, C_in].
-    return torch.cat([coef[:, k : k + 1] * src for k in range(coef.shape[1])], dim=1)
+def slot_coefficients(edge_attr: torch.Tensor, slot_mask: torch.Tensor) -> torch.Tensor:
+    """[L-1, E+1] ``graph_forward.Graph.coef``: [e, 1] per slot, zero at cuts."""
+    keep = slot_mask.unsqueeze(1).to(edge_attr.dtype)
+    return torch.cat([edge_attr * keep, keep], dim=1)
 
 
 def message_weights(conv: NNConv) -> torch.Tensor:
     """[(E+1) * C_in, C_out]: [A_0; A_1; B] from the linear edge network of a PyG NNConv."""
-    c_in, c_out = conv.in_channels, conv.out_channels
     edge_net: nn.Linear = conv.nn
-    # W_e: [C_in*C_out, E] viewed [C_in, C_out, E]: the (in, out) order of PyG's view(-1, C_in, C_out).
-    a = edge_net.weight.view(c_in, c_out, -1).permute(2, 0, 1)
-    return torch.cat([a, edge_net.bias.view(1, c_in, c_out)]).reshape(-1, c_out)
+    return graph_forward.edge_blocks(TORCH_OPS, edge_net.weight, edge_net.bias, conv.in_channels, conv.out_channels)
+
+
+class TorchOps:
+    """``graph_forward.ArrayOps`` in torch: what the update differentiates and compiles, and ONNX traces."""
+
+    def first_layer(self, conv: ConvWeights, coef: torch.Tensor, sender: torch.Tensor | None) -> torch.Tensor:
+        # The product with the links' input 1 is kept (NumPy skips it): its gradient sums as it always did.
+        slots = coef.shape[0]
+        x = coef.new_ones(slots + 1 if slots else 0, 1)  # an empty batch has no link
+        return graph_forward.conv(self, conv, x, coef, sender)
+
+    @staticmethod
+    def outer(coef: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        # Column by column: scaling rows of a contiguous block is ~2x faster, both ways, than one
+        # broadcast product over [S, E+1, C_in].
+        return torch.cat([coef[:, k : k + 1] * x for k in range(coef.shape[1])], dim=1)
+
+    @staticmethod
+    def affine(x: torch.Tensor, root: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        return torch.addmm(bias, x, root)
+
+    @staticmethod
+    def add_to_parents(out: torch.Tensor, sender: torch.Tensor | None, messages: torch.Tensor) -> torch.Tensor:
+        if sender is None:
+            out[:-1] += messages
+            return out
+        return out.index_add(0, sender, messages)
+
+    relu = staticmethod(torch.relu)
+    concat = staticmethod(torch.cat)
+    permute_dims = staticmethod(torch.permute)
+
+    @staticmethod
+    def relu_mlp(layers, x: torch.Tensor) -> torch.Tensor:
+        for w, b in layers:  # torch's (weight [out, in], bias)
+            x = torch.relu(F.linear(x, w, b))
+        return x
+
+    @staticmethod
+    def tanh_mlp(layers, x: torch.Tensor) -> torch.Tensor:
+        """Through tanh(u) = 2 sigmoid(2u) - 1 (``actor_critic.TanhMLP`` says why): the factors 2 and the -1
+        go into the small weights, W (2s - 1) + b = (2W) s + (b - W 1)."""
+        for i, (w, b) in enumerate(layers):
+            if i > 0:  # the input is s = sigmoid(2u), the layer wants tanh(u) = 2s - 1
+                w, b = 2.0 * w, b - w.sum(1)
+            if i < len(layers) - 1:  # a tanh follows: compute sigmoid(2u)
+                x = torch.sigmoid(F.linear(x, 2.0 * w, 2.0 * b))
+            else:
+                x = F.linear(x, w, b)
+        return x
+
+    @staticmethod
+    def mean_per_sample(z: torch.Tensor, graph: Graph) -> torch.Tensor:
+        if graph.joint_sample is None:  # one sample
+            return z.mean(dim=0, keepdim=True)
+        num_joints = graph.pool  # [B]
+        pooled = z.new_zeros(num_joints.shape[0], z.shape[1]).index_add(0, graph.joint_sample, z)
+        return pooled / num_joints.unsqueeze(1)
+
+
+TORCH_OPS = TorchOps()

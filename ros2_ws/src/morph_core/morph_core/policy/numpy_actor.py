@@ -3,12 +3,10 @@
 A node answers one chain at a time and a rollout steps six swimmers at a
 time; for a network this small torch spends most of such a forward pass on
 per-operation overhead (about 0.45 ms against 0.1 ms here). This is the
-same computation as the torch policy (``chain_conv``'s form on the chains
-laid end to end, ``chains.PackedChains``) on NumPy copies of its weights,
-tested equal to it to 1e-5. Kinematic trees (``parents``, see ``index_plan``)
-take the same index plan as torch: the parent link's features gathered by
-``sender``, the tail-to-torso messages scatter-added to it. Gradients and
-updates stay in torch.
+torch policy's forward pass (``graph_forward``, written once) on NumPy's
+operations (``NUMPY_OPS``) and NumPy copies of its weights, over the same
+index plan (``index_plan``: the chains laid end to end, a tree's parent
+links), tested equal to torch to 1e-5. Gradients and updates stay in torch.
 
 No torch here: the weights come from a torch policy handed in by the
 trainer (its state dict, copied) or from ``weights.load_checkpoint`` (a
@@ -23,7 +21,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from morph_core.policy import graph_forward
 from morph_core.policy.gaussian import log_density_from_norm
+from morph_core.policy.graph_forward import ConvWeights, Graph, Net
 from morph_core.policy.index_plan import IndexPlan, check_parents, is_chain
 from morph_core.policy.weights import PolicyWeights
 
@@ -37,23 +37,84 @@ def _state_arrays(source) -> Mapping[str, np.ndarray]:
     return source
 
 
-def _edge_blocks(weight: np.ndarray, bias: np.ndarray, c_in: int, c_out: int) -> np.ndarray:
-    # W_e: [C_in*C_out, E] viewed [C_in, C_out, E]: the (in, out) order of PyG's view(-1, C_in, C_out).
-    a = weight.reshape(c_in, c_out, -1).transpose(2, 0, 1)
-    # C order as torch's copy had it: a matmul's rounding can depend on the operand's layout.
-    return np.array(np.concatenate([a, bias.reshape(1, c_in, c_out)]).reshape(-1, c_out), order="C")
-
-
 def _linear(state: Mapping[str, np.ndarray], prefix: str) -> tuple[np.ndarray, np.ndarray]:
     """(W^T, b) of a linear layer, C-ordered copies."""
     return np.array(state[f"{prefix}.weight"].T, order="C"), np.array(state[f"{prefix}.bias"], order="C")
 
 
-def _tanh_mlp(x: np.ndarray, layers: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    for w, b in layers[:-1]:
-        x = np.tanh(x @ w + b)
-    w, b = layers[-1]
-    return x @ w + b
+def _conv(state: Mapping[str, np.ndarray], prefix: str) -> ConvWeights:
+    """One ``ChainConv`` of a state dict in message form: C-ordered copies, as torch's copy had them (a
+    matmul's rounding can depend on the operand's layout)."""
+    root = state[f"{prefix}.fwd.lin.weight"]  # [C_out, C_in]
+    c_out, c_in = root.shape
+
+    def blocks(net: str) -> np.ndarray | None:
+        if f"{net}.weight" not in state:  # a one-directional policy has no tail-to-torso network
+            return None
+        return graph_forward.edge_blocks(NUMPY_OPS, state[f"{net}.weight"], state[f"{net}.bias"], c_in, c_out)
+
+    bias = np.array(state[f"{prefix}.fwd.bias"], order="C")
+    return ConvWeights(np.array(root.T, order="C"), bias, blocks(f"{prefix}.fwd.nn"), blocks(f"{prefix}.bwd.nn"))
+
+
+class NumpyOps:
+    """``graph_forward.ArrayOps`` in NumPy (no torch): what nodes, controllers and rollouts run."""
+
+    @classmethod
+    def first_layer(cls, conv: ConvWeights, coef: np.ndarray, sender: np.ndarray | None) -> np.ndarray:
+        # The links' input is 1, so the layer's products are its weights themselves (exactly: 1 * w), and
+        # its messages are the coefficients times the edge blocks, whatever the parent.
+        out = np.repeat(conv.root + conv.bias, coef.shape[0] + 1, axis=0)
+        out[1:] += coef @ conv.fwd
+        if conv.bwd is not None:
+            out = cls.add_to_parents(out, sender, coef @ conv.bwd)
+        return out
+
+    @staticmethod
+    def outer(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return (coef[:, :, None] * x[:, None, :]).reshape(coef.shape[0], -1)
+
+    @staticmethod
+    def affine(x: np.ndarray, root: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        return x @ root + bias
+
+    @staticmethod
+    def add_to_parents(out: np.ndarray, sender: np.ndarray | None, messages: np.ndarray) -> np.ndarray:
+        if sender is None:
+            out[:-1] += messages
+        else:
+            np.add.at(out, sender, messages)  # several children's messages meet at a parent
+        return out
+
+    @staticmethod
+    def relu(x: np.ndarray) -> np.ndarray:
+        return np.maximum(x, 0.0)
+
+    @staticmethod
+    def relu_mlp(layers, x: np.ndarray) -> np.ndarray:
+        for w, b in layers:  # (W^T, b)
+            x = np.maximum(x @ w + b, 0.0)
+        return x
+
+    @staticmethod
+    def tanh_mlp(layers, x: np.ndarray) -> np.ndarray:
+        for w, b in layers[:-1]:
+            x = np.tanh(x @ w + b)
+        w, b = layers[-1]
+        return x @ w + b
+
+    @staticmethod
+    def mean_per_sample(z: np.ndarray, graph: Graph) -> np.ndarray:
+        if graph.joint_sample is None:  # one sample
+            return z.mean(axis=0, keepdims=True)
+        first, count = graph.pool  # [B] each sample's first joint, [B, 1] its joints
+        return np.add.reduceat(z, first, axis=0) / count
+
+    concat = staticmethod(np.concatenate)
+    permute_dims = staticmethod(np.transpose)
+
+
+NUMPY_OPS = NumpyOps()
 
 
 class _Layout(NamedTuple):
@@ -100,20 +161,16 @@ class NumpyPolicy:
 
     def __init__(self, source):
         state = _state_arrays(source)
-        self.layers = []
-        for conv in ("features.conv1", "features.conv2"):
-            root = state[f"{conv}.fwd.lin.weight"]  # [C_out, C_in]
-            c_out, c_in = root.shape
-            fwd = _edge_blocks(state[f"{conv}.fwd.nn.weight"], state[f"{conv}.fwd.nn.bias"], c_in, c_out)
-            bwd = None
-            if f"{conv}.bwd.nn.weight" in state:
-                bwd = _edge_blocks(state[f"{conv}.bwd.nn.weight"], state[f"{conv}.bwd.nn.bias"], c_in, c_out)
-            self.layers.append((fwd, bwd, np.array(root.T, order="C"), np.array(state[f"{conv}.fwd.bias"], order="C")))
-        self.global_mlp = [_linear(state, "features.global_mlp.0"), _linear(state, "features.global_mlp.2")]
-        self.actor = [_linear(state, f"actor_head.{i}") for i in (0, 2, 4)]
-        self.critic = [_linear(state, f"critic_head.{i}") for i in (0, 2, 4)]
+        convs = [_conv(state, conv) for conv in ("features.conv1", "features.conv2")]
+        self.net = Net(
+            convs,
+            [_linear(state, "features.global_mlp.0"), _linear(state, "features.global_mlp.2")],
+            [_linear(state, f"actor_head.{i}") for i in (0, 2, 4)],
+            [_linear(state, f"critic_head.{i}") for i in (0, 2, 4)],
+        )
+        """the weights as ``graph_forward`` reads them"""
         self.log_std = float(state["log_std"])
-        self.global_features = self.global_mlp[0][0].shape[0]
+        self.global_features = self.net.global_mlp[0][0].shape[0]
         """how many global features the policy reads (``PolicyConfig.global_features``: 4 planar, 12 legged)"""
         self.joint_features = int(state["features.conv1.fwd.nn.weight"].shape[1]) - 2
         """description features per joint the policy reads (``PolicyConfig.joint_features``)"""
@@ -154,8 +211,9 @@ class NumpyPolicy:
         if parents is not None:
             p = check_parents(parents, np.ones(n, dtype=bool))
             sender = None if is_chain(p, np.ones(n, dtype=bool)) else p + 1  # one tree: no cuts, slot j = joint j
-        z = self._links(coef, sender)[1:] + self._global(global_feats[None])
-        return _tanh_mlp(z, self.actor)[:, 0]
+        one = Graph(coef, sender, None, None)  # one sample: joint j is slot j, behind link j + 1
+        z = graph_forward.joint_embeddings(NUMPY_OPS, self.net, one, self._global_feats(global_feats[None]))
+        return graph_forward.mean_action(NUMPY_OPS, self.net, z)
 
     def sample(
         self,
@@ -195,16 +253,18 @@ class NumpyPolicy:
         coef[chains.slot, 1] = joint_vel.reshape(-1)[chains.joint_padded]
         if desc is not None:
             coef[chains.slot, 2:-1] = desc.reshape(-1, self.joint_features)[chains.joint_padded]
-        return chains, self._links(coef, chains.sender)[chains.link] + self._global(global_feats)[chains.chain]
+        graph = Graph(coef, chains.sender, chains.link, chains.chain, (chains.first, chains.count))
+        return chains, graph_forward.joint_embeddings(NUMPY_OPS, self.net, graph, self._global_feats(global_feats))
 
     def _padded_mean(self, chains: _Layout, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         mean = np.zeros(shape[0] * shape[1], dtype=np.float32)
-        mean[chains.joint_padded] = _tanh_mlp(z, self.actor)[:, 0]
+        mean[chains.joint_padded] = graph_forward.mean_action(NUMPY_OPS, self.net, z)
         return mean.reshape(shape)
 
     def _value(self, chains: _Layout, z: np.ndarray) -> np.ndarray:
         """[B] the critic on each chain's mean joint embedding."""
-        return _tanh_mlp(np.add.reduceat(z, chains.first, axis=0) / chains.count, self.critic)[:, 0]
+        pool = Graph(None, None, None, chains.chain, (chains.first, chains.count))
+        return graph_forward.value(NUMPY_OPS, self.net, z, pool)
 
     def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray, parents=None, joint_desc=None):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
@@ -235,37 +295,8 @@ class NumpyPolicy:
             layout = self._layouts[key] = _Layout.of(num_joints, width, parents, self.joint_features)
         return layout
 
-    def _links(self, coef: np.ndarray, sender: np.ndarray | None = None) -> np.ndarray:
-        """[L, C] link embeddings after the two NNConv layers; ``coef`` is [e_0, e_1, 1] per slot, zero at cuts;
-        ``sender`` [L - 1] the parent link of each slot (trees), None for chains (slot k's link k)."""
-        (fwd, bwd, root, bias), *later = self.layers
-        # The first layer's input is 1 on every link, so its products are its weights themselves (exactly:
-        # 1 * w), and its messages are the coefficients times the edge blocks (whatever the parent).
-        out = np.repeat(root + bias, coef.shape[0] + 1, axis=0)
-        out[1:] += coef @ fwd
-        if bwd is not None:
-            _to_parents(out, sender, coef @ bwd)
-        x = np.maximum(out, 0.0)
-        for fwd, bwd, root, bias in later:
-            out = x @ root + bias
-            parent = x[:-1] if sender is None else x[sender]
-            out[1:] += (coef[:, :, None] * parent[:, None, :]).reshape(coef.shape[0], -1) @ fwd
-            if bwd is not None:
-                _to_parents(out, sender, (coef[:, :, None] * x[1:, None, :]).reshape(coef.shape[0], -1) @ bwd)
-            x = np.maximum(out, 0.0)
-        return x
-
-    def _global(self, global_feats: np.ndarray) -> np.ndarray:
-        (w1, b1), (w2, b2) = self.global_mlp
-        if global_feats.shape[-1] != w1.shape[0]:  # else a matmul's shape error
-            raise ValueError(f"this policy reads {w1.shape[0]} global features, got {global_feats.shape[-1]}")
-        return np.maximum(np.maximum(global_feats.astype(np.float32) @ w1 + b1, 0.0) @ w2 + b2, 0.0)
-
-
-def _to_parents(out: np.ndarray, sender: np.ndarray | None, messages: np.ndarray) -> None:
-    """Add each slot's tail-to-torso message to its parent link: link k in a chain (``sender`` None), else
-    ``sender[k]``, where several children's messages meet (scatter-add)."""
-    if sender is None:
-        out[:-1] += messages
-    else:
-        np.add.at(out, sender, messages)
+    def _global_feats(self, global_feats: np.ndarray) -> np.ndarray:
+        """``global_feats`` as float32, checked against the policy's width (else a matmul's shape error)."""
+        if global_feats.shape[-1] != self.global_features:
+            raise ValueError(f"this policy reads {self.global_features} global features, got {global_feats.shape[-1]}")
+        return global_feats.astype(np.float32)

@@ -20,11 +20,11 @@ A policy that reads joint descriptions (``PolicyConfig.joint_features`` D > 0) t
     joint_desc  [N, D] float32: each joint's description (``policy.joint_description``)
 
 The graph is torch's own exporter (``torch.onnx.export``, torch.export based) run on
-``SingleChainPolicy``: the policy's modules applied to one chain laid out as arrays, the form
-``numpy_actor`` computes, instead of the batched ``PackedChains`` whose index building
-(``nonzero``) does not trace with a symbolic length. The same parameter tensors, the same
-``ChainConv`` and heads; every export is checked with ONNX Runtime against the torch policy before
-anything is written (``check_against_policy``), so a graph that differs is never left on disk.
+``SingleChainPolicy``: the one forward pass (``graph_forward``) in torch on one chain laid out as
+arrays, instead of the batched ``PackedChains`` whose index building (``nonzero``) does not trace with a
+symbolic length. The same parameter tensors and the same operations as training; every export is
+checked with ONNX Runtime against the torch policy before anything is written (``check_against_policy``),
+so a graph that differs is never left on disk.
 
 A training-side tool: torch is imported here, and ``onnx``/``onnxruntime``/``onnxscript`` (the
 trainer's ``[onnx]`` extra) only when an export runs.
@@ -46,7 +46,9 @@ import torch
 from torch import nn
 
 from morph_core.constants import NUM_GLOBAL_FEATURES
+from morph_core.policy import graph_forward
 from morph_core.policy.actor_critic import GraphActorCritic
+from morph_core.policy.chain_conv import TORCH_OPS, slot_coefficients
 from morph_core.policy.chains import ChainBatch, chain_batch
 from morph_core.policy.weights import PolicyWeights, load_checkpoint
 from morph_core.util.atomic import atomic_write_bytes
@@ -81,9 +83,9 @@ class ExportError(RuntimeError):
 class SingleChainPolicy(nn.Module):
     """``policy``'s mean action (and value) of one chain: (joint_pos [N], joint_vel [N], global [G]) -> outputs.
 
-    Applies the policy's own modules as ``GraphFeatureExtractor.forward`` and
-    ``GraphActorCritic.forward`` do, for a batch of one chain: every slot holds a joint (no cuts),
-    so the packed chain is just the joint states in order and the links are N + 1.
+    The forward pass of every executor (``graph_forward``, torch's operations on the policy's own
+    parameters) on a batch of one chain: every slot holds a joint (no cuts), so the packed chain is just the
+    joint states in order and the links are N + 1.
     """
 
     def __init__(self, policy: GraphActorCritic, with_value: bool):
@@ -99,19 +101,17 @@ class SingleChainPolicy(nn.Module):
         return self._outputs(joint_pos, joint_vel, global_feats, None)
 
     def _outputs(self, joint_pos, joint_vel, global_feats, sender: torch.Tensor | None, joint_desc=None):
-        features = self.policy.features
         edge_attr = torch.stack([joint_pos, joint_vel], dim=1)  # slot j holds joint j
         if joint_desc is not None:  # a policy with descriptions: [angle, velocity, description] per joint
             edge_attr = torch.cat([edge_attr, joint_desc], dim=1)
-        slot_mask = torch.ones_like(joint_pos, dtype=torch.bool)
-        x = joint_pos.new_ones(joint_pos.shape[0] + 1, 1)  # links carry no state of their own
-        x = torch.relu(features.conv1(x, edge_attr, slot_mask, sender))
-        x = torch.relu(features.conv2(x, edge_attr, slot_mask, sender))
-        z = x[1:] + features.global_mlp(global_feats.unsqueeze(0))  # joint j reads link j + 1
-        action = self.policy.actor_head(z).squeeze(1)
+        coef = slot_coefficients(edge_attr, torch.ones_like(joint_pos, dtype=torch.bool))
+        one = graph_forward.Graph(coef, sender, None, None)  # one sample: joint j behind link j + 1
+        net = self.policy.net()
+        z = graph_forward.joint_embeddings(TORCH_OPS, net, one, global_feats.unsqueeze(0))
+        action = graph_forward.mean_action(TORCH_OPS, net, z)
         if not self.with_value:
             return action
-        return action, self.policy.critic_head(z.mean(dim=0, keepdim=True)).reshape(1)
+        return action, graph_forward.value(TORCH_OPS, net, z, one).reshape(1)
 
 
 class SingleTreePolicy(SingleChainPolicy):
