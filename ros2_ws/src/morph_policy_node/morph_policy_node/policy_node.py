@@ -152,7 +152,7 @@ from typing import NoReturn
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -193,6 +193,7 @@ from morph_core.protocol.trust import load_trusted_keys
 from morph_policy_node.policy_choice import UNTRAINED_LABEL, choose_policy
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
+from morph_ros_util.parameters import NodeParameter, declare_parameters
 
 SHIPPED_MODEL = Path(__file__).resolve().parent / "models" / "swimmer_gnn.safetensors"
 _WATCHDOG_PERIOD = 0.04  # also the rate of zero efforts while the input is silent
@@ -244,93 +245,75 @@ def default_checkpoint() -> str:
     return str(SHIPPED_MODEL) if SHIPPED_MODEL.is_file() else ""
 
 
+def parameters() -> tuple[NodeParameter, ...]:
+    """The node's parameters, declared from here (``morph_ros_util.parameters``) and listed by ``--help``."""
+    return (
+        NodeParameter(
+            "checkpoint",
+            default_checkpoint(),
+            "policy .safetensors (config .json beside it); '' = untrained (needs allow_untrained)",
+        ),
+        NodeParameter("deterministic", True, "act with the Gaussian mean; false samples and publishes policy_info"),
+        NodeParameter(
+            "input_timeout",
+            0.5,
+            "wall seconds without a state answered before publishing zero efforts",
+            (0.001, 3600.0),
+        ),
+        NodeParameter(
+            "allow_untrained",
+            False,
+            "with checkpoint '': run a freshly initialised policy (efforts marked untrained_policy)",
+            read_only=True,
+        ),
+        NodeParameter("seed", 0, "seed of the action sampling and of an untrained policy", read_only=True),
+        NodeParameter(
+            "accept_weights",
+            True,
+            f"adopt policies a trusted live trainer publishes on {WEIGHTS_TOPIC} (false: never)",
+            read_only=True,
+        ),
+        NodeParameter(
+            KEYS,
+            Parameter.Type.STRING_ARRAY,
+            f"public key files (OpenSSH ssh-ed25519 or PEM) whose signed {WEIGHTS_TOPIC} are adopted; none: live "
+            "updates off",
+            read_only=True,
+        ),
+        NodeParameter(
+            "accept_unsigned_weights",
+            False,
+            f"FOR TESTS: adopt unsigned {WEIGHTS_TOPIC} from any peer on the domain",
+            read_only=True,
+        ),
+        NodeParameter(
+            "stream_chunk_period",
+            0.1,
+            f"seconds between {CHUNK_TOPIC} (this node's messages, for a live trainer); 0 = none",
+            (0.0, 60.0),
+            read_only=True,
+        ),
+        NodeParameter(
+            "effort_order",
+            "state",
+            "efforts in the order of the state's joint names ('state') or in robot_description's depth-first order "
+            "of its actuated joints ('description', for a JointGroupEffortController)",
+            read_only=True,
+        ),
+        NodeParameter(
+            "effort_units",
+            "normalized",
+            "efforts in the policy's [-1, 1] ('normalized') or each times its joint's URDF <limit effort> ('urdf', "
+            "for a JointGroupEffortController; needs robot_description)",
+            read_only=True,
+        ),
+    )
+
+
 class MorphPolicyNode(Node):
     def __init__(self):
         super().__init__("morph_policy")
-        self.declare_parameter(
-            "checkpoint",
-            default_checkpoint(),
-            ParameterDescriptor(
-                description="policy .safetensors (config .json beside it); '' = untrained (needs allow_untrained)"
-            ),
-        )
-        self.declare_parameter(
-            "deterministic",
-            True,
-            ParameterDescriptor(description="act with the Gaussian mean; false samples and publishes policy_info"),
-        )
-        self.declare_parameter(
-            "input_timeout",
-            0.5,
-            ParameterDescriptor(
-                description="wall seconds without a state answered before publishing zero efforts",
-                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)],
-            ),
-        )
-        self.declare_parameter(
-            "allow_untrained",
-            False,
-            ParameterDescriptor(
-                description="with checkpoint '': run a freshly initialised policy (efforts marked untrained_policy)",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "seed",
-            0,
-            ParameterDescriptor(description="seed of the action sampling and of an untrained policy", read_only=True),
-        )
-        self.declare_parameter(
-            "accept_weights",
-            True,
-            ParameterDescriptor(
-                description=f"adopt policies a trusted live trainer publishes on {WEIGHTS_TOPIC} (false: never)",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            KEYS,
-            Parameter.Type.STRING_ARRAY,
-            ParameterDescriptor(
-                description=f"public key files (OpenSSH ssh-ed25519 or PEM) whose signed {WEIGHTS_TOPIC} are adopted;"
-                " none: live updates off",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "accept_unsigned_weights",
-            False,
-            ParameterDescriptor(
-                description=f"FOR TESTS: adopt unsigned {WEIGHTS_TOPIC} from any peer on the domain", read_only=True
-            ),
-        )
-        self.declare_parameter(
-            "stream_chunk_period",
-            0.1,
-            ParameterDescriptor(
-                description=f"seconds between {CHUNK_TOPIC} (this node's messages, for a live trainer); 0 = none",
-                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=60.0, step=0.0)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "effort_order",
-            "state",
-            ParameterDescriptor(
-                description="efforts in the order of the state's joint names ('state') or in robot_description's "
-                "depth-first order of its actuated joints ('description', for a JointGroupEffortController)",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "effort_units",
-            "normalized",
-            ParameterDescriptor(
-                description="efforts in the policy's [-1, 1] ('normalized') or each times its joint's URDF "
-                "<limit effort> ('urdf', for a JointGroupEffortController; needs robot_description)",
-                read_only=True,
-            ),
-        )
+        declare_parameters(self, parameters())
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -684,7 +667,8 @@ class MorphPolicyNode(Node):
 def main(args=None) -> NoReturn:
     # A checkpoint that cannot be loaded (or none without allow_untrained), or an unknown effort_order, is one
     # line and exit 1.
-    node_runner.run(MorphPolicyNode, "morph_policy", args, startup_errors=(CheckpointError, EffortOrderError))
+    node_runner.run(MorphPolicyNode, "morph_policy", args, startup_errors=(CheckpointError, EffortOrderError),
+                    parameters=parameters(), summary=__doc__.splitlines()[0])  # fmt: skip
 
 
 if __name__ == "__main__":

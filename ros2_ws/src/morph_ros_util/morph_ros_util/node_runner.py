@@ -28,9 +28,10 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import rclpy
+import rclpy.utilities
 from rclpy.exceptions import (
     InvalidParameterException,
     InvalidParameterTypeException,
@@ -40,6 +41,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
 from rclpy.node import Node
 
+from morph_ros_util.parameters import NodeParameter, parameters_help
 from morph_ros_util.stop_signals import init_stopping_on_signals
 
 STOP_GRACE = 1.2
@@ -58,13 +60,27 @@ PARAMETER_ERRORS = (InvalidParameterException, InvalidParameterTypeException, In
 errors of every node (``-p num_joints:=100`` is one "cannot start" line, not a traceback)"""
 
 
-def run(make_node: Callable[[], Node], name: str, args=None, startup_errors: tuple[type[Exception], ...] = ()) -> int:
+def run(
+    make_node: Callable[[], Node],
+    name: str,
+    args=None,
+    startup_errors: tuple[type[Exception], ...] = (),
+    parameters: Sequence[NodeParameter] = (),
+    summary: str = "",
+) -> int:
     """Spin ``make_node()`` until SIGINT/SIGTERM; returns the exit code.
 
+    ``-h``/``--help`` among the arguments before ``--ros-args`` prints ``summary`` and the node's
+    ``parameters`` (its declaration table, ``morph_ros_util.parameters``) and exits 0 before anything starts.
     An exception of ``startup_errors`` (and of ``PARAMETER_ERRORS``) while the node is made is one fatal log
     line ("cannot start: <error>") and exit code 1, no traceback; an exception in a callback ends the node with its
     traceback and exit code 1.
     """
+    argv = list(sys.argv if args is None else args)
+    if {"-h", "--help"} & set(rclpy.utilities.remove_ros_args(argv)[1:]):
+        usage = f"usage: {name} [-h] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]"
+        print("\n\n".join(part for part in (usage, summary, parameters_help(parameters) if parameters else "") if part))
+        sys.exit(0)
     stop = init_stopping_on_signals(args)
     logger = get_logger(name)
     try:

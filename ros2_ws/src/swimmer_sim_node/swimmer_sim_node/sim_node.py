@@ -131,12 +131,7 @@ from typing import NoReturn
 import numpy as np
 from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -159,6 +154,7 @@ from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
 from morph_ros_util.diagnostics import InputDiagnostics
+from morph_ros_util.parameters import NodeParameter, declare_parameters
 from swimmer_sim_node.chain_viz import LATCHED_QOS, ChainViz
 
 # A free-running tick steps for at most this long before letting the executor
@@ -180,6 +176,61 @@ EPISODE_QOS = LATCHED_QOS
 """episode_start: latched, so a late subscriber still learns where the current episode began"""
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 """effort_commands (read): depth 10 so a stale answer queued behind the awaited one cannot push it out"""
+
+
+PARAMETERS = (
+    NodeParameter(
+        "num_joints",
+        6,
+        "actuated joints in the chain (with a range set: the current episode's, drawn); setting it starts a new "
+        "episode with that chain; with topology or model_file it reports the body's count and cannot be set",
+        (MIN_JOINTS, MAX_JOINTS),
+    ),
+    *(
+        NodeParameter(
+            bound,
+            0,
+            "chain lengths drawn at each reset, min_joints..max_joints inclusive; both 0 = a fixed chain of num_joints",
+            (0, MAX_JOINTS),
+            read_only=True,
+        )
+        for bound in ("min_joints", "max_joints")
+    ),
+    NodeParameter(
+        "episode_steps",
+        0,
+        "control steps per episode before the sim resets; 0 = only on request",
+        (0, _MAX_EPISODE_STEPS),
+    ),  # fmt: skip
+    NodeParameter("joint_prefix", "", "prefix of joint, link and root frame names"),
+    NodeParameter("real_time_factor", 1.0, "sim seconds per wall second; 0 = as fast as possible", (0.0, 10000.0)),
+    NodeParameter("lockstep", False, "step only when efforts for the latest published state have arrived"),
+    NodeParameter(
+        "effort_timeout",
+        0.25,
+        "wall seconds without efforts before they drop to zero (lockstep: before re-publishing)",
+        (0.001, 3600.0),
+    ),
+    NodeParameter("seed", 0, "seed of the reset noise, body draws and joint shuffling", read_only=True),
+    NodeParameter(
+        "topology",
+        "",
+        "body spec of the swimmers drawn at each reset (e.g. y:2x2, star:3x2, 2-10,random:3-10); "
+        "'' = chains of num_joints / min_joints..max_joints",
+        read_only=True,
+    ),
+    NodeParameter(
+        "model_file", "", "MJCF of your own robot (actuated hinges) to simulate instead of a swimmer", read_only=True
+    ),
+    NodeParameter(
+        "shuffle_joints",
+        False,
+        "list the joints of every joint state in a random order (efforts map by name or by the order of the state "
+        "they answer)",
+        read_only=True,
+    ),
+)
+"""the node's parameters, declared from here (``morph_ros_util.parameters``) and listed by ``--help``"""
 
 
 def _time(ns: int) -> Time:
@@ -244,91 +295,7 @@ def make_sim(
 class SwimmerSimNode(Node):
     def __init__(self):
         super().__init__("swimmer_sim")
-        joints = IntegerRange(from_value=MIN_JOINTS, to_value=MAX_JOINTS, step=1)
-        self.declare_parameter(
-            "num_joints",
-            6,
-            ParameterDescriptor(
-                description="actuated joints in the chain (with a range set: the current episode's, drawn); "
-                "setting it starts a new episode with that chain; with topology or model_file it reports the "
-                "body's count and cannot be set",
-                integer_range=[joints],
-            ),
-        )
-        for bound in ("min_joints", "max_joints"):
-            self.declare_parameter(
-                bound,
-                0,
-                ParameterDescriptor(
-                    description="chain lengths drawn at each reset, min_joints..max_joints inclusive; "
-                    "both 0 = a fixed chain of num_joints",
-                    integer_range=[IntegerRange(from_value=0, to_value=MAX_JOINTS, step=1)],
-                    read_only=True,
-                ),
-            )
-        self.declare_parameter(
-            "episode_steps",
-            0,
-            ParameterDescriptor(
-                description="control steps per episode before the sim resets; 0 = only on request",
-                integer_range=[IntegerRange(from_value=0, to_value=_MAX_EPISODE_STEPS, step=1)],
-            ),
-        )
-        self.declare_parameter(
-            "joint_prefix", "", ParameterDescriptor(description="prefix of joint, link and root frame names")
-        )
-        self.declare_parameter(
-            "real_time_factor",
-            1.0,
-            ParameterDescriptor(
-                description="sim seconds per wall second; 0 = as fast as possible",
-                floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10000.0, step=0.0)],
-            ),
-        )
-        self.declare_parameter(
-            "lockstep",
-            False,
-            ParameterDescriptor(description="step only when efforts for the latest published state have arrived"),
-        )
-        self.declare_parameter(
-            "effort_timeout",
-            0.25,
-            ParameterDescriptor(
-                description="wall seconds without efforts before they drop to zero (lockstep: before re-publishing)",
-                floating_point_range=[FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)],
-            ),
-        )
-        self.declare_parameter(
-            "seed",
-            0,
-            ParameterDescriptor(description="seed of the reset noise, body draws and joint shuffling", read_only=True),
-        )
-        self.declare_parameter(
-            "topology",
-            "",
-            ParameterDescriptor(
-                description="body spec of the swimmers drawn at each reset (e.g. y:2x2, star:3x2, 2-10,random:3-10); "
-                "'' = chains of num_joints / min_joints..max_joints",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "model_file",
-            "",
-            ParameterDescriptor(
-                description="MJCF of your own robot (actuated hinges) to simulate instead of a swimmer", read_only=True
-            ),
-        )
-        self.declare_parameter(
-            "shuffle_joints",
-            False,
-            ParameterDescriptor(
-                description="list the joints of every joint state in a random order (efforts map by name or by "
-                "the order of the state they answer)",
-                read_only=True,
-            ),
-        )
-
+        declare_parameters(self, PARAMETERS)
         p = self.get_parameter
         self._prefix = p("joint_prefix").value
         self._rtf = p("real_time_factor").value
@@ -655,7 +622,8 @@ class SwimmerSimNode(Node):
 
 def main(args=None) -> NoReturn:
     # A bad parameter combination (e.g. the joint range) is one line and exit 1.
-    node_runner.run(SwimmerSimNode, "swimmer_sim", args, startup_errors=(ValueError,))
+    node_runner.run(SwimmerSimNode, "swimmer_sim", args, startup_errors=(ValueError,), parameters=PARAMETERS,
+                    summary=__doc__.splitlines()[0])  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ def test_help_prints_the_parameters_and_creates_nothing(tmp_path):
     assert "usage: morph-record" in done.stdout
     for name in ("output", "max_episodes", "storage", "topics"):
         assert f"\n  {name} " in done.stdout, name
-    assert "(default: 'mcap')" in done.stdout
+    assert "(default: 'mcap'; read-only)" in done.stdout
     assert list(tmp_path.iterdir()) == []  # no bag (rosbag2_<date>) in the folder it ran in
 
 

@@ -39,20 +39,19 @@ import argparse
 import json
 import os
 import sys
-import textwrap
 import time
 from datetime import datetime
 from pathlib import Path
 
 import rclpy
 import rclpy.utilities
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
 from morph_core.util.config_cli import CommandLineParser
+from morph_ros_util.parameters import NodeParameter, declare_parameters, parameters_help
 from morph_ros_util.stop_signals import init_stopping_on_signals
 from trainer.bags.writer import BagTopic, BagWriter, BagWriterError, WriterOptions
 from trainer.codec import DATA_TOPIC_TYPES, DESCRIPTION_TOPIC, EPISODE_TOPIC, TOPIC_TYPES, message_class
@@ -71,34 +70,71 @@ KNOWN_TYPES = [f"{topic}={msgtype}" for topic, msgtype in (*TOPIC_TYPES.items(),
 _LOG_THROTTLE = 5.0
 
 PARAMETERS = (
-    ("output", "", "bag folder to create (must not exist); '' = rosbag2_<date>-<time> here", None),
-    ("topics", DEFAULT_TOPICS, "topics to record (relative: in the node's namespace)", None),
-    ("episode_topic", EPISODE_TOPIC, "the topic announcing episodes (counted by max_episodes)", None),
-    (
+    NodeParameter(
+        "output", "", "bag folder to create (must not exist); '' = rosbag2_<date>-<time> here", read_only=True
+    ),
+    NodeParameter("topics", DEFAULT_TOPICS, "topics to record (relative: in the node's namespace)", read_only=True),
+    NodeParameter(
+        "episode_topic", EPISODE_TOPIC, "the topic announcing episodes (counted by max_episodes)", read_only=True
+    ),
+    NodeParameter(
         "topic_types",
         KNOWN_TYPES,
         "topic=pkg/msg/Type pairs subscribed at once (reliable), before any publisher exists, so a node that "
         "starts later is recorded from its first message; other topics are subscribed once discovered, with the "
         "type and QoS the graph shows",
-        None,
+        read_only=True,
     ),
-    ("storage", "mcap", "mcap or sqlite3", None),
-    ("max_bag_size", 0, "bytes per storage file before splitting; 0 = no split", (0, 2**62)),
-    ("max_bag_duration", 0.0, "seconds of log time per storage file before splitting; 0 = no split", (0.0, 1e9)),
-    (
+    NodeParameter("storage", "mcap", "mcap or sqlite3", read_only=True),
+    NodeParameter(
+        "max_bag_size", 0, "bytes per storage file before splitting; 0 = no split", (0, 2**62), read_only=True
+    ),
+    NodeParameter(
+        "max_bag_duration",
+        0.0,
+        "seconds of log time per storage file before splitting; 0 = no split",
+        (0.0, 1e9),
+        read_only=True,
+    ),
+    NodeParameter(
         "chunk_size",
         WriterOptions.chunk_size,
         "MCAP chunk size in bytes: a kill loses at most the chunk being filled",
         (1, 2**20),
+        read_only=True,
     ),
-    ("flush_period", 1.0, "wall seconds between flushes (MCAP: close the chunk; sqlite3: commit)", (0.01, 3600.0)),
-    ("queue_depth", 1000, "keep-last depth of each subscription", (1, 100000)),
-    ("max_messages", 0, "stop after writing this many messages (of count_topic, or of all); 0 = no limit", (0, 2**62)),
-    ("count_topic", "", "topic counted by max_messages; '' = every topic", None),
-    ("max_duration", 0.0, "stop this many wall seconds after the first message; 0 = no limit", (0.0, 1e9)),
-    ("max_episodes", 0, "stop when episode max_episodes+1 is announced (not recorded); 0 = no limit", (0, 2**62)),
+    NodeParameter(
+        "flush_period",
+        1.0,
+        "wall seconds between flushes (MCAP: close the chunk; sqlite3: commit)",
+        (0.01, 3600.0),
+        read_only=True,
+    ),
+    NodeParameter("queue_depth", 1000, "keep-last depth of each subscription", (1, 100000), read_only=True),
+    NodeParameter(
+        "max_messages",
+        0,
+        "stop after writing this many messages (of count_topic, or of all); 0 = no limit",
+        (0, 2**62),
+        read_only=True,
+    ),
+    NodeParameter("count_topic", "", "topic counted by max_messages; '' = every topic", read_only=True),
+    NodeParameter(
+        "max_duration",
+        0.0,
+        "stop this many wall seconds after the first message; 0 = no limit",
+        (0.0, 1e9),
+        read_only=True,
+    ),
+    NodeParameter(
+        "max_episodes",
+        0,
+        "stop when episode max_episodes+1 is announced (not recorded); 0 = no limit",
+        (0, 2**62),
+        read_only=True,
+    ),
 )
-"""the node's parameters: (name, default, description, (min, max) or None), all read-only"""
+"""the node's parameters, all read-only (``morph_ros_util.parameters``; ``--help`` lists them)"""
 
 
 def subscription_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
@@ -173,18 +209,7 @@ def ensure_type(typestore, msgtype: str) -> None:
 class RecorderNode(Node):
     def __init__(self):
         super().__init__("morph_record")
-        for name, default, description, bounds in PARAMETERS:
-            ranges = {}
-            if bounds is not None:
-                if isinstance(default, int):
-                    ranges["integer_range"] = [IntegerRange(from_value=bounds[0], to_value=bounds[1], step=1)]
-                else:
-                    ranges["floating_point_range"] = [
-                        FloatingPointRange(from_value=bounds[0], to_value=bounds[1], step=0.0)
-                    ]
-            self.declare_parameter(
-                name, default, ParameterDescriptor(description=description, read_only=True, **ranges)
-            )
+        declare_parameters(self, PARAMETERS)
         p = lambda name: self.get_parameter(name).value  # noqa: E731
         output = p("output") or datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
         options = WriterOptions(
@@ -343,17 +368,11 @@ class RecorderNode(Node):
 
 def build_parser() -> CommandLineParser:
     """The recorder's own command line: ``--help`` (its options are ROS parameters, after ``--ros-args``)."""
-    width = max(len(name) for name, *_ in PARAMETERS)
-    lines = ["parameters (-p NAME:=VALUE after --ros-args; all read-only):"]
-    for name, default, description, _ in PARAMETERS:
-        shown = "[" + ", ".join(default) + "]" if isinstance(default, list) else repr(default)
-        text = f"{name:<{width}}  {description} (default: {shown})"
-        lines.append(textwrap.fill(text, 110, initial_indent="  ", subsequent_indent=" " * (width + 4)))
     parser = CommandLineParser(
         prog="morph-record",
         usage="morph-record [-h] [--out DIR] [--ros-args -r __ns:=NS -p NAME:=VALUE ...]",
         description=__doc__,
-        epilog="\n".join(lines),
+        epilog=parameters_help(PARAMETERS),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out", default=None, metavar="DIR",
