@@ -48,7 +48,7 @@ Wire conventions
   applied by name (a name the body does not have, or a joint left out, is
   rejected: ``unknown_joint``, ``missing_joint``); one without is in the
   order of the state it answers (the tagged one; untagged, the latest
-  published; the order of the last ``REMEMBERED_ORDERS`` states is kept, an
+  published; the order of the last 64 states is kept, an
   answer to an older one is rejected: ``order``). Without shuffling that is
   the tree order: without names, exactly as before names existed. A command
   whose ``tree=`` dimension gives another joint layout than the body's
@@ -109,7 +109,8 @@ running they are applied, in lockstep ignored (counted in
 ``silence_ignored``): stepping on them would put zeros into a loop that was
 only slow, which made lockstep runs differ from the in-process rollout under load.
 
-Bad input: an effort command of the wrong length, with NaN/inf, with a tag
+Bad input (the rules: ``morph_core.protocol.effort_intake``, and
+``SwimmerSim.command`` for the values): an effort command of the wrong length, with NaN/inf, with a tag
 that starts ``joints@`` but does not parse, tagged with a state not yet
 published, with a names dimension that does not parse (``names``) or does not
 name the body's joints (``unknown_joint``, ``missing_joint``), or, shuffled
@@ -125,10 +126,8 @@ from __future__ import annotations
 import array
 import math
 import time
-from collections import OrderedDict
 from typing import NoReturn
 
-import numpy as np
 from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
@@ -144,12 +143,12 @@ from morph_core.constants import MAX_JOINTS, MAX_NAME_CHARS, MIN_JOINTS
 from morph_core.env.bodies import parse_bodies
 from morph_core.env.mjcf_robot import load_robot
 from morph_core.env.sim import EffortError, SwimmerSim
-from morph_core.msgs.effort_names import EffortNamesError, effort_names, effort_tree
 from morph_core.msgs.episode_start import EpisodeCause, pack_episode_start
-from morph_core.msgs.stamps import SILENCE_TAG, StampError, from_ns, parse_answer_tag
+from morph_core.msgs.stamps import from_ns
 from morph_core.policy.tree import KinematicTree, UrdfRobot
+from morph_core.protocol.effort_intake import ShuffledOrders, read_effort_command
 from morph_core.protocol.input_counts import InputCounts
-from morph_core.protocol.joint_map import JointMap, JointMapError
+from morph_core.protocol.joint_map import JointMap
 from morph_core.protocol.lockstep import Action, LockstepGate
 from morph_core.protocol.pacing import RealTimePacer, tick_period
 from morph_ros_util import node_runner
@@ -164,11 +163,6 @@ _LOG_THROTTLE = 5.0
 _MAX_EPISODE_STEPS = 2**31 - 1
 EFFORTS = "effort_commands"
 MAX_PREFIX_CHARS = MAX_NAME_CHARS - len("motor64_rot")  # the longest name a swimmer has: <prefix>motor<k>_rot
-REMEMBERED_ORDERS = 64
-"""states whose published joint order is kept (shuffling) to map an answer without names: a lockstep loop needs
-the latest only, a free-running controller answers within a few periods"""
-SHUFFLE_STREAM = 0x5348_5546
-"""mixed with ``seed`` to seed the shuffling's own generator, apart from the physics'"""
 
 STATE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 """joint_states, odom, /clock"""
@@ -317,9 +311,7 @@ class SwimmerSimNode(Node):
             raise ValueError(f"joint_prefix {prefix_error(self._prefix, self._longest_name)}")
         self._follow_body()
         self._shuffle = p("shuffle_joints").value
-        self._order_rng = np.random.default_rng([SHUFFLE_STREAM, p("seed").value])
-        self._sent: OrderedDict[int, tuple[str, ...]] = OrderedDict()  # stamp -> the names as published
-        self._latest_names: tuple[str, ...] = tuple(self._names)
+        self._orders = ShuffledOrders(p("seed").value) if self._shuffle else None
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -391,7 +383,8 @@ class SwimmerSimNode(Node):
             elif param.name == "joint_prefix":
                 self._prefix = param.value
                 self._follow_body()
-                self._sent.clear()  # orders under the old names: a state published again gets one of the new
+                if self._orders is not None:
+                    self._orders.forget()  # orders under the old names: a state published again gets one of the new
             elif param.name == "real_time_factor":
                 self._rtf = self._pacer.real_time_factor = param.value
                 self._restart_pacing()
@@ -486,76 +479,33 @@ class SwimmerSimNode(Node):
     def _on_efforts(self, msg: Float64MultiArray) -> None:
         now = time.monotonic()
         self.counts.received(EFFORTS)
-        label = msg.layout.dim[0].label if msg.layout.dim else ""
-        if self._lockstep and label == SILENCE_TAG:
-            self.silence_ignored += 1  # a controller's fail-safe zeros answer no state: the loop holds still
-            self.counts.ignored(EFFORTS, "silence")
+        verdict = read_effort_command(
+            [d.label for d in msg.layout.dim],
+            msg.data,
+            latest_ns=self.sim.stamp_ns,
+            episode_start_ns=self.sim.episode_start_ns,
+            lockstep=self._lockstep,
+            is_stale=self._gate.is_stale,
+            body=self._body,
+            orders=self._orders,
+        )
+        if verdict.ignored is not None:
+            if verdict.ignored == "silence":
+                self.silence_ignored += 1  # a controller's fail-safe zeros answer no state: the loop holds still
+            elif verdict.ignored == "old_episode":
+                self.old_episode_answers += 1
+            self.counts.ignored(EFFORTS, verdict.ignored)
+            return
+        if verdict.rejected is not None:
+            self._reject(verdict.rejected, verdict.error)
             return
         try:
-            answers = parse_answer_tag(label, strict=True)
-            if answers is not None and answers > self.sim.stamp_ns:
-                raise StampError(f"answers the state at {answers} ns, later than the latest published one")
-        except StampError as err:
-            self._reject("tag", err)
-            return
-        if answers is not None and answers < self.sim.episode_start_ns:
-            self.old_episode_answers += 1  # for a swimmer that is gone (maybe of another length)
-            self.counts.ignored(EFFORTS, "old_episode")
-            return
-        # In lockstep, an answer to an earlier (re-sent) state: taking it for the current one
-        # would shift the whole loop by a step.
-        if self._lockstep and self._gate.is_stale(answers):
-            self.counts.ignored(EFFORTS, "stale")
-            return
-        try:
-            layout = effort_tree([d.label for d in msg.layout.dim])
-        except EffortNamesError as err:
-            self._reject("names", err)
-            return
-        body = self._body.robot.tree
-        if layout is not None and layout != body.layout_hash:
-            # Computed on another joint layout: typically a new body's first state answered before its
-            # robot_description reached the controller (names alone cannot tell two trees apart).
-            self._reject("wrong_tree", EffortError(
-                f"computed on joint layout {layout}, not this body's {body.layout_hash}: the controller reads "
-                "another robot_description than this body's"
-            ))  # fmt: skip
-            return
-        try:
-            efforts = self._in_tree_order(msg, answers)
-        except EffortNamesError as err:
-            self._reject("names", err)
-            return
-        except JointMapError as err:
-            self._reject(err.code, err)
-            return
-        except EffortError as err:
-            self._reject("order", err)
-            return
-        try:
-            self.sim.command(efforts, now)
+            self.sim.command(verdict.efforts, now)
         except EffortError as err:
             self._reject("efforts", err)
             return
         if self._lockstep and self._gate.answer():
             self._lockstep_step(now)
-
-    def _in_tree_order(self, msg: Float64MultiArray, answers: int | None):
-        """The command's efforts in the body's tree order: by the names its layout gives, else by the order
-        of the state it answers (with shuffling; without, the order published is the tree's: as they are)."""
-        names = effort_names([d.label for d in msg.layout.dim], len(msg.data))
-        if names is None:
-            if not self._shuffle:
-                return msg.data
-            names = self._latest_names if answers is None else self._sent.get(answers)
-            if names is None:
-                raise EffortError(
-                    f"answers the state at {answers} ns, whose joint order is no longer known "
-                    f"(kept for the last {REMEMBERED_ORDERS} states); name the joints"
-                )
-            if len(names) != len(msg.data):
-                return msg.data  # SwimmerSim.command refuses it with the counts
-        return self._body.order(names).to_tree(np.asarray(msg.data, dtype=np.float64))
 
     def _follow_body(self) -> None:
         """The published joint names and the body's joints by those names (``protocol.joint_map``), set when
@@ -596,17 +546,10 @@ class SwimmerSimNode(Node):
         state = JointState()
         state.header.stamp = stamp
         positions, velocities, efforts = self.sim.joint_positions, self.sim.joint_velocities, self.sim.applied
-        if self._shuffle:
-            names = self._sent.get(stamp_ns)
-            if names is None:  # a state published again keeps its order: an answer to either is the same
-                order = self._order_rng.permutation(len(self._names))
-                names = tuple(self._names[i] for i in order)
-                self._sent[stamp_ns] = names
-                if len(self._sent) > REMEMBERED_ORDERS:
-                    self._sent.popitem(last=False)
+        if self._orders is not None:
+            names = self._orders.order_for(stamp_ns, self._names)
             order = self._body.order(names)
             positions, velocities, efforts = (order.to_message(v) for v in (positions, velocities, efforts))
-            self._latest_names = names
             state.name = list(names)
         else:
             state.name = self._names
