@@ -3,6 +3,8 @@ the 12 global features it builds from odometry for a 12-feature checkpoint: real
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -100,24 +102,51 @@ def test_the_demo_walks_a_centipede_with_the_shipped_policy_or_a_given_one(tmp_p
     assert "bodies centipede:2, 8 joints" in line
 
 
-@pytest.mark.timeout(300)
-def test_the_demo_runs_gymnasiums_ant_with_a_policy_that_reads_joint_descriptions(tmp_path):
-    """``scripts/demo.sh --model-file <ant.xml> --checkpoint <joint_features 11>``: the policy node builds the joint
-    descriptions from the sim's robot_description and drives the ant; the speed is printed (an untrained policy
-    here: it need not walk)."""
+def _ant() -> str:
     import os
-    import subprocess
-    import sys
 
     import gymnasium
 
-    ant = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
-    torch.manual_seed(0)
-    ckpt = tmp_path / "described.safetensors"
-    GraphActorCritic(PolicyConfig(global_features=12, joint_features=11)).save(ckpt)
-    cmd = [sys.executable, "-m", "morph_policy_node.bringup", "--model-file", ant, "--checkpoint", str(ckpt),
-           "--seconds", "2"]  # fmt: skip
+    return os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("given", [True, False], ids=["untrained_given", "shipped_legged"])
+def test_the_demo_runs_gymnasiums_ant_with_a_policy_that_reads_joint_descriptions(tmp_path, given):
+    """``scripts/demo.sh --model-file <ant.xml> [--checkpoint <joint_features 11>]``: without a checkpoint a
+    free-rooted robot gets the shipped legged generalist (models/legged_gnn.safetensors); either way the policy
+    node builds the joint descriptions from the sim's robot_description and drives the ant, and the speed is
+    printed (neither policy walks it yet: results.md)."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "morph_policy_node.bringup", "--model-file", _ant(), "--seconds", "2"]
+    if given:
+        torch.manual_seed(0)
+        ckpt = tmp_path / "described.safetensors"
+        GraphActorCritic(PolicyConfig(global_features=12, joint_features=11)).save(ckpt)
+        cmd += ["--checkpoint", str(ckpt)]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     line = next((x for x in out.stdout.splitlines() if x.startswith("walk speed:")), None)
     assert out.returncode == 0 and line is not None, out.stdout[-3000:] + out.stderr[-3000:]
     assert "ant.xml, 8 joints" in line and "over 2.00 s of sim time" in line, line
+    log = out.stdout + out.stderr
+    assert ("described.safetensors" if given else "models/legged_gnn.safetensors") in log, log[-3000:]
+
+
+def test_the_demo_picks_the_shipped_model_by_what_it_drives(tmp_path):
+    """Chains and planar robots: the chain model; swimmer trees: the trees'; centipedes alone: theirs; any other
+    walker (legged bodies, a mix, a free-rooted MJCF): the legged generalist. What the sim would refuse reads as
+    chains (the sim says why)."""
+    import gymnasium
+
+    from morph_policy_node.bringup import FAMILY_MODELS, _family
+
+    swimmer = str(Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / "swimmer.xml")
+    assert _family(None) == _family("2-10") == _family(None, swimmer) == "chains"
+    assert _family("y:2x2") == _family("2-10,random:3-10") == "trees"
+    assert _family("centipede:2-4") == _family("centipede:2,centipede:5") == "centipedes"
+    assert _family("legged:4x2") == _family("centipede:2,legged:6x3") == _family(None, _ant()) == "legged"
+    assert _family("not a spec") == _family(None, str(tmp_path / "missing.xml")) == "chains"
+    assert {FAMILY_MODELS[f] for f in ("trees", "centipedes", "legged")} == {
+        "swimmer_trees_gnn.safetensors", "centipede_gnn.safetensors", "legged_gnn.safetensors"}  # fmt: skip

@@ -96,6 +96,7 @@ def test_the_python_packages_are_installed_whole_with_their_data(install):
     models = install / "morph_policy_node" / SITE / "morph_policy_node" / "models"
     assert sorted(p.name for p in models.glob("*.safetensors")) == [
         "centipede_gnn.safetensors",
+        "legged_gnn.safetensors",
         "swimmer_gnn.safetensors",
         "swimmer_trees_gnn.safetensors",
     ]

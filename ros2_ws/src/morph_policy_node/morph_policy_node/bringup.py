@@ -13,12 +13,15 @@ The body: a chain of ``--joints``, or a swimmer drawn from ``--bodies`` (a body
 spec of ``morph_core.env.bodies``, e.g. ``y:2x2``: the sim's ``topology``;
 one body for the whole run, the sim draws again only at a reset), or your own
 robot, ``--model-file`` (an MJCF of actuated hinges: the sim's ``model_file``,
-docs/your_robot.md). Without ``--checkpoint``, a chain or a robot is driven by
-the shipped chain model, bodies with a tree among them by the shipped
+docs/your_robot.md). Without ``--checkpoint``, a chain or a planar robot is
+driven by the shipped chain model, bodies with a tree among them by the shipped
 tree-trained model (``models/swimmer_trees_gnn.safetensors``, trained on
-chains and random trees: ``models/README.md``), and centipedes
+chains and random trees: ``models/README.md``), centipedes
 (``--bodies centipede:5``) by the shipped centipede model
-(``models/centipede_gnn.safetensors``); a robot is driven zero-shot.
+(``models/centipede_gnn.safetensors``), and other walkers (``legged:`` bodies,
+a robot whose MJCF root is free, such as Gymnasium's ant) by the shipped legged
+generalist (``models/legged_gnn.safetensors``, which reads joint descriptions);
+a robot is driven zero-shot.
 """
 
 from __future__ import annotations
@@ -136,21 +139,32 @@ TREE_MODEL = "swimmer_trees_gnn.safetensors"
 """the shipped tree-trained policy, beside the chain one"""
 CENTIPEDE_MODEL = "centipede_gnn.safetensors"
 """the shipped centipede policy (trained on 2..4 leg pairs; it walks on 3..6: models/README.md)"""
+LEGGED_MODEL = "legged_gnn.safetensors"
+"""the shipped legged generalist (joint descriptions; trained on the generated legged family: models/README.md)"""
+FAMILY_MODELS = {"trees": TREE_MODEL, "centipedes": CENTIPEDE_MODEL, "legged": LEGGED_MODEL}
+"""the shipped model of each family but chains' (the node's own default)"""
 
 
-def _family(spec: str | None) -> str:
-    """What a body spec draws: ``chains``, ``trees`` or ``centipedes`` (which picks the shipped model). A bad
-    spec reads as chains here: it is the sim node's to refuse, with its reason."""
+def _family(spec: str | None, model_file: str | None = None) -> str:
+    """What a run drives, which picks the shipped model: ``chains`` (and a planar MJCF), ``trees`` (swimmers),
+    ``centipedes`` (a spec of centipedes alone) or ``legged`` (other walkers: legged bodies, a mix, an MJCF with a
+    free root). A bad spec or a model the trainer could not run reads as chains here: it is the sim node's to
+    refuse, with its reason."""
     # `env` is the sim extra's: the policy node's package installs and imports without it
-    from morph_core.env.bodies import parse_bodies
+    from morph_core.env.bodies import CentipedeFamily, parse_bodies
 
+    if not (spec or model_file):
+        return "chains"
     try:
-        mix = parse_bodies(spec) if spec else None
-    except ValueError:
+        mix = parse_bodies(f"mjcf:{model_file}" if model_file else spec)
+        walkers = mix.has_walkers  # an MJCF is read here
+    except ValueError:  # RobotModelError too
         return "chains"
-    if mix is None or mix.chains_only:
-        return "chains"
-    return "centipedes" if mix.has_centipedes else "trees"
+    if mix.chains_only or (model_file and not walkers):
+        return "chains"  # a planar robot keeps the chain model, as it always did
+    if not walkers:
+        return "trees"
+    return "centipedes" if all(isinstance(item, CentipedeFamily) for item in mix.items) else "legged"
 
 
 PROG_ENV = "MORPH_PROG"
@@ -167,7 +181,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="sim time to run, seconds")
     ap.add_deprecated_alias("--sim-seconds", "--seconds")
     ap.add_argument(
-        "--checkpoint", default=None, help="policy .safetensors (default: the shipped model; trees, centipedes: theirs)"
+        "--checkpoint",
+        default=None,
+        help="policy .safetensors (default: the shipped model; trees, centipedes, legged: theirs)",
     )
     ap.add_argument("--startup-timeout", type=float, default=60.0, help="wall seconds to wait for the nodes")
     args = ap.parse_args(argv)
@@ -181,11 +197,11 @@ def main(argv=None) -> int:
     # the node module loads rclpy: only once the arguments are checked, so a bad one is refused without ROS
     from morph_policy_node.policy_node import SHIPPED_MODEL
 
-    family = _family(args.bodies)
+    family = _family(args.bodies, args.model_file)
     if args.checkpoint is None:
         shipped = SHIPPED_MODEL
         if family != "chains":
-            shipped = SHIPPED_MODEL.with_name(CENTIPEDE_MODEL if family == "centipedes" else TREE_MODEL)
+            shipped = SHIPPED_MODEL.with_name(FAMILY_MODELS[family])
             args.checkpoint = str(shipped)
         if not shipped.is_file():
             print(f"bringup: no shipped policy at {shipped}: give --checkpoint", flush=True)
@@ -196,7 +212,7 @@ def main(argv=None) -> int:
         print(f"bringup: {err}", flush=True)
         return 1
     body = f"bodies {args.bodies}, " if args.bodies else f"robot {args.model_file}, " if args.model_file else ""
-    walks = family == "centipedes" or r["in_3d"]  # a body on a floor walks; a swimmer's pose is planar
+    walks = family in ("centipedes", "legged") or r["in_3d"]  # a body on a floor walks; a swimmer's pose is planar
     falls = "" if not walks else f"; fell {r['falls']} time{'' if r['falls'] == 1 else 's'} (turned over)"
     print(
         f"{'walk' if walks else 'swim'} speed: {r['speed']:+.4f} m/s along x ({r['dx']:+.3f} m forward, "

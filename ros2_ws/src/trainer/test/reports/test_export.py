@@ -352,9 +352,11 @@ SHIPPED_POLICIES = sorted(SHIPPED.parent.glob("*.safetensors"))
 
 
 def _body_states(weights_config: PolicyConfig):
-    """(states, parents) of the body a shipped policy drives, from real MuJoCo: swimmer chains for a 4-feature
-    policy, centipedes (2..6 leg pairs, trees) for a 12-feature one; random efforts, a few steps apart."""
+    """(states, parents, descriptions) of the body a shipped policy drives, from real MuJoCo: swimmer chains for a
+    4-feature policy, centipedes (2..6 leg pairs, trees) for a 12-feature one, with each joint's description for a
+    policy that reads them (else None); random efforts, a few steps apart."""
     from morph_core.env.centipede import MorphCentipedeEnv
+    from morph_core.env.vec_env import model_descriptions
 
     rng = np.random.default_rng(1)
     if weights_config.global_features == 12:
@@ -368,7 +370,9 @@ def _body_states(weights_config: PolicyConfig):
             for _ in range(3):
                 obs, *_ = env.step(rng.uniform(-1, 1, env.action_space.shape[0]))
             parents = np.asarray(obs["parents"]) if "parents" in obs else np.arange(len(obs["joint_pos"])) - 1
-            states.append((*(np.asarray(obs[k], np.float32) for k in ("joint_pos", "joint_vel", "global")), parents))
+            desc = model_descriptions(env.unwrapped.model) if weights_config.joint_features else None
+            states.append((*(np.asarray(obs[k], np.float32) for k in ("joint_pos", "joint_vel", "global")), parents,
+                           desc))  # fmt: skip
         env.close()
     return states
 
@@ -390,15 +394,18 @@ def test_every_shipped_policy_exports_and_onnx_runtime_equals_the_numpy_policy(s
     assert session.get_inputs()[2].shape == [width]
     policy, numpy_policy = GraphActorCritic.load(shipped).eval(), NumpyPolicy(GraphActorCritic.load(shipped))
     worst, scale = 0.0, 0.0
-    for pos, vel, glob, parents in _body_states(weights.config):  # without --tree, a centipede read as a chain
+    for pos, vel, glob, parents, desc in _body_states(weights.config):  # without --tree, a centipede is a chain
         feed = {"joint_pos": pos, "joint_vel": vel, "global": glob}
         if tree:
             feed["parents"] = parents.astype(np.int64)
+        if desc is not None:  # the legged generalist reads each joint's description
+            feed["joint_desc"] = desc
         (action,) = session.run(None, feed)
-        want = numpy_policy.mean(pos, vel, glob, parents.astype(np.int64) if tree else None)
+        want = numpy_policy.mean(pos, vel, glob, parents.astype(np.int64) if tree else None, joint_desc=desc)
         with torch.no_grad():
             batch = ChainBatch.from_padded(pos[None], vel[None], glob[None], [len(pos)],
-                                           parents=parents.astype(np.int64)[None] if tree else None)  # fmt: skip
+                                           parents=parents.astype(np.int64)[None] if tree else None,
+                                           joint_desc=None if desc is None else desc[None])  # fmt: skip
             mean = policy(batch)[0][0].numpy()
         worst = max(worst, scaled_difference(action, want).max(), scaled_difference(action, mean).max())
         scale = max(scale, float(np.abs(action).max()))
