@@ -46,8 +46,8 @@ def _core_modules() -> dict:
     return {k: v for k, v in sys.modules.items() if k == "morph_core" or k.startswith("morph_core.")}
 
 
-def answers(core: Path, onnx: bool) -> dict[str, np.ndarray]:
-    """Every answer of every shipped checkpoint, computed by the ``morph_core`` package under ``core``. The
+def answers(core: Path, onnx: bool, models: list[Path]) -> dict[str, np.ndarray]:
+    """Every answer of the checkpoints ``models``, computed by the ``morph_core`` package under ``core``. The
     process's own ``morph_core`` modules are put back afterwards (a test process goes on with its classes)."""
     saved = _core_modules()
     for name in saved:
@@ -61,7 +61,7 @@ def answers(core: Path, onnx: bool) -> dict[str, np.ndarray]:
         export = importlib.import_module("morph_core.policy.onnx_export")
         assert Path(chains.__file__).is_relative_to(core), chains.__file__
         out: dict[str, np.ndarray] = {}
-        for checkpoint in sorted(MODELS.glob("*.safetensors")):
+        for checkpoint in models:
             policy, weights = export.policy_from_checkpoint(checkpoint)
             q = _questions(weights.config.global_features)
             actor = numpy_actor.NumpyPolicy(weights)
@@ -110,11 +110,24 @@ def reference_core(ref: str, into: Path) -> Path:
     return into / "ros2_ws" / "src" / "morph_core"
 
 
+def shipped_at(ref: str) -> list[Path]:
+    """The shipped checkpoints that ``ref`` shipped too: a policy shipped since (the legged generalist, which
+    reads joint descriptions) has no earlier answers to keep, and an older ``morph_core`` may not read it."""
+
+    def at_ref(path: Path) -> bool:
+        spec = f"{ref}:{path.relative_to(ROOT).as_posix()}"
+        return subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", spec], capture_output=True).returncode == 0
+
+    return [p for p in sorted(MODELS.glob("*.safetensors")) if at_ref(p)]
+
+
 def compare(ref: str = "main", onnx: bool = False) -> list[str]:
-    """Names of the answers that differ between this tree and ``ref`` (empty: bit for bit the same)."""
+    """Names of the answers that differ between this tree and ``ref`` on the checkpoints both ship (empty: bit
+    for bit the same)."""
+    models = shipped_at(ref)
     with tempfile.TemporaryDirectory() as tmp:
-        theirs = answers(reference_core(ref, Path(tmp)), onnx)
-    ours = answers(CORE, onnx)
+        theirs = answers(reference_core(ref, Path(tmp)), onnx, models)
+    ours = answers(CORE, onnx, models)
     if set(ours) != set(theirs):
         return sorted(set(ours) ^ set(theirs))
     return [k for k in ours if ours[k].dtype != theirs[k].dtype or not np.array_equal(ours[k], theirs[k])]
@@ -126,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--onnx", action="store_true", help="also the exported graphs' answers in ONNX Runtime")
     args = parser.parse_args(argv)
     differ = compare(args.ref, args.onnx)
-    models = ", ".join(p.stem for p in sorted(MODELS.glob("*.safetensors")))
+    models = ", ".join(p.stem for p in shipped_at(args.ref))
     if differ:
         print(f"differ from {args.ref}: {', '.join(differ)}")
         return 1

@@ -43,7 +43,7 @@ def test_help_lists_each_row_with_its_default_range_and_read_only():
 def test_a_node_prints_its_parameters_for_help_and_starts_nothing(module, table):
     done = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.startswith("usage: ") and "--ros-args" in done.stdout
+    assert done.stdout.startswith("usage: ") and "parameters (-p NAME:=VALUE" in done.stdout
     for row in table:
         assert f"  {row.name} " in done.stdout, row.name
     assert "[INFO]" not in done.stdout + done.stderr  # no node was made
