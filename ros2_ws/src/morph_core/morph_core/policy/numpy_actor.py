@@ -234,18 +234,19 @@ class NumpyPolicy:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Padded batch [B, J] (zero padding beyond each chain; trees with ``parents`` [B, J]; descriptions
         ``joint_desc`` [B, J, D] for a policy that reads them) -> mean [B, J] (zero at padding), value [B]."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
-        return self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z)
+        chains, graph, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
+        return self._padded_mean(chains, z, joint_pos.shape), graph_forward.value(NUMPY_OPS, self.net, z, graph)
 
     def mean_actions(self, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None) -> np.ndarray:
         """``forward``'s mean [B, J] alone, without the critic: what a deterministic evaluation acts on."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
+        chains, _, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
         return self._padded_mean(chains, z, joint_pos.shape)
 
     def _joint_embeddings(
         self, joint_pos, joint_vel, global_feats, num_joints, parents=None, joint_desc=None
-    ) -> tuple[_Layout, np.ndarray]:
-        """The chains' layout and the [V, C] embedding of every joint (its link's plus its chain's global one)."""
+    ) -> tuple[_Layout, Graph, np.ndarray]:
+        """The chains' layout, their graph and the [V, C] embedding of every joint (its link's plus its chain's
+        global one)."""
         desc = self._check_desc(joint_desc, joint_pos.shape)
         chains = self._layout(num_joints, joint_pos.shape[1], parents)
         coef = chains.coef.copy()
@@ -254,22 +255,19 @@ class NumpyPolicy:
         if desc is not None:
             coef[chains.slot, 2:-1] = desc.reshape(-1, self.joint_features)[chains.joint_padded]
         graph = Graph(coef, chains.sender, chains.link, chains.chain, (chains.first, chains.count))
-        return chains, graph_forward.joint_embeddings(NUMPY_OPS, self.net, graph, self._global_feats(global_feats))
+        z = graph_forward.joint_embeddings(NUMPY_OPS, self.net, graph, self._global_feats(global_feats))
+        return chains, graph, z
 
     def _padded_mean(self, chains: _Layout, z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         mean = np.zeros(shape[0] * shape[1], dtype=np.float32)
         mean[chains.joint_padded] = graph_forward.mean_action(NUMPY_OPS, self.net, z)
         return mean.reshape(shape)
 
-    def _value(self, chains: _Layout, z: np.ndarray) -> np.ndarray:
-        """[B] the critic on each chain's mean joint embedding."""
-        pool = Graph(None, None, None, chains.chain, (chains.first, chains.count))
-        return graph_forward.value(NUMPY_OPS, self.net, z, pool)
-
     def act(self, joint_pos, joint_vel, global_feats, num_joints, noise: np.ndarray, parents=None, joint_desc=None):
         """Sample a = mean + sigma * noise on each chain's joints: (action [B, J], log_prob [B], value [B], mean)."""
-        chains, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
-        mean, value, mask = self._padded_mean(chains, z, joint_pos.shape), self._value(chains, z), chains.mask
+        chains, graph, z = self._joint_embeddings(joint_pos, joint_vel, global_feats, num_joints, parents, joint_desc)
+        mean, mask = self._padded_mean(chains, z, joint_pos.shape), chains.mask
+        value = graph_forward.value(NUMPY_OPS, self.net, z, graph)
         action = (mean + math.exp(self.log_std) * noise) * mask
         log_prob = log_density_from_norm(np.square(noise * mask).sum(1), num_joints, self.log_std)
         return action.astype(np.float32), log_prob.astype(np.float32), value, mean
