@@ -25,7 +25,7 @@ from morph_core.msgs.joint_state import quaternion_from_yaw
 from morph_core.msgs.stamps import answer_tag, from_ns, to_ns
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.policy.numpy_actor import NumpyPolicy
-from swimmer_sim_node.sim_node import chain_lengths
+from morph_core.protocol.sim_wire import chain_lengths
 
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 

@@ -33,7 +33,7 @@ from morph_core.msgs.effort_names import effort_tree, names_label, tree_label
 from morph_core.msgs.episode_start import unpack_episode_start
 from morph_core.msgs.stamps import answer_tag, to_ns
 from morph_core.policy.tree import KinematicTree, read_urdf
-from swimmer_sim_node.sim_node import make_sim
+from morph_core.protocol.sim_wire import make_sim
 
 pytestmark = pytest.mark.slow  # every test here starts processes (nodes, bring-ups, installs)
 
