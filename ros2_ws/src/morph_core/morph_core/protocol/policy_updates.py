@@ -38,8 +38,10 @@ from morph_core.msgs.policy_weights import (
     with_tensors,
 )
 from morph_core.policy.config import PolicyConfig
-from morph_core.policy.weights import CheckpointError
+from morph_core.policy.numpy_actor import NumpyPolicy
+from morph_core.policy.weights import CheckpointError, weights_from_arrays
 from morph_core.policy.weights import PolicyWeights as CheckpointWeights
+from morph_core.protocol.controller import policy_error
 from morph_core.protocol.trust import Signature, SignatureError, TrustedKeys
 
 P = TypeVar("P")
@@ -196,3 +198,23 @@ def checkpoint_trust(weights: CheckpointWeights, keys: TrustedKeys) -> Checkpoin
         raise CheckpointError(weights.source, f"signed by trusted key {key}, but the signature does not match the "
                               "file (altered since it was signed)")  # fmt: skip
     return CheckpointTrust(f"signed by {key} (trusted), version {version}", key, (epoch, version))
+
+
+def drivable(weights: CheckpointWeights) -> CheckpointWeights:
+    """``weights`` if a controller can build their inputs from the topics (``protocol.controller``), else
+    ``CheckpointError``."""
+    error = policy_error(weights.config)
+    if error is not None:
+        raise CheckpointError(weights.source, f"the policy {error}")
+    return weights
+
+
+def numpy_policy(weights: PolicyWeights) -> tuple[CheckpointWeights, NumpyPolicy]:
+    """A trainer's weights, checked like a checkpoint (``CheckpointError``, a ``ValueError``, if they do not fit
+    their config or read global features no controller builds), and the NumPy policy that runs them: the
+    builder a policy node gives ``PolicyUpdates``."""
+    source = f"policy_weights version {weights.version}"
+    checked = weights_from_arrays(
+        weights.config, weights.tensors, source, trained=weights.version > 0, metadata=weights.metadata
+    )
+    return drivable(checked), NumpyPolicy(checked)
