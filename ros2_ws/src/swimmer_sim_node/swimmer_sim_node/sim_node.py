@@ -2,7 +2,7 @@
 
 The physics and episodes are ``morph_core.env.sim.SwimmerSim``'s, the messages' contents and the reading of
 efforts ``morph_core.protocol.sim_wire``'s; this node paces the sim, converts messages and handles parameters.
-Topics, QoS, bodies, episodes, pacing and bad input, for users: docs/guides/nodes.md ("The sim node").
+Topics, QoS, bodies, episodes, pacing and bad input, for users: docs/guides/nodes.md ("The sim node in detail").
 """
 
 from __future__ import annotations
