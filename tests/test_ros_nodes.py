@@ -104,6 +104,25 @@ def test_num_joints_changed_at_runtime(probe, launch, untrained_checkpoint, name
 
 
 @pytest.mark.timeout(120)
+def test_types_and_ranges_are_refused_from_the_parameter_tables(probe, launch, untrained_checkpoint, namespace):
+    """The nodes' callbacks no longer check types and ranges: the descriptors declared from each node's table do
+    (rclpy, before the callback). Each value outside them is refused by name; a value inside is taken."""
+    launch("swimmer_sim_node", num_joints=3)
+    launch("morph_policy_node", checkpoint=str(untrained_checkpoint))
+    sim, policy = f"{namespace}/swimmer_sim", f"{namespace}/morph_policy"
+    refused = [(sim, "effort_timeout", value) for value in (0.0, -1.0, math.nan, math.inf)]
+    refused += [(sim, "real_time_factor", value) for value in (math.nan, 1e9)] + [(sim, "num_joints", 65)]
+    refused += [(sim, "episode_steps", 2**31), (sim, "num_joints", 6.0), (sim, "lockstep", "yes")]
+    refused += [(policy, "input_timeout", value) for value in (0.0, math.nan, -math.inf)]
+    refused += [(policy, "checkpoint", 3), (policy, "deterministic", 1)]
+    for node, name, value in refused:
+        result = probe.set_parameter(node, name, value)
+        assert not result.successful and (name in result.reason or "type" in result.reason), (name, value, result)
+    assert probe.set_parameter(sim, "effort_timeout", 0.5).successful
+    assert probe.set_parameter(policy, "input_timeout", 0.001).successful
+
+
+@pytest.mark.timeout(120)
 def test_joint_prefix_checked_and_applied_at_runtime(probe, launch, namespace):
     states = probe.collect(JointState, "joint_states")
     launch("swimmer_sim_node", num_joints=3)

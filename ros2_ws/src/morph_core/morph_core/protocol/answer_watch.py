@@ -35,7 +35,7 @@ HANDOVER_CODES = ("missing_joint", "unknown_joint")
 
 @dataclass(frozen=True)
 class Notice:
-    """A line for the node's log: ``warn`` or information, or None when there is nothing to say."""
+    """A line for the node's log: a warning (``warn``) or information."""
 
     text: str
     warn: bool = False
@@ -127,7 +127,9 @@ class AnswerWatch:
         return True, Notice(text, warn=not self.handover)
 
     # -- descriptions and weights -----------------------------------------------
-    def description(self, offer: DescriptionOffer, descriptions: RobotDescriptions, reads_joints: bool) -> Notice:
+    def description(
+        self, offer: DescriptionOffer, descriptions: RobotDescriptions, reads_joints: bool
+    ) -> Notice | None:
         """Count an offered ``robot_description`` (``reads_joints``: the policy has no chain fallback) and say
         what became of it."""
         if offer.outcome == "unchanged":
