@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.config import SimConfig, TrainerConfig
+from morph_core.algo.config import BodiesConfig, SimConfig, TrainerConfig
 from morph_core.algo.data_parallel import HelperPool, Helpers, HelperSpec
 from morph_core.algo.fit import Collected, fit, new_learner, save_policy
 from morph_core.algo.learner import Learner
@@ -71,7 +71,7 @@ class TrainConfig(SimConfig, TrainerConfig):
             raise ValueError("rollout_workers > 1 and processes > 1 both share the swimmers out: choose one")
 
 
-def log_columns(cfg: TrainConfig) -> list[str]:
+def log_columns(cfg: BodiesConfig) -> list[str]:
     return [
         "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "learning_rate", "episodes",
         "return_mean",

@@ -83,7 +83,7 @@ import torch
 
 from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import load_training_state, state_section
-from morph_core.algo.config import TrainerConfig
+from morph_core.algo.config import BodiesConfig, TrainerConfig
 from morph_core.algo.fit import Collected, fit, new_learner, refuse_anneal, save_policy
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
@@ -190,7 +190,7 @@ def describe_bodies(data: TransitionBatch, shown: int = 6) -> str:
     return f"{lo}..{hi} joints: {listed}{more} steps"
 
 
-def log_columns(cfg: TrainerConfig, trees: bool | None = None) -> list[str]:
+def log_columns(cfg: BodiesConfig, trees: bool | None = None) -> list[str]:
     """The log's columns; ``trees`` (default: the run's ``bodies`` hold trees) adds the returns over the chains
     and over the trees."""
     trees = not cfg.body_mix.chains_only if trees is None else trees
@@ -316,7 +316,7 @@ def off_policy_stats(batch: RolloutBatch, cap: float) -> dict[str, float]:
     }
 
 
-def check_data(data: TransitionBatch, cfg: TrainerConfig) -> None:
+def check_data(data: TransitionBatch, cfg: BodiesConfig) -> None:
     """Raise unless PPO can train on ``data`` under ``cfg``: steps there, some with their behaviour
     log-prob (``MissingPolicyInfoError``), chains within the config's range (``DataMismatchError``: the
     log's per-dimension columns come from it), whole episodes."""

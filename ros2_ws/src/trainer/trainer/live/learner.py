@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from morph_core.algo.config import TrainerConfig
+from morph_core.algo.config import BodiesConfig, TrainerConfig
 from morph_core.algo.fit import Collected, Fit, NonFiniteUpdate, new_learner, refuse_anneal
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
@@ -142,7 +142,7 @@ LIVE = ("live", 1)
 LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]
 
 
-def live_log_columns(cfg: TrainerConfig) -> list[str]:
+def live_log_columns(cfg: BodiesConfig) -> list[str]:
     return [*log_columns(cfg), *LIVE_COLUMNS]
 
 
