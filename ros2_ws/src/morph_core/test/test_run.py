@@ -10,7 +10,7 @@ import torch
 from safetensors.torch import save as safetensors_bytes
 
 from morph_core.algo.checkpoint import TrainingStateError, _digest, load_training_state, previous_state_path
-from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.config import TrainerConfig
 from morph_core.algo.run_dir import RunDir
 from morph_core.algo.small_runs import small
 from morph_core.algo.train import TrainConfig, load_run_config, train
@@ -118,7 +118,7 @@ def test_a_resume_trains_with_the_learning_rate_and_epsilon_given(tmp_path):
 def test_the_bag_trainer_takes_its_batch_from_ppo_config_hears_rows_and_resumes_an_old_state(tmp_path):
     torch.manual_seed(7)
     data = assemble(record_episodes(SamplingController(GraphActorCritic(), seed=1), ((3, 40), (4, 60)), 0)).batch
-    cfg = PPOConfig(batch_size=25, minibatch_size=16, update_epochs=1, checkpoint_interval=50, seed=2,
+    cfg = TrainerConfig(batch_size=25, minibatch_size=16, update_epochs=1, checkpoint_interval=50, seed=2,
                     min_joints=2, max_joints=4, compile=False, progress_bar=False, tensorboard=False)  # fmt: skip
     heard = []
     straight = train_from_data(cfg, data, tmp_path / "a", iterations=6, on_row=lambda r, s: heard.append((r, s)))

@@ -89,18 +89,18 @@ def build_parser(description: str | None = None) -> CommandLineParser:
     live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
                       help="take each pair's messages from its policy node's stream_chunks instead "
                       f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
+    groups = add_dataclass_options(parser, TrainConfig, skip=("rule",))  # the help grouped by concern
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
-    parser.add_argument(
+    groups["PPO"].add_argument(
         "--rule", dest="rule", choices=list(RULES), default=None, help=f"trust-region rule ({rules}) (default: "
         f"{TrainConfig.rule})"
     )  # fmt: skip
     parser.add_argument("--clip-mode", dest="clip_mode", choices=list(RULES), default=None, action=DeprecatedAlias,
                         new="--rule", help=argparse.SUPPRESS)  # fmt: skip
-    add_dataclass_options(parser, TrainConfig, skip=("rule",))
-    parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
-                        help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray start "
-                        "--head printed it); default: a local Ray on this machine")  # fmt: skip
+    groups["simulator"].add_argument("--ray-address", default=None, metavar="ADDRESS",
+                                     help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray "
+                                     "start --head printed it); default: a local Ray on this machine")  # fmt: skip
     return parser
 
 

@@ -45,8 +45,8 @@ from morph_core.algo.checkpoint import (
     state_section,
     sub_dict,
 )
+from morph_core.algo.config import TrainerConfig
 from morph_core.algo.learner import Learner
-from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run_dir import RunDir
 from morph_core.algo.run_log import RunLog
 from morph_core.policy.actor_critic import GraphActorCritic
@@ -79,7 +79,7 @@ class Run:
     killed before its first state starts again). ``on_row``: the row hook every trainer calls after each row
     (``report``)."""
 
-    def __init__(self, run_dir: str | Path, cfg: PPOConfig, *, resume: bool = False, on_row: RowHook | None = None):
+    def __init__(self, run_dir: str | Path, cfg: TrainerConfig, *, resume: bool = False, on_row: RowHook | None = None):
         self.files = RunDir(run_dir)
         self.dir = self.files.path
         self.cfg = cfg

@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from morph_core.algo.config import BodiesConfig, SimConfig, TrainerConfig
 from morph_core.algo.data_parallel import HelperPool, Helpers, HelperSpec
 from morph_core.algo.fit import Collected, fit, new_learner, save_policy
 from morph_core.algo.learner import Learner
 from morph_core.algo.minibatches import minibatch_cuts
 from morph_core.algo.ppo import compute_gae
-from morph_core.algo.ppo_config import PPOConfig, SimConfig
 from morph_core.algo.rollout_workers import LocalPool, RolloutPool, RolloutSpec, RolloutWorker, WorkerState
 from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.run_dir import RunDir
@@ -44,21 +44,22 @@ has no such pool: ``trainer.sim.ray_rollouts`` makes one of Ray actors)"""
 
 @renamed_fields(clip_mode="rule")
 @dataclass
-class TrainConfig(SimConfig, PPOConfig):
-    """The simulator trainer's config: every trainer's PPO settings (``PPOConfig``) and the simulator loop's
-    own (``SimConfig``), flat, as ``morph-train`` takes them and a run's ``config.json`` holds them. Its
-    batch is the rollout, num_envs * num_steps."""
+class TrainConfig(SimConfig, TrainerConfig):
+    """The simulator trainer's config: every trainer's (``config.TrainerConfig``: run, PPO, bodies, policy) and
+    the simulator loop's own (``SimConfig``), flat, as ``morph-train`` takes them and a run's ``config.json``
+    holds them. Its batch is the rollout, num_envs * num_steps."""
 
     batch_size: int = field(init=False, default=6144)
     """samples per update: num_envs * num_steps (set from them)"""
 
     derived = ("batch_size",)
+    concerns = (*TrainerConfig.concerns, ("simulator", SimConfig))
 
     def __post_init__(self):
         check_field_types(self)  # before num_envs * num_steps is taken: "num_envs must be int", not the batch's
         SimConfig.__post_init__(self)
         self.batch_size = self.num_envs * self.num_steps
-        PPOConfig.__post_init__(self)
+        TrainerConfig.__post_init__(self)
         smallest = min(b - a for a, b in pairwise(minibatch_cuts(self.batch_size, self.minibatch_size)))
         if not 1 <= self.processes <= min(self.num_envs, smallest):
             raise ValueError(f"processes must be in 1..{min(self.num_envs, smallest)} (each needs a swimmer and a "
@@ -70,7 +71,7 @@ class TrainConfig(SimConfig, PPOConfig):
             raise ValueError("rollout_workers > 1 and processes > 1 both share the swimmers out: choose one")
 
 
-def log_columns(cfg: TrainConfig) -> list[str]:
+def log_columns(cfg: BodiesConfig) -> list[str]:
     return [
         "global_step", "iteration", "wall_time", "sps", "rollout_s", "update_s", "learning_rate", "episodes",
         "return_mean",

@@ -83,11 +83,11 @@ import torch
 
 from morph_core.algo.batch import RolloutBatch
 from morph_core.algo.checkpoint import load_training_state, state_section
+from morph_core.algo.config import BodiesConfig, TrainerConfig
 from morph_core.algo.fit import Collected, fit, new_learner, refuse_anneal, save_policy
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
 from morph_core.algo.ppo import compute_gae
-from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.run_dir import RunDir
 from morph_core.algo.update_stats import update_columns
@@ -190,7 +190,7 @@ def describe_bodies(data: TransitionBatch, shown: int = 6) -> str:
     return f"{lo}..{hi} joints: {listed}{more} steps"
 
 
-def log_columns(cfg: PPOConfig, trees: bool | None = None) -> list[str]:
+def log_columns(cfg: BodiesConfig, trees: bool | None = None) -> list[str]:
     """The log's columns; ``trees`` (default: the run's ``bodies`` hold trees) adds the returns over the chains
     and over the trees."""
     trees = not cfg.body_mix.chains_only if trees is None else trees
@@ -316,7 +316,7 @@ def off_policy_stats(batch: RolloutBatch, cap: float) -> dict[str, float]:
     }
 
 
-def check_data(data: TransitionBatch, cfg: PPOConfig) -> None:
+def check_data(data: TransitionBatch, cfg: BodiesConfig) -> None:
     """Raise unless PPO can train on ``data`` under ``cfg``: steps there, some with their behaviour
     log-prob (``MissingPolicyInfoError``), chains within the config's range (``DataMismatchError``: the
     log's per-dimension columns come from it), whole episodes."""
@@ -372,7 +372,7 @@ permutation"""
 
 
 def train_from_data(
-    cfg: PPOConfig,
+    cfg: TrainerConfig,
     data: TransitionBatch,
     run_dir: str | Path,
     *,
@@ -459,7 +459,7 @@ class Recorded:
     peers = None
     save_policy = staticmethod(save_policy)
 
-    def __init__(self, cfg: PPOConfig, data: TransitionBatch, usable: torch.Tensor, current: _Round, counters: dict,
+    def __init__(self, cfg: TrainerConfig, data: TransitionBatch, usable: torch.Tensor, current: _Round, counters: dict,
                  gen: torch.Generator, trees: bool):  # fmt: skip
         self.cfg, self.data, self.usable, self.current = cfg, data, usable, current
         self.counters, self.gen = counters, gen

@@ -1,6 +1,6 @@
 """The settings of one PPO update: the trust-region rule and its parameters, epochs, minibatch size, loss
-weights, and how samples of an older policy enter (``UpdateConfig``). The trainers' configs supply them
-(``ppo_config.PPOConfig.update_config``)."""
+weights, and how samples of an older policy enter (``UpdateConfig``). Every trainer's PPO settings extend it
+(``ppo_config.PPOConfig``), so they are written once, here."""
 
 from __future__ import annotations
 
@@ -15,34 +15,42 @@ ratio against the behaviour policy (a sample whose ratio starts outside the clip
 it)"""
 
 
-@dataclass(frozen=True)
+@dataclass
 class UpdateConfig:
-    """Settings of one update (the trainer's config supplies them, with its defaults)."""
+    """Settings of one update, defaults the paper's. The one definition of these fields: ``ppo_config.PPOConfig``
+    extends it (they are options and ``config.json`` keys as they are), and ``update`` takes this part of it
+    (``PPOConfig.update_config``). Not frozen, so that a trainer's config can be one."""
 
-    rule: str
-    """trust-region rule, a name from ``trust_region.RULES``"""
-    clip_eps: float
+    rule: str = "compensated"
+    """trust-region rule, a name from algo.trust_region.RULES: 'fixed' clips r to 1 +- eps,
+    'compensated' to 1 +- eps*sqrt(dim A) per sample"""
+    clip_eps: float = 0.111
     """base clip range eps"""
-    update_epochs: int
-    """passes over the batch"""
-    minibatch_size: int
+    update_epochs: int = 10
+    """passes over each batch"""
+    minibatch_size: int = 256
     """samples per gradient step"""
-    vf_coef: float
+    vf_coef: float = 0.5
     """value loss weight"""
-    ent_coef: float
+    ent_coef: float = 0.0
     """entropy bonus weight"""
-    max_grad_norm: float
+    max_grad_norm: float = 0.5
     """global gradient-norm clip"""
     proximal_weight_cap: float = 1.0
-    """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples"""
+    """c of the truncated importance weight min(pi_prox / pi_behav, c) on off-policy samples (training from
+    recorded data, algo.train_from_data); simulator rollouts are on-policy and carry no weight"""
     kl_target: float = 0.01
-    """target KL of the KL rules: the KL penalty adapts beta to it, KL early stopping stops above it"""
+    """target KL of the kl-* rules: the KL penalty doubles/halves beta when the update's KL is above
+    1.5x / below 1/1.5 of it, KL early stopping ends the epochs above it (per joint for the -per-joint rules)"""
     kl_beta: float = 1.0
-    """the KL penalty's beta as training starts"""
+    """initial beta of the kl-penalty rules"""
     kl_adaptive: bool = True
-    """adapt the KL penalty's beta to kl_target after each update (Schulman et al. 2017); else it stays"""
+    """adapt the kl-penalty rules' beta to kl_target after each update (Schulman et al. 2017); false keeps
+    beta = kl_beta"""
     off_policy_objective: str = "decoupled"
-    """a name from ``OFF_POLICY_OBJECTIVES``"""
+    """how samples of an older policy (bags, live) enter the update: 'decoupled' (ratio against the policy as
+    the update starts, each sample weighted by min(pi_prox / pi_behav, proximal_weight_cap)) or 'behaviour'
+    (PPO's own loss, the ratio against the policy that acted); simulator rollouts are on-policy either way"""
 
     def __post_init__(self):
         rule = get_rule(self.rule)  # a clear error for an unknown name

@@ -126,7 +126,7 @@ class DefaultsHelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 def field_docs(cls) -> dict[str, str]:
     """Attribute docstrings (a string literal right after a field) of a dataclass, its base classes' included
-    (``TrainConfig``'s fields come from ``PPOConfig`` and ``SimConfig``: without them ``morph-train --bodies``
+    (``TrainConfig``'s fields come from its concerns, ``algo.config``: without them ``morph-train --bodies``
     had no help text); a class's own docstring of a field wins over a base's."""
     docs: dict[str, str] = {}
     for klass in reversed(cls.__mro__):
@@ -208,11 +208,25 @@ def renamed_fields(**old_to_new: str):
     return wrap
 
 
-def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=(), defaults=None) -> None:
+def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = "", skip=(), defaults=None) -> dict:
     """Add one option per field; defaults are left to the dataclass (argparse default: None). ``defaults``, an
     instance of ``cls``, is what the help shows as defaults when a tool starts from other values than the
     class's own. Fields set from others (``init=False``) are no options; a field renamed (``renamed_fields``)
-    keeps its old option as a deprecated alias (dest: the old name)."""
+    keeps its old option as a deprecated alias (dest: the old name). A class that composes concerns (its
+    ``concerns``: (title, dataclass) pairs) has its options grouped by them in the help, each under the first
+    concern with the field; returns the groups by title (a tool adds its own options of a concern there)."""
+    concerns, hints = getattr(cls, "concerns", ()), typing.get_type_hints(cls)
+    groups = {title: parser.add_argument_group(f"{title} options") for title, _ in concerns}
+    owner: dict = {}
+    for title, concern in concerns:
+        nested = [name for name, kind in hints.items() if kind is concern]  # a nested field: its --name-* options
+        for name in nested or [f.name for f in dataclasses.fields(concern)]:
+            owner.setdefault(name, groups[title])
+    _add_options(parser, cls, prefix, skip, defaults, owner)
+    return groups
+
+
+def _add_options(parser, cls, prefix: str, skip, defaults, owner: dict) -> None:
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     for old, new in getattr(cls, "renamed", {}).items():
@@ -224,10 +238,10 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = ""
     for f in dataclasses.fields(cls):
         if f.name in skip or not f.init:
             continue
-        kind = hints[f.name]
+        kind, where = hints[f.name], owner.get(f.name, parser)
         if dataclasses.is_dataclass(kind):
             sub = None if defaults is None else getattr(defaults, f.name)
-            add_dataclass_options(parser, kind, prefix=f"{prefix}{f.name}-", defaults=sub)
+            _add_options(where, kind, f"{prefix}{f.name}-", (), sub, {})
             continue
         if defaults is not None:
             default = getattr(defaults, f.name)
@@ -236,9 +250,9 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls, prefix: str = ""
         flag, dest = f"--{prefix}{f.name}".replace("_", "-"), f"{prefix}{f.name}".replace("-", "__")
         text = f"{docs.get(f.name, '')} (default: {default})"
         if kind is bool:
-            parser.add_argument(flag, dest=dest, action=BoolAction, default=None, help=text)
+            where.add_argument(flag, dest=dest, action=BoolAction, default=None, help=text)
         else:
-            parser.add_argument(flag, dest=dest, type=kind, default=None, metavar=kind.__name__.upper(), help=text)
+            where.add_argument(flag, dest=dest, type=kind, default=None, metavar=kind.__name__.upper(), help=text)
 
 
 def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict:
@@ -274,12 +288,13 @@ def replace_nested(obj, overrides: dict):
     return dataclasses.replace(obj, **changes)
 
 
-def check_field_types(obj) -> None:
+def check_field_types(obj, cls=None) -> None:
     """Raise ``TypeError`` naming the field when a value does not have its field's type (bool, int, float or
     str; an int is a float, a bool is neither an int nor a float), or a float is NaN: a hand-edited JSON
-    config ("learning_rate": "3e-4") fails here, before anything runs, not deep inside training."""
-    hints = typing.get_type_hints(type(obj))
-    for f in dataclasses.fields(obj):
+    config ("learning_rate": "3e-4") fails here, before anything runs, not deep inside training. ``cls``: check
+    only its fields (a concern of a config that composes several checks its own)."""
+    hints = typing.get_type_hints(cls or type(obj))
+    for f in dataclasses.fields(cls or obj):
         kind, value = hints[f.name], getattr(obj, f.name)
         if kind not in (bool, int, float, str):
             continue

@@ -4,6 +4,7 @@ abbreviated (``--total-timestep`` is refused, not taken for ``--total-timesteps`
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import re
 
@@ -195,3 +196,36 @@ def test_every_option_of_morph_train_says_what_it_is():
     bare = [a.option_strings[0] for a in build_parser()._actions
             if a.help != argparse.SUPPRESS and not re.sub(r"\(default: .*\)$", "", a.help or "").strip()]  # fmt: skip
     assert bare == []
+
+
+# morph-train's options as they were before its config was split by concern (issue 54): docs, scripts and sweeps
+# write them, so each keeps its name and where it goes (option, dest)
+MORPH_TRAIN_OPTIONS = (
+    "adam-eps anneal-lr bodies checkpoint-interval clip-eps clip-mode compile ent-coef env-threads episode-steps "
+    "from-bags gae-lambda gamma help init iterations kl-adaptive kl-beta kl-target learning-rate live "
+    "max-grad-norm max-joints max-staleness max-updates min-joints minibatch-size namespace namespaces new-data "
+    "nice num-envs num-steps off-policy-objective out policy-bidirectional policy-conv1-channels "
+    "policy-embed-channels policy-global-features policy-global-hidden policy-head-hidden policy-joint-features "
+    "policy-log-std-init policy-ortho-init processes progress-bar proximal-weight-cap ray-address resume "
+    "rollout-workers rule seed signing-key silence-timeout stream-chunks tensorboard torch-threads "
+    "total-timesteps update-epochs vf-coef weights-period"
+).split()
+
+
+def test_morph_train_keeps_every_option_and_groups_its_help_by_concern(capsys):
+    from morph_core.algo.train import TrainConfig
+    from trainer.cli.train import build_parser
+
+    parser = build_parser()
+    options = {s: a.dest for a in parser._actions for s in a.option_strings if s.startswith("--")}
+    assert sorted(options) == [f"--{o}" for o in MORPH_TRAIN_OPTIONS]
+    nested = ("policy-",)  # --policy-x goes to policy__x (config_cli's nested fields)
+    assert all(options[f"--{o}"] == (o.replace("-", "__", 1) if o.startswith(nested) else o).replace("-", "_")
+               for o in MORPH_TRAIN_OPTIONS if o != "help")  # fmt: skip
+    titled = {g.title: {s for a in g._group_actions for s in a.option_strings} for g in parser._action_groups}
+    for title, concern in TrainConfig.concerns:
+        group = titled[f"{title} options"]
+        if title == "policy":
+            assert {o for o in options if o.startswith("--policy-")} == group
+        else:
+            assert {f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(concern)} - {"--batch-size"} <= group

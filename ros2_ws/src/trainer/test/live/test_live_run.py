@@ -8,7 +8,7 @@ import torch
 from safetensors.torch import save as safetensors_bytes
 
 from morph_core.algo.checkpoint import _digest, load_training_state, previous_state_path
-from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.config import TrainerConfig
 from morph_core.algo.run_dir import RunDir
 from morph_core.policy.actor_critic import GraphActorCritic
 from morph_core.protocol.loopback import SamplingController, record_episodes
@@ -17,7 +17,7 @@ from trainer.live.learner import LiveLearner
 
 
 def test_the_live_learner_resumes_an_old_state_with_a_new_learning_rate_and_hears_rows(tmp_path):
-    cfg = PPOConfig(batch_size=64, minibatch_size=32, update_epochs=1, min_joints=3, max_joints=3, compile=False,
+    cfg = TrainerConfig(batch_size=64, minibatch_size=32, update_epochs=1, min_joints=3, max_joints=3, compile=False,
                     progress_bar=False, tensorboard=False)  # fmt: skip
     first = LiveLearner(cfg, tmp_path)
     run_id, epoch = first.run_id, first.epoch

@@ -4,7 +4,7 @@
 transitions of one swimmer's episode (``protocol.transitions``) and the
 weights version that sampled each step (from ``policy_info``'s
 ``header.frame_id``, ``msgs.policy_weights``). Once the pool holds
-``PPOConfig.batch_size`` samples (num_envs x num_steps on the command line, the paper's 6,144,
+``TrainerConfig.batch_size`` samples (num_envs x num_steps on the command line, the paper's 6,144,
 whatever the number of swimmers), ``update`` runs one PPO update on the whole
 pool (whole episodes, so slightly more than a batch) with the update every data
 source uses (``algo.update``) and the objective of training from data
@@ -65,10 +65,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from morph_core.algo.config import BodiesConfig, TrainerConfig
 from morph_core.algo.fit import Collected, Fit, NonFiniteUpdate, new_learner, refuse_anneal
 from morph_core.algo.learner import Learner
 from morph_core.algo.off_policy import with_proximal
-from morph_core.algo.ppo_config import PPOConfig
 from morph_core.algo.run import RowHook, Run, initial_policy
 from morph_core.algo.train import TrainConfig
 from morph_core.algo.train_from_data import EpisodeReturns, Samples, log_columns, off_policy_stats
@@ -142,7 +142,7 @@ LIVE = ("live", 1)
 LIVE_COLUMNS = ["version", "pool_episodes", "dropped_stale", "dropped_no_info", "version_lag_mean", "pairs"]
 
 
-def live_log_columns(cfg: PPOConfig) -> list[str]:
+def live_log_columns(cfg: BodiesConfig) -> list[str]:
     return [*log_columns(cfg), *LIVE_COLUMNS]
 
 
@@ -156,7 +156,7 @@ class LiveLearner:
 
     def __init__(
         self,
-        cfg: PPOConfig,
+        cfg: TrainerConfig,
         run_dir: str | Path,
         *,
         resume: bool = False,

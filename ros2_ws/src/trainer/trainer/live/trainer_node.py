@@ -78,7 +78,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import MultiArrayDimension, UInt8MultiArray
 from std_srvs.srv import Trigger
 
-from morph_core.algo.ppo_config import PPOConfig
+from morph_core.algo.config import TrainerConfig
 from morph_core.msgs.policy_weights import TOPIC as WEIGHTS_TOPIC
 from morph_core.msgs.policy_weights import parse_policy_version
 from morph_core.msgs.records import PolicyInfoRecord
@@ -236,7 +236,7 @@ def _losses(pair: _Pair) -> str:
 
 
 class LiveTrainer(Node):
-    def __init__(self, cfg: PPOConfig, options: LiveOptions, signer: Signer | None = None, on_row=None):
+    def __init__(self, cfg: TrainerConfig, options: LiveOptions, signer: Signer | None = None, on_row=None):
         super().__init__("morph_live_trainer")
         self.options = options
         self.learner = LiveLearner(cfg, options.out, resume=options.resume, max_staleness=options.max_staleness,
@@ -483,7 +483,7 @@ class LiveTrainer(Node):
         self.learner.close()
 
 
-def run_live(cfg: PPOConfig, options: LiveOptions, args=None, signer: Signer | None = None, on_row=None) -> int:
+def run_live(cfg: TrainerConfig, options: LiveOptions, args=None, signer: Signer | None = None, on_row=None) -> int:
     """Run the live trainer until done (``max_updates`` / ``total_timesteps``) or SIGINT/SIGTERM; ``signer``
     signs the weights (``options.signing_key`` loaded); ``on_row(row, saved)`` hears each update's row
     (``algo.run.Run``)."""
