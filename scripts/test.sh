@@ -12,4 +12,8 @@ bash scripts/setup.sh
 .venv/bin/ruff format --check .
 # Integration tests start real nodes on real DDS: keep them in a private netns.
 # --durations: the slowest tests in every CI log, where the suite's time budget (CONTRIBUTING.md) is kept.
-bash scripts/in_netns.sh .venv/bin/python -m pytest --durations=25 "$@"
+# -n: one worker per core (MORPH_TEST_WORKERS to change it, 0 for one process): many tests wait on real
+# time (paced nodes, DDS) while others compute, so the workers overlap them (CONTRIBUTING.md, "The suite's
+# time"). Each worker runs in a DDS domain of its own (conftest.py).
+workers=${MORPH_TEST_WORKERS:-$(nproc)}
+bash scripts/in_netns.sh .venv/bin/python -m pytest -n "$workers" --durations=25 "$@"
