@@ -2,7 +2,9 @@
 
 Each field becomes ``--field-name``; a nested dataclass field ``policy``
 contributes ``--policy-<name>`` options. Help texts are the attribute
-docstrings written under each field.
+docstrings written under each field. A ``list[X]`` or ``tuple[X, ...]`` field
+takes one or more values (``--namespaces a b``), an ``X | None`` field is
+unset unless given; a field's ``metadata["metavar"]`` names its value.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import math
 import numbers
 import sys
 import textwrap
+import types
 import typing
 import warnings
 
@@ -245,14 +248,35 @@ def _add_options(parser, cls, prefix: str, skip, defaults, owner: dict) -> None:
             continue
         if defaults is not None:
             default = getattr(defaults, f.name)
-        else:
+        elif f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        else:
+            default = dataclasses.MISSING  # a required field: no default to show
         flag, dest = f"--{prefix}{f.name}".replace("_", "-"), f"{prefix}{f.name}".replace("-", "__")
-        text = f"{docs.get(f.name, '')} (default: {default})"
-        if kind is bool:
+        text = docs.get(f.name, "")
+        if default is not dataclasses.MISSING and default is not None and "(default:" not in text:
+            text = f"{text} (default: {default})"  # a None default is said in the help's words, if at all
+        kind, nargs = option_kind(kind)
+        if kind is bool and nargs is None:
             where.add_argument(flag, dest=dest, action=BoolAction, default=None, help=text)
         else:
-            where.add_argument(flag, dest=dest, type=kind, default=None, metavar=kind.__name__.upper(), help=text)
+            metavar = f.metadata.get("metavar", kind.__name__.upper())
+            where.add_argument(flag, dest=dest, type=parse_bool if kind is bool else kind, nargs=nargs, default=None,
+                               metavar=metavar, help=text)  # fmt: skip
+
+
+def option_kind(hint) -> tuple[type, str | None]:
+    """What one command-line value of a field of type ``hint`` is, and argparse's ``nargs``: ``X | None`` is X
+    (None: not given), ``list[X]`` and ``tuple[X, ...]`` take one or more values (``nargs="+"``)."""
+    hint = _unoptional(hint)
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is list and len(args) == 1:
+        return args[0], "+"
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+        return args[0], "+"
+    if not isinstance(hint, type):
+        raise TypeError(f"no command-line option for a field of type {hint}")
+    return hint, None
 
 
 def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict:
@@ -268,7 +292,7 @@ def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict
             continue
         value = getattr(args, f"{prefix}{f.name}", None)
         if value is not None:
-            out[f.name] = value
+            out[f.name] = tuple(value) if typing.get_origin(_unoptional(kind)) is tuple else value  # nargs gives a list
     for old, new in getattr(cls, "renamed", {}).items():
         value = getattr(args, f"{prefix}{old}", None)
         if value is not None:
@@ -277,6 +301,14 @@ def overrides_from_args(args: argparse.Namespace, cls, prefix: str = "") -> dict
                                  "give the new one alone")  # fmt: skip
             out[new] = value
     return out
+
+
+def _unoptional(hint):
+    """``X | None`` -> X (a field that may be unset); any other type as it is."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(args) == 1:
+        return args[0]
+    return hint
 
 
 def replace_nested(obj, overrides: dict):
