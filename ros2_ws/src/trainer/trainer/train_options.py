@@ -21,6 +21,7 @@ from morph_core.util.config_cli import (
     overrides_from_args,
     replace_nested,
 )
+from trainer.bags.options import BagOptions
 from trainer.live.learner import LIVE_LEARNING_RATE, LiveOptions, live_train_config
 from trainer.train_session import (
     ResumedConfig,
@@ -37,58 +38,14 @@ def build_parser(description: str | None = None) -> CommandLineParser:
     parser.add_argument(
         "--resume", action=BoolAction, default=False, help="continue the run in --out from its last checkpoint"
     )
-    bags = parser.add_argument_group("training from recorded bags")
-    bags.add_argument(
-        "--from-bags",
-        nargs="+",
-        metavar="BAG",
-        default=None,
-        help="train on these rosbag2 bags (folder, metadata.yaml or storage file) instead of the simulator",
-    )
-    bags.add_argument(
-        "--init",
-        type=Path,
-        default=None,
-        help="start a new run from this policy checkpoint (.safetensors, its .json beside it): from bags, in the "
-        "simulator (fine-tuning on --bodies) or --live",
-    )
-    bags.add_argument(
-        "--iterations",
-        type=int,
-        default=None,
-        help="PPO updates on these bags (default: one pass, ceil(steps / (num_envs * num_steps)))",
-    )
-    bags.add_argument(
-        "--new-data",
-        action=BoolAction,
-        default=False,
-        help="with --resume: the bags are new data for the run, trained on after what it has done "
-        "(policy, critic, optimizer and generator carry over)",
-    )
-    bags.add_argument("--namespace", default=None, help="namespace of the robot's topics (default: found)")
+    # Each source's options come from its config (BagOptions, LiveOptions); --live only chooses the source, and
+    # --init, a field of both, is one option, in the bags' group as it always was.
+    add_dataclass_options(parser.add_argument_group("training from recorded bags"), BagOptions)
     live = parser.add_argument_group("live training from sim+policy pairs over DDS (trainer.live.trainer_node)")
     live.add_argument("--live", action=BoolAction, default=False,
                       help="learn from running pairs, push weights back (a new run's --learning-rate defaults to "
                       f"{LIVE_LEARNING_RATE} here: stale samples; walkers' to theirs, as in every source)")  # fmt: skip
-    live.add_argument("--namespaces", nargs="+", default=None, metavar="NS", help="the pairs' namespaces")
-    live.add_argument("--episode-steps", type=int, default=LiveOptions.episode_steps,
-                      help="episode length set on each sim when its pair joins (0: the sim's own)")  # fmt: skip
-    live.add_argument("--max-staleness", type=int, default=LiveOptions.max_staleness,
-                      help="drop steps sampled by weights more than this many versions old")  # fmt: skip
-    live.add_argument("--silence-timeout", type=float, default=LiveOptions.silence_timeout,
-                      help="seconds without a new state before a pair's partial episode is dropped")  # fmt: skip
-    live.add_argument("--max-updates", type=int, default=LiveOptions.max_updates,
-                      help="stop after this many updates (0: at --total-timesteps)")  # fmt: skip
-    live.add_argument("--weights-period", type=float, default=LiveOptions.weights_period,
-                      help="seconds between re-publications of the current weights (late policy nodes)")  # fmt: skip
-    live.add_argument("--nice", type=int, default=LiveOptions.nice,
-                      help="the trainer's niceness, 0..19 (the pairs' control loops first)")  # fmt: skip
-    live.add_argument("--signing-key", type=Path, default=None, metavar="KEY",
-                      help="private key that signs the pushed weights and checkpoints (make one with morph-keys new "
-                      "KEY; the policy nodes trust KEY.pub). Without it the weights go out unsigned")  # fmt: skip
-    live.add_argument("--stream-chunks", action=BoolAction, default=LiveOptions.stream_chunks,
-                      help="take each pair's messages from its policy node's stream_chunks instead "
-                      f"of its 4 data topics (default: {LiveOptions.stream_chunks})")  # fmt: skip
+    add_dataclass_options(live, LiveOptions, skip=("out", "resume", "init"))
     groups = add_dataclass_options(parser, TrainConfig, skip=("rule",))  # the help grouped by concern
     # The rule's choices and their help come from the table of trust-region rules.
     rules = "; ".join(f"{name}: {rule.help}" for name, rule in RULES.items())
@@ -102,6 +59,11 @@ def build_parser(description: str | None = None) -> CommandLineParser:
                                      help="with --rollout-workers > 1: the Ray cluster to run the workers on (as ray "
                                      "start --head printed it); default: a local Ray on this machine")  # fmt: skip
     return parser
+
+
+def bag_options(args) -> BagOptions:
+    """The bag source's config from the command line (``ValueError``: a value it refuses)."""
+    return BagOptions(**overrides_from_args(args, BagOptions))
 
 
 def init_error(args) -> str | None:
@@ -164,9 +126,7 @@ def live_config(args, parser, say: bool = True) -> tuple[TrainConfig, LiveOption
             if RunDir(args.out).state.exists():
                 parser.error(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
             cfg, resumed = new_run_config(live_train_config(), overrides, say), None
-        options = LiveOptions(tuple(args.namespaces), args.out, args.resume, args.episode_steps, args.max_staleness,
-                              args.silence_timeout, args.max_updates, args.weights_period, args.nice,
-                              args.stream_chunks, args.signing_key, args.init)  # fmt: skip
+        options = LiveOptions(**overrides_from_args(args, LiveOptions))  # with --out, --resume and --init
     except (OSError, TypeError, ValueError) as err:
         parser.error(str(err))
     if (error := descriptions_error(cfg, args.init)) is not None:

@@ -8,8 +8,10 @@ The concerns, each a dataclass with its fields, their help and its own checks:
 - ``BodiesConfig``: the bodies the run trains on (they set the log's per-dimension columns and the robots the
   bag and live trainers accept);
 - ``PolicyConfig`` (``policy.actor_critic``): the policy, the one nested field (``--policy-*``);
-- a source's own: ``SimConfig``, the simulator loop's (the bag trainer's and the live trainer's are their
-  tools' options: ``iterations``, ``trainer.live``'s ``LiveOptions``).
+- a source's own: ``SimConfig``, the simulator loop's; the bag trainer's ``trainer.bags.options.BagOptions``
+  (the bags, their topics' namespace, the updates on them) and the live trainer's ``trainer.live``'s
+  ``LiveOptions`` (the pairs, staleness, timeouts) live beside their sources, outside the core, and
+  ``morph-train`` generates their options from them as from these.
 
 ``TrainerConfig`` composes the first four by inheritance, so its fields stay flat: every field name is unique
 over the concerns, and the command line, a run's ``config.json``, sweeps and ``dataclasses.replace`` speak of

@@ -229,3 +229,30 @@ def test_morph_train_keeps_every_option_and_groups_its_help_by_concern(capsys):
             assert {o for o in options if o.startswith("--policy-")} == group
         else:
             assert {f"--{f.name.replace('_', '-')}" for f in dataclasses.fields(concern)} - {"--batch-size"} <= group
+
+
+def test_each_source_s_options_are_its_config_s_fields_with_their_docstrings_for_help():
+    """The bag and live sources' options come from their configs (BagOptions, LiveOptions) as the simulator's come
+    from SimConfig: one option per field, in the source's group, its help the field's docstring; --live only
+    chooses the source, and --out, --resume and --init (a field of both) are one option each."""
+    from morph_core.util.config_cli import field_docs
+    from trainer.bags.options import BagOptions
+    from trainer.cli.train import build_parser
+    from trainer.live.learner import LiveOptions
+
+    parser = build_parser()
+    titled = {g.title: g._group_actions for g in parser._action_groups}
+    for title, cls, own in (
+        ("training from recorded bags", BagOptions, set()),
+        ("live training from sim+policy pairs over DDS (trainer.live.trainer_node)", LiveOptions, {"live"}),
+    ):
+        actions = {a.dest: a for a in titled[title]}
+        shared = {"out", "resume", "init"} if cls is LiveOptions else set()  # morph-train's own options
+        fields = {f.name for f in dataclasses.fields(cls)} - shared
+        assert set(actions) == fields | own, title
+        docs = field_docs(cls)
+        for name in fields:
+            assert actions[name].option_strings == [f"--{name.replace('_', '-')}"]
+            text = actions[name].help
+            assert text == docs[name] or text.startswith(f"{docs[name]} (default: "), name
+    assert build_parser().parse_args(["--out", "r", "--live", "--namespaces", "/a", "/b"]).namespaces == ["/a", "/b"]

@@ -70,8 +70,9 @@ from morph_core.util.config_cli import (
 from trainer import train_options
 from trainer.bags.contents import no_steps, read_bags, summarize_bag
 from trainer.bags.io import BagError
+from trainer.bags.options import BagOptions
 from trainer.cli.train_report import KL_WARN_FACTOR, ProgressFollower
-from trainer.train_options import descriptions_error, init_error, live_config, new_run_config
+from trainer.train_options import bag_options, descriptions_error, init_error, live_config, new_run_config
 from trainer.train_session import (
     ResumedConfig,
     ResumeError,
@@ -89,37 +90,37 @@ def build_parser() -> CommandLineParser:
     return train_options.build_parser(__doc__)
 
 
-def _train_from_bags(args) -> None:
+def _train_from_bags(args, bags: BagOptions) -> None:
     overrides = overrides_from_args(args, TrainConfig)
     if (error := init_error(args)) is not None:
         raise CliError(error)
-    source = [str(Path(b).resolve()) for b in args.from_bags]
+    source = [str(Path(b).resolve()) for b in bags.from_bags]
     resumed = None
     if args.resume:
         if not (config := RunDir(args.out).config).exists():
             raise CliError(f"--resume: no run to resume in {args.out} ({config.name} missing)")
         resumed = ResumedConfig(args.out, overrides)
         cfg = resumed.cfg
-        if not args.new_data and (done := finished_data_message(args.out, source, args.iterations)):
+        if not bags.new_data and (done := finished_data_message(args.out, source, bags.iterations)):
             print(f"morph-train: {done}")
             return
     else:
         if RunDir(args.out).state.exists():
             raise CliError(f"{args.out} already holds a run; pass --resume to continue it or choose another --out")
         cfg = new_run_config(TrainConfig(), overrides)
-    if (error := descriptions_error(cfg, args.init)) is not None:
+    if (error := descriptions_error(cfg, bags.init)) is not None:
         raise CliError(error)
-    data, warnings, skips = read_bags(args.from_bags, args.namespace)
+    data, warnings, skips = read_bags(bags.from_bags, bags.namespace)
     for w in warnings:
         print(f"morph-train: warning: {w}", file=sys.stderr)
     if not len(data):
         skipped = ", ".join(f"{r} {n}" for r, n in skips.steps().items() if n)
         why = skipped or "none; " + (
-            no_steps(summarize_bag(args.from_bags[0], TransitionConfig(), args.namespace))
-            if len(args.from_bags) == 1
+            no_steps(summarize_bag(bags.from_bags[0], TransitionConfig(), bags.namespace))
+            if len(bags.from_bags) == 1
             else "morph-bag info BAG says why, bag by bag"
         )
-        raise CliError(f"no usable steps in {', '.join(map(str, args.from_bags))} (skipped: {why})")
+        raise CliError(f"no usable steps in {', '.join(map(str, bags.from_bags))} (skipped: {why})")
     missing = int((~data.has_policy_info).sum())
     if missing == len(data):
         try:
@@ -130,14 +131,14 @@ def _train_from_bags(args) -> None:
     if missing:
         print(f"morph-train: warning: {missing} of {len(data)} steps have no policy_info (lost, or another "
               "controller acted): they enter the advantages, not the updates", file=sys.stderr)  # fmt: skip
-    updates = args.iterations or passes_cut(len(data) - missing, cfg.batch_size)
+    updates = bags.iterations or passes_cut(len(data) - missing, cfg.batch_size)
     print(
         f"morph-train: {len(data)} steps ({data.num_episodes} episodes, {describe_bodies(data)}) from "
-        f"{len(args.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
+        f"{len(bags.from_bags)} bag(s); {'up to ' if args.resume else ''}{updates} "
         f"update(s) of up to {cfg.batch_size} samples into {args.out}",
         flush=True,
     )
-    follower = _follower(args.out, cfg, args.resume, args.init)
+    follower = _follower(args.out, cfg, args.resume, bags.init)
     if cfg.progress_bar:
         print(f"morph-train: progress bar: kl = the update's approximate KL (warned above {follower.kl_limit:g}), "
               "w = its samples' mean importance weight min(pi_prox / pi_behav, proximal_weight_cap): 1 on the "
@@ -150,10 +151,10 @@ def _train_from_bags(args) -> None:
                 cfg,
                 data,
                 args.out,
-                iterations=args.iterations,
-                init=args.init,
+                iterations=bags.iterations,
+                init=bags.init,
                 resume=args.resume,
-                new_data=args.new_data,
+                new_data=bags.new_data,
                 source=source,
                 on_row=follower.on_row,
             )
@@ -198,12 +199,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.live:
         return _train_live(args, parser)
     if args.from_bags is not None:
-        if args.iterations is not None and args.iterations < 1:
-            parser.error("--iterations must be >= 1")
-        if args.new_data and not args.resume:
+        try:
+            bags = bag_options(args)
+        except ValueError as err:
+            parser.error(str(err))
+        if bags.new_data and not args.resume:
             parser.error("--new-data continues a run: pass --resume too")
         try:
-            _train_from_bags(args)
+            _train_from_bags(args, bags)
         except (CliError, BagError, ValueError, TypeError) as err:
             # ValueError: bad option values (the config's checks), data that do not fit the run
             print(f"morph-train: error: {err}", file=sys.stderr)

@@ -59,7 +59,7 @@ import dataclasses
 import time
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -92,31 +92,38 @@ def live_train_config(**changes) -> TrainConfig:
 
 @dataclass(frozen=True)
 class LiveOptions:
-    """What the live node does beside PPO (TrainConfig says how it learns)."""
+    """What the live node does beside PPO (TrainConfig says how it learns): the live source's config, whose
+    options ``train_options`` generates from these fields (``--out``, ``--resume`` and ``--init`` are
+    ``morph-train``'s own, shared by every source)."""
 
-    namespaces: tuple[str, ...]
+    namespaces: tuple[str, ...] = field(metadata={"metavar": "NS"})
+    """the pairs' namespaces"""
     out: Path
+    """the run directory"""
     resume: bool = False
+    """continue the run in out from its last state"""
     episode_steps: int = 1000
-    """set on each sim when its pair (re)joins; 0 leaves the sim's own setting"""
+    """episode length set on each sim when its pair joins (0: the sim's own)"""
     max_staleness: int = 2
-    """steps sampled by weights more than this many versions behind are dropped"""
+    """drop steps sampled by weights more than this many versions old"""
     silence_timeout: float = 3.0
-    """seconds without a new state before a pair is dropped (its partial episode thrown away)"""
+    """seconds without a new state before a pair's partial episode is dropped"""
     max_updates: int = 0
-    """stop after this many updates in this process (0: run until total_timesteps)"""
+    """stop after this many updates (0: at --total-timesteps)"""
+    # How a late policy node, reading best effort, gets the weights.
     weights_period: float = 1.0
-    """seconds between re-publications of the current weights (how a late policy node, reading best effort,
-    gets them)"""
+    """seconds between re-publications of the current weights (late policy nodes)"""
+    # On the pairs' own machine their control loops come first; ingest and updates take the CPU the loops leave
+    # (a lockstep loop is latency-bound: docs/benchmarks.md).
     nice: int = 0
-    """the trainer's niceness (0..19): on the pairs' own machine their control loops come first, and ingest and
-    updates take the CPU the loops leave (a lockstep loop is latency-bound: docs/benchmarks.md)"""
+    """the trainer's niceness, 0..19 (the pairs' control loops first)"""
+    # Without a key, policy nodes take the weights only with accept_unsigned_weights (tests).
+    signing_key: Path | None = field(default=None, metadata={"metavar": "KEY"})
+    """private key that signs the pushed weights and checkpoints (make one with morph-keys new KEY; the policy
+    nodes trust KEY.pub). Without it the weights go out unsigned"""
+    # A few dozen steps per message instead of four messages per step: far fewer wake-ups (docs/benchmarks.md).
     stream_chunks: bool = False
-    """read each pair's messages from its policy node's ``stream_chunks`` (a few dozen steps per message)
-    instead of its four data topics (four messages per step): far fewer wake-ups (docs/benchmarks.md)"""
-    signing_key: Path | None = None
-    """the private key that signs every weights message and checkpoint (``morph-keys new``); without one the
-    weights go out unsigned, and policy nodes take them only with ``accept_unsigned_weights`` (tests)"""
+    """take each pair's messages from its policy node's stream_chunks instead of its 4 data topics"""
     init: Path | None = None
     """a policy checkpoint a new run starts from (fine-tuning; None: a fresh policy from the seed), as
     ``morph-train --init`` in the simulator and from bags"""
