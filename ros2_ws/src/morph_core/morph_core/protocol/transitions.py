@@ -443,6 +443,8 @@ class TransitionAssembler:
         # stamp is taken as new (a restarted clock repeats stamps).
         self._late_window_ns = (2 * self.config.settle_states + 4) * self._period_ns
         self._next_episode = 0
+        self.cut_off: Transition | None = None
+        """the transition the last ``flush`` truncated at the stream's end, None if it ended at a boundary"""
         self._start_stream()
 
     def _start_stream(self) -> None:
@@ -513,8 +515,12 @@ class TransitionAssembler:
 
         The last state has no successor, so no transition starts at it; the
         transition into it is truncated. The assembler then starts a new stream
-        (episode ids keep counting; counts accumulate).
+        (episode ids keep counting; counts accumulate). ``cut_off`` is then that
+        truncated transition if the stream's end cut its episode short, None if the
+        stream ended at a boundary (the last state began another episode or robot,
+        or its step was skipped): what a reader that drops unfinished episodes drops.
         """
+        self.cut_off = None
         self._judge_settled(final=True)
         self._evict_orphans(final=True)
         out = self._ready
@@ -633,8 +639,9 @@ class TransitionAssembler:
             if self._sequence:  # the last state: no successor, no transition
                 self._observe(self._slots[self._sequence[0]])
                 self._retire(self._sequence.popleft())
-            if self._held is not None:
+            if self._held is not None:  # cut off by the end of the stream, not by a boundary
                 self._ready.append(self._release(truncated=True))
+                self.cut_off = self._ready[-1]
             self._latest_state = None
 
     def _evict_orphans(self, final: bool) -> None:

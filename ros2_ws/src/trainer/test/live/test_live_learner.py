@@ -17,14 +17,14 @@ from morph_core.env.bodies import comb_parents, star_parents, swimmer_tree
 from morph_core.env.sim import SwimmerSim
 from morph_core.env.urdf import swimmer_urdf
 from morph_core.msgs.policy_weights import unpack_policy_weights
-from morph_core.msgs.records import DescriptionRecord
+from morph_core.msgs.records import DescriptionRecord, JointStateRecord
 from morph_core.policy.actor_critic import GraphActorCritic, PolicyConfig
 from morph_core.policy.weights import load_checkpoint
 from morph_core.protocol.loopback import LoopbackRecording, SamplingController, record_episodes
 from morph_core.protocol.policy_updates import PolicyUpdates, checkpoint_trust
-from morph_core.protocol.transitions import SkipCounts, TransitionAssembler
+from morph_core.protocol.transitions import SkipCounts, TransitionAssembler, TransitionConfig
 from morph_core.protocol.trust import TrustedKeys, load_public_key, write_key_pair
-from trainer.live.learner import LiveLearner, LiveOptions, NonFiniteUpdate
+from trainer.live.learner import EpisodeCutter, LiveLearner, LiveOptions, NonFiniteUpdate
 
 SMALL = small_config(num_envs=1, checkpoint_interval=64)
 
@@ -330,3 +330,42 @@ def test_a_live_run_starts_from_init_as_a_simulator_run_does(tmp_path):
         LiveLearner(SMALL, tmp_path / "run", resume=True, init=tmp_path / "start.safetensors")
     fresh = LiveLearner(SMALL, tmp_path / "fresh")  # without it: the seed's fresh policy, as before
     assert fresh.cfg.policy == SMALL.policy and not RunDir(tmp_path / "fresh").init.exists()
+
+
+@pytest.mark.parametrize("silent", ["mid-episode", "at a new body"])
+def test_a_silent_pair_loses_only_the_episode_it_cut_not_the_complete_ones_its_assembler_held(tmp_path, silent):
+    """The live node's assembler judges a state only once 500 later states came (``SETTLE_STATES``): with short
+    episodes it holds several whole ones, of several bodies. A pair falling silent then loses only the episode the
+    silence cut off (none when it fell silent at a new body's first state, as a policy stalled at a body swap);
+    the complete ones all reach the pool."""
+    torch.set_num_threads(1)
+    torch.manual_seed(5)
+    last = 30 if silent == "mid-episode" else 1
+    bodies = ((3, 60), (5, 60), (4, 60), (6, 60), (3, 60), (5, last))
+    records = record_episodes(SamplingController(GraphActorCritic(), 7), bodies, seed=2, describe=True)
+    if silent == "at a new body":  # the stream ends with the new body's first state: its second never comes
+        records = records[: max(i for i, r in enumerate(records) if isinstance(r, JointStateRecord))]
+    asm = TransitionAssembler(TransitionConfig(settle_states=500))
+    learner = LiveLearner(SMALL, tmp_path)
+    cutter = EpisodeCutter(learner, lambda stamp: 0)
+    cutter.take(asm.push_many(records))
+    assert learner.pool_size == 0 and asm.stats.transitions == 0  # all still unjudged, as live
+    lost = cutter.drop(asm)
+    assert asm.skips.steps_skipped == 0 and asm.stats.boundaries == 5  # (the cut: an orphan odometry at most)
+    assert lost == (30 if silent == "mid-episode" else 0) and (asm.cut_off is None) == (silent == "at a new body")
+    assert learner.pool_size == 5 * 60 and learner.dropped_no_info == 0
+    pooled = []
+    while learner.pool_size:
+        pooled += [(len(b), b.joint_pos.shape[1]) for b in learner.take_pool()[0]]
+    assert pooled == [(60, 3), (60, 5), (60, 4), (60, 6), (60, 3)]  # each episode whole, on its body
+
+    # Released as the stream goes on, the same episodes reach the pool one by one, each as it ends.
+    asm, learner = TransitionAssembler(TransitionConfig(settle_states=10)), LiveLearner(SMALL, tmp_path / "stream")
+    cutter = EpisodeCutter(learner, lambda stamp: 0)
+    sizes = []
+    for r in records:
+        cutter.take(asm.push(r))
+        sizes.append(learner.pool_size)
+    # (the last complete one waits for 10 states after it: the body after it gives 30, or only its first)
+    assert sorted(set(sizes)) == [0, 60, 120, 180, 240] + ([300] if silent == "mid-episode" else [])
+    assert cutter.drop(asm) == lost and learner.pool_size == 300

@@ -38,9 +38,9 @@ from morph_core.algo.run_dir import RunDir
 from morph_core.algo.train import TrainConfig
 from morph_core.msgs.records import JointStateRecord
 from morph_core.protocol.loopback import SamplingController, record_episodes
-from morph_core.protocol.transitions import Transition, TransitionAssembler
+from morph_core.protocol.transitions import TransitionAssembler
 from morph_core.util.config_cli import CommandLineParser, add_dataclass_options, overrides_from_args, replace_nested
-from trainer.live.learner import LiveLearner, NonFiniteUpdate, live_train_config
+from trainer.live.learner import EpisodeCutter, LiveLearner, NonFiniteUpdate, live_train_config
 
 
 @dataclass(frozen=True)
@@ -61,17 +61,6 @@ class InProcessOptions:
             raise ValueError(f"drop_states must be in [0, 1), got {self.drop_states}")
 
 
-def runs_of(transitions: list[Transition]) -> list[list[Transition]]:
-    """The assembler's output split into its runs (consecutive transitions, each run ending terminated or
-    truncated)."""
-    runs: list[list[Transition]] = []
-    for t in transitions:
-        if not runs or runs[-1][-1].episode != t.episode:
-            runs.append([])
-        runs[-1].append(t)
-    return runs
-
-
 def train_in_process(cfg: TrainConfig, options: InProcessOptions, out: Path, log=print) -> LiveLearner:
     """Train until ``cfg.total_timesteps`` (see module docstring); returns the learner (closed)."""
     learner = LiveLearner(cfg, out, max_staleness=options.lag)  # keep what the lag makes stale, no more
@@ -88,8 +77,8 @@ def train_in_process(cfg: TrainConfig, options: InProcessOptions, out: Path, log
                 lost = rng.random(len(records)) < options.drop_states
                 records = [r for r, x in zip(records, lost, strict=True) if not (x and isinstance(r, JointStateRecord))]
             assembler = TransitionAssembler()
-            for run in runs_of(assembler.push_many(records) + assembler.flush()):
-                learner.add_episode(run, [version] * len(run))
+            cutter = EpisodeCutter(learner, lambda _stamp, v=version: v)  # the live node's cut into episodes
+            cutter.take(assembler.push_many(records) + assembler.flush())
             episode += 1
             if learner.ready():
                 try:

@@ -58,7 +58,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,7 +77,7 @@ from morph_core.msgs.policy_weights import pack_policy_weights
 from morph_core.policy.index_plan import chain_parents
 from morph_core.policy.weights import SignedWeights, write_checkpoint
 from morph_core.protocol.transition_batch import TransitionBatch
-from morph_core.protocol.transitions import Transition
+from morph_core.protocol.transitions import Transition, TransitionAssembler
 
 LIVE_LEARNING_RATE = 0.003
 """the live trainer's learning rate unless one is given: a third of the paper's 0.01 (TrainConfig's). Samples a
@@ -156,6 +156,44 @@ def live_log_columns(cfg: BodiesConfig) -> list[str]:
 def _tree(t: Transition) -> np.ndarray:
     """A step's parents (a chain's when it has none)."""
     return chain_parents(len(t.joint_pos)) if t.parents is None else np.asarray(t.parents)
+
+
+class EpisodeCutter:
+    """One pair's transitions, in the order its ``TransitionAssembler`` releases them, cut into episodes for
+    ``LiveLearner.add_episode`` (the live node's one place for it).
+
+    An episode ends at its terminated or truncated step (the assembler sets one at every boundary: an
+    announcement, another robot, a stamp gap, a skipped step). ``drop`` is for a pair gone silent: the
+    assembler holds the last ``settle_states`` states unjudged (500 live: many whole episodes of a short
+    ``episode_steps``, and every body swap among them), so its flush holds complete episodes, which go on to
+    the learner; only the episode the silence cut off is thrown away."""
+
+    def __init__(self, learner: LiveLearner, version_of: Callable[[int], int | None]):
+        """``version_of(stamp_ns)``: the weights version that sampled the step of that state (None: unknown)."""
+        self.learner = learner
+        self.version_of = version_of
+        self.episode: list[Transition] = []
+        """the run in progress: its steps released so far"""
+
+    def take(self, transitions: Iterable[Transition]) -> None:
+        """Transitions as the assembler releases them; each finished episode goes to the learner."""
+        for t in transitions:
+            self.episode.append(t)
+            if t.truncated or t.terminated:  # the episode's last step: cut off, or a fall
+                self.learner.add_episode(self.episode, [self.version_of(s.stamp_ns) for s in self.episode])
+                self.episode = []
+
+    def drop(self, assembler: TransitionAssembler) -> int:
+        """The pair went silent: its ``assembler`` is flushed, every episode that ended before the silence goes
+        to the learner (the last one too when the stream ended at a boundary, e.g. a new body's first state that
+        got no answer) and the one the silence cut off (``TransitionAssembler.cut_off``) is thrown away. Returns
+        its steps."""
+        flushed = assembler.flush()
+        cut = assembler.cut_off.episode if assembler.cut_off is not None else None
+        self.take(t for t in flushed if t.episode != cut)
+        lost = len(self.episode) + sum(t.episode == cut for t in flushed)
+        self.episode = []
+        return lost
 
 
 class LiveLearner:

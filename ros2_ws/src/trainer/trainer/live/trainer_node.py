@@ -42,8 +42,9 @@ sim starts a fresh episode with a chain length redrawn from the
 Faults. A pair joins when its loop runs (a ``policy_info`` arrives). A
 pair whose sim publishes no new state for ``silence_timeout`` seconds (sim
 killed; or policy killed: a lockstep sim then only re-sends its state) is
-dropped: its partial episode is thrown away (logged, counted), the others go
-on; when its policy answers again it is taken back (episode steps set,
+dropped: the episode it was in is thrown away (logged, counted), the others go
+on (the complete episodes its assembler still held unjudged go to the learner:
+``learner.EpisodeCutter``); when its policy answers again it is taken back (episode steps set,
 reset). The trainer killed: ``--resume`` continues from the state saved at
 its last update and re-publishes that version; policy nodes run the
 last weights they got meanwhile.
@@ -65,7 +66,7 @@ import os
 import threading
 import time
 from collections import Counter, OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 
 import rclpy
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -88,7 +89,6 @@ from morph_core.protocol.input_counts import InputCounts
 from morph_core.protocol.transitions import (
     SkipCounts,
     StreamStats,
-    Transition,
     TransitionAssembler,
     TransitionConfig,
     task_of,
@@ -108,7 +108,7 @@ from trainer.codec import (
     message_class,
     policy_info_record,
 )
-from trainer.live.learner import LiveLearner, LiveOptions
+from trainer.live.learner import EpisodeCutter, LiveLearner, LiveOptions
 
 DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10_000, reliability=ReliabilityPolicy.RELIABLE)
 """deep: an update starves the executor for tens of seconds on a loaded machine, and a full queue drops the
@@ -178,7 +178,8 @@ class _Pair:
     task: str = "swimmer"
     """the run's task (``protocol.transitions.task_of``: a swimmer's, or a legged body's)"""
     assembler: TransitionAssembler = field(init=False)
-    episode: list[Transition] = field(default_factory=list)
+    episodes: EpisodeCutter = field(init=False)
+    """the assembler's transitions cut into episodes for the learner"""
     versions: OrderedDict = field(default_factory=OrderedDict)
     """policy_info stamp -> weights version (None: not said)"""
     states: int = 0
@@ -196,8 +197,11 @@ class _Pair:
     """the last stream chunk's sequence number"""
     chunks_lost: int = 0
 
-    def __post_init__(self):
+    learner: InitVar[LiveLearner | None] = None
+
+    def __post_init__(self, learner: LiveLearner | None):
         self.assembler = TransitionAssembler(TransitionConfig(task=self.task, settle_states=SETTLE_STATES))
+        self.episodes = EpisodeCutter(learner, self.versions.get)
 
     def refuse(self, reason: str) -> None:
         """A message taken that could not be read (counted, never passed on)."""
@@ -261,7 +265,7 @@ class LiveTrainer(Node):
         services = MutuallyExclusiveCallbackGroup()
         for ns in options.namespaces:
             ns = "/" + ns.strip("/")
-            pair = self.pairs[ns] = _Pair(ns, task_of(cfg.policy.global_features))
+            pair = self.pairs[ns] = _Pair(ns, task_of(cfg.policy.global_features), learner=self.learner)
             if options.stream_chunks:
                 self.create_subscription(UInt8MultiArray, f"{ns}/{CHUNK_TOPIC}", self._chunk_handler(pair), CHUNK_QOS)
             else:
@@ -348,12 +352,7 @@ class LiveTrainer(Node):
             if not pair.active and isinstance(record, PolicyInfoRecord):
                 pair.last_new_state = time.monotonic()
                 self._join(pair)
-            for t in out:
-                pair.episode.append(t)
-                if t.truncated or t.terminated:  # the episode's last step: cut off, or a fall
-                    versions = [pair.versions.get(s.stamp_ns) for s in pair.episode]
-                    self.learner.add_episode(pair.episode, versions)
-                    pair.episode = []
+            pair.episodes.take(out)
 
     # -- pairs joining and leaving ---------------------------------------------------------
     def _join(self, pair: _Pair) -> None:
@@ -374,8 +373,7 @@ class LiveTrainer(Node):
         reset.call_async(Trigger.Request())
 
     def _drop(self, pair: _Pair, why: str) -> None:
-        lost = len(pair.episode) + len(pair.assembler.flush())
-        pair.episode = []
+        lost = pair.episodes.drop(pair.assembler)
         pair.active = False
         pair.dropped_partial += lost
         pair.drops += 1
