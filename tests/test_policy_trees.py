@@ -309,6 +309,26 @@ def test_a_robot_swapped_at_runtime(policies, expected):
     assert node.proc.alive()
 
 
+@pytest.mark.timeout(240)
+def test_a_new_bodys_state_ahead_of_its_description_is_answered_when_the_description_comes(policies):
+    """At a body swap the sim publishes the new robot_description, then the new body's first state, on two topics:
+    the state may come first, fitting no description. The node answers it as soon as the description is adopted
+    (nothing re-sent here), not only when a lockstep sim re-sends it after its effort timeout."""
+    node = policies("", description=chain(["a0", "a1", "a2"]))
+    node.wait_up()
+    node.wait_count("robot_description", 1)
+    rng = np.random.default_rng(5)
+    assert len(node.ask(["a0", "a1", "a2"], *_random_state(rng, 3)).data) == 3
+    longer = [f"a{k}" for k in range(5)]
+    pos, vel = _random_state(rng, 5)
+    msg = node.refused(longer, pos, vel, "rejected", "unknown_joint")  # ahead of its description
+    tag = answer_tag(msg.header.stamp.sec, 0)
+    node.describe(chain(longer))
+    node.probe.spin_until(lambda: tag in node.answers, 20.0, "the answer to the state that came before its robot")
+    assert len(node.answers[tag].data) == 5
+    assert node.proc.alive()
+
+
 # -- bad descriptions and floods ----------------------------------------------------------------------------
 def _bad_descriptions() -> list[tuple[str, str, str]]:
     """(case, description, words its rejection must contain)."""

@@ -151,6 +151,10 @@ def parameters() -> tuple[NodeParameter, ...]:
     )
 
 
+_UNFIT = ("unknown_joint", "missing_joint")
+"""``JointMapError`` codes of a state that fits no description yet (``protocol.joint_map``)"""
+
+
 class MorphPolicyNode(Node):
     def __init__(self):
         super().__init__("morph_policy")
@@ -169,6 +173,9 @@ class MorphPolicyNode(Node):
         )
         self._use(*self._checked(p("checkpoint").value))  # CheckpointError: main()
         self._stream = StreamNotes(serialize_message)
+        self._unfit: JointStateRecord | None = None
+        """the latest state that fit no description (a new body's, come before its robot_description: the topics
+        race at a swap): answered once a description is adopted, as a lockstep sim waits for it"""
 
         self._effort_pub = self.create_publisher(Float64MultiArray, "effort_commands", 10)
         self._info_pub = self.create_publisher(JointTrajectory, "policy_info", 10)
@@ -306,6 +313,8 @@ class MorphPolicyNode(Node):
             self.get_logger().warn(notice.text, throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE)
         elif notice is not None:
             self.get_logger().info(notice.text, throttle_duration_sec=_DESCRIPTION_LOG_THROTTLE)
+        if offer.outcome == "adopted":
+            self._answer_unfit()
 
     def _on_joint_states(self, msg: JointState) -> None:
         self.watch.counts.received(STATES)
@@ -318,6 +327,7 @@ class MorphPolicyNode(Node):
             self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
         except JointMapError as err:
+            self._unfit = state if err.code in _UNFIT else None
             unmapped = self.watch.unmapped(err.code, err, driving=bool(self.controller.names))
             if unmapped.rejection is not None:
                 self._rejected(unmapped.rejection)
@@ -326,8 +336,22 @@ class MorphPolicyNode(Node):
             elif unmapped.notice is not None:  # waiting for a description, said once
                 self._say(unmapped.notice.text, unmapped.notice.warn)
             return
+        self._unfit = None
         for state in ready:
             self._act(state)
+
+    def _answer_unfit(self) -> None:
+        """A description was adopted: the state that fit none before it, if it fits now, is answered (else the
+        lockstep sim waits its effort timeout and re-sends it, a stall at every body swap that lost the race)."""
+        state, self._unfit = self._unfit, None
+        if state is None:
+            return
+        try:
+            ready = self.controller.state(state, time.monotonic())
+        except JointMapError:  # not this robot's either: already counted when it came
+            return
+        for ready_state in ready:
+            self._act(ready_state)
 
     def _on_watchdog(self) -> None:
         now = time.monotonic()
