@@ -544,7 +544,7 @@ def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, 
                 node._take(pair, decode, deserialize_message(data, msg_type), log_ns)
         assert not pair.decode_errors and pair.assembler.stats.descriptions == 2
         with node._lock:
-            transitions = pair.episode + pair.assembler.flush()
+            transitions = pair.episodes.episode + pair.assembler.flush()
         assert pair.assembler.skips == SkipCounts()
     finally:
         if node is not None:
@@ -557,3 +557,43 @@ def test_the_trainer_reads_branched_swimmers_on_their_described_trees(tmp_path, 
         np.testing.assert_array_equal(got.arrays()[k], v, err_msg=k)
     for t in transitions:
         assert t.names == trees[t.episode].names and t.parents.tolist() == trees[t.episode].parents.tolist()
+
+
+def test_a_pair_gone_silent_at_a_body_swap_keeps_its_complete_episodes(tmp_path, untrained_checkpoint, trainer_key):
+    """The trainer's own handlers and its drop (no pair running, no spinning): five 60-step episodes of five
+    bodies, then a new body's first state and silence (a policy stalled at the swap). The node's assembler holds
+    them all unjudged (SETTLE_STATES); the drop hands every complete episode to the pool and loses nothing."""
+    import rclpy
+
+    from morph_core.policy.actor_critic import GraphActorCritic
+    from morph_core.protocol.loopback import SamplingController, record_episodes
+    from trainer.codec import TYPESTORE, record_message
+    from trainer.live.learner import LiveOptions, live_train_config
+    from trainer.live.trainer_node import LiveTrainer
+
+    policy = GraphActorCritic.load(untrained_checkpoint)
+    bodies = ((3, 60), (5, 60), (4, 60), (6, 60), (3, 60), (5, 1))
+    records = record_episodes(SamplingController(policy, 2), bodies, seed=3, describe=True)
+    last_state = max(i for i, r in enumerate(records) if type(r).__name__ == "JointStateRecord")
+    cfg = live_train_config(num_envs=1, num_steps=128, minibatch_size=64, compile=False, tensorboard=False,
+                            progress_bar=False, min_joints=2, max_joints=10)  # fmt: skip
+    rclpy.init()
+    node = None
+    try:
+        node = LiveTrainer(cfg, LiveOptions(("/p",), tmp_path / "run"), trainer_key.signer)
+        pair = node.pairs["/p"]
+        for r in records[:last_state]:  # the new body's second state never comes
+            topic, msg = record_message(r)
+            msg_type, decode = STREAM_TOPICS[topic]
+            node._take(pair, decode, deserialize_message(bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__)),
+                                                         msg_type), r.log_ns)  # fmt: skip
+        assert node.learner.pool_size == 0 and pair.assembler.stats.transitions == 0  # all unjudged yet
+        with node._lock:
+            node._drop(pair, "silent (test)")
+        assert pair.dropped_partial == 0 and pair.drops == 1
+        assert node.learner.pool_size == 5 * 60 and node.learner.dropped_no_info == 0
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
