@@ -120,10 +120,17 @@ class SimWire:
         """the last episode announced"""
         self.counts = InputCounts([EFFORTS])
         """what the effort input received, rejected and ignored, by reason (on /diagnostics)"""
-        self.old_episode_answers = 0
-        self.silence_ignored = 0
-        """fail-safe efforts a lockstep loop does not step on"""
         self.follow_body()
+
+    @property
+    def silence_ignored(self) -> int:
+        """fail-safe efforts a lockstep loop does not step on (``counts``' ignored ``silence``)"""
+        return self.counts.inputs[EFFORTS].ignored["silence"]
+
+    @property
+    def old_episode_answers(self) -> int:
+        """answers to a state of an episode before the current one (``counts``' ignored ``old_episode``)"""
+        return self.counts.inputs[EFFORTS].ignored["old_episode"]
 
     # -- parameters -------------------------------------------------------------
     def refusal(self, name: str, value: object) -> str | None:
@@ -190,11 +197,7 @@ class SimWire:
             body=self.body,
             orders=self.orders,
         )
-        if verdict.ignored is not None:
-            if verdict.ignored == "silence":
-                self.silence_ignored += 1  # a controller's fail-safe zeros answer no state: the loop holds still
-            elif verdict.ignored == "old_episode":
-                self.old_episode_answers += 1
+        if verdict.ignored is not None:  # e.g. a controller's fail-safe zeros, which answer no state
             self.counts.ignored(EFFORTS, verdict.ignored)
             return EffortsTaken()
         if verdict.rejected is not None:
