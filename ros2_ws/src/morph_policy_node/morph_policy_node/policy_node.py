@@ -39,6 +39,7 @@ from morph_core.policy.weights import CheckpointError, PolicyWeights
 from morph_core.protocol.answer_watch import (
     DESCRIPTION,
     EPISODES,
+    HANDOVER_CODES,
     KEYS,
     ODOM,
     STATES,
@@ -149,10 +150,6 @@ def parameters() -> tuple[NodeParameter, ...]:
             read_only=True,
         ),
     )
-
-
-_UNFIT = ("unknown_joint", "missing_joint")
-"""``JointMapError`` codes of a state that fits no description yet (``protocol.joint_map``)"""
 
 
 class MorphPolicyNode(Node):
@@ -327,7 +324,7 @@ class MorphPolicyNode(Node):
             self._reject(STATES, err, "stamp" if isinstance(err, StampError) else "joint_state")
             return
         except JointMapError as err:
-            self._unfit = state if err.code in _UNFIT else None
+            self._unfit = state if err.code in HANDOVER_CODES else None
             unmapped = self.watch.unmapped(err.code, err, driving=bool(self.controller.names))
             if unmapped.rejection is not None:
                 self._rejected(unmapped.rejection)
